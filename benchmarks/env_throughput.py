@@ -1,0 +1,221 @@
+"""Env throughput (steps/s, ms per step) and solver fidelity against dm_control.
+
+Usage:
+  python benchmarks/env_throughput.py throughput [--batches 1 16 256 1024 4096] [--out FILE]
+  python benchmarks/env_throughput.py fidelity [--out FILE]   # needs dm_control (CPU is fine)
+
+``throughput`` times one jitted vmapped control step per task, batch size and solver
+preset (``default`` and ``dm_control``) after a warm-up, as the median of repeated
+scans of 20 steps. ``fidelity`` compares MJX under several solver settings with
+dm_control on (a) one control step from the same 200 states along a random-action
+trajectory and (b) 1000-step open-loop rollouts of the same action sequence from the
+same initial state. Results are merged into ``benchmarks/results/env_throughput.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import functools
+import json
+import pathlib
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "env_throughput.json"
+STEPS_PER_CALL = 20
+
+
+def _load(path: pathlib.Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {"rows": [], "fidelity": {}}
+
+
+def _device() -> str:
+    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
+
+
+def time_rollout(env, batch: int, repeats: int = 5) -> float:
+    """Median seconds per control step of ``batch`` environments."""
+
+    def body(state, key):
+        action = jax.random.uniform(key, (batch, env.action_size), minval=-1, maxval=1)
+        return jax.vmap(env.step)(state, action), ()
+
+    @jax.jit
+    def run(state, key):
+        state, _ = jax.lax.scan(body, state, jax.random.split(key, STEPS_PER_CALL))
+        return state
+
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch))
+    state = jax.block_until_ready(run(state, jax.random.PRNGKey(1)))  # compile + warm-up
+    times = []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        state = jax.block_until_ready(run(state, jax.random.PRNGKey(2 + i)))
+        times.append((time.perf_counter() - t0) / STEPS_PER_CALL)
+    return statistics.median(times)
+
+
+def throughput(args):
+    """Yields one result row per (task, solver, batch)."""
+    device, date = _device(), datetime.date.today().isoformat()
+    for task in args.tasks:
+        for solver in args.solvers:
+            env = make_env(task, solver=solver, unroll_substeps=args.unroll)
+            for batch in args.batches:
+                if solver == "dm_control" and batch > args.max_dm_batch:
+                    continue
+                sec = time_rollout(env, batch)
+                row = {
+                    "device": device,
+                    "date": date,
+                    "jax": jax.__version__,
+                    "command": " ".join(["python"] + sys.argv),
+                    "task": task,
+                    "solver": solver,
+                    "unroll_substeps": args.unroll,
+                    "batch": batch,
+                    "env_steps_per_s": batch / sec,
+                    "ms_per_step": sec * 1e3,
+                }
+                yield row
+                print(
+                    f"{task:13s} {solver:10s} batch {batch:5d}: {sec * 1e3:8.2f} ms/step {batch / sec:12,.0f} steps/s"
+                )
+                sys.stdout.flush()
+
+
+def _open_loop(env, state, actions):
+    """Observations and rewards of ``env`` under a fixed action sequence."""
+
+    def body(s, a):
+        s = env.step(s, a)
+        return s, (s.obs, s.reward)
+
+    return jax.lax.scan(body, state, actions)[1]
+
+
+def _dm_obs(ts) -> np.ndarray:
+    return np.concatenate([np.atleast_1d(v) for v in ts.observation.values()])
+
+
+def fidelity(args) -> dict:
+    """Errors of MJX (several solver settings) against dm_control (float64, its own solver)."""
+    from dm_control import suite  # test-only dependency
+
+    candidates = {
+        "dm_control": SOLVERS["dm_control"],
+        "4/8": Solver(4, 8),
+        "2/5": Solver(2, 5),
+        "1/4": Solver(1, 4),
+        "1/4 no eulerdamp": Solver(1, 4, eulerdamp=False),
+    }
+    out = {}
+    for task in args.tasks:
+        domain, name = task.split("_")
+        ref = suite.load(domain, name, task_kwargs={"random": 0})
+        rng = np.random.default_rng(0)
+        # Reference trajectory of random actions: states, actions, next obs, rewards.
+        ref.reset()
+        states, actions, next_obs, rewards = [], [], [], []
+        for _ in range(args.fidelity_states):
+            phys = ref.physics
+            states.append((phys.data.qpos.copy(), phys.data.qvel.copy(), phys.data.qacc_warmstart.copy()))
+            a = rng.uniform(-1, 1, 6)
+            ts = ref.step(a)
+            actions.append(a)
+            next_obs.append(_dm_obs(ts))
+            rewards.append(ts.reward)
+        next_obs, rewards = np.array(next_obs), np.array(rewards)
+        # Open-loop rollout of a fixed action sequence from dm_control's reset state.
+        ref.reset()
+        q0, v0 = ref.physics.data.qpos.copy(), ref.physics.data.qvel.copy()
+        seq = np.random.default_rng(1).uniform(-1, 1, (1000, 6))
+        ref_traj, ref_ret = [], 0.0
+        for a in seq:
+            ts = ref.step(a)
+            ref_traj.append(_dm_obs(ts))
+            ref_ret += ts.reward
+        ref_traj = np.array(ref_traj)
+        out[task] = {"dm_control_return": ref_ret}
+        for label, solver in candidates.items():
+            env = make_env(task, solver=solver)
+            base = jax.jit(env.reset)(jax.random.PRNGKey(0))
+
+            def with_state(q, v, w, base=base):
+                d = base.pipeline_state.replace(qpos=q, qvel=v, qacc_warmstart=w)
+                return base.replace(pipeline_state=d)
+
+            qs = jnp.asarray(np.array([s[0] for s in states]), jnp.float32)
+            vs = jnp.asarray(np.array([s[1] for s in states]), jnp.float32)
+            ws = jnp.asarray(np.array([s[2] for s in states]), jnp.float32)
+            batch = jax.jit(jax.vmap(with_state))(qs, vs, ws)
+            nxt = jax.jit(jax.vmap(env.step))(batch, jnp.asarray(np.array(actions), jnp.float32))
+            obs_err = np.abs(np.asarray(nxt.obs) - next_obs)
+            rew_err = np.abs(np.asarray(nxt.reward) - rewards)
+
+            q, v = jnp.asarray(q0, jnp.float32), jnp.asarray(v0, jnp.float32)
+            start = with_state(q, v, jnp.zeros_like(v))
+            traj, rew = jax.jit(functools.partial(_open_loop, env))(start, jnp.asarray(seq, jnp.float32))
+            dev = np.abs(np.asarray(traj) - ref_traj).mean(axis=1)
+            out[task][label] = {
+                "solver": vars(solver),
+                "one_step_obs_abs_err_mean": float(obs_err.mean()),
+                "one_step_obs_abs_err_max": float(obs_err.max()),
+                "one_step_reward_abs_err_mean": float(rew_err.mean()),
+                "one_step_reward_abs_err_max": float(rew_err.max()),
+                "rollout_obs_abs_dev_at": {str(t): float(dev[t - 1]) for t in (10, 100, 1000)},
+                "rollout_return": float(np.sum(np.asarray(rew))),
+            }
+            r = out[task][label]
+            print(
+                f"{task:13s} {label:17s} 1-step obs err mean {r['one_step_obs_abs_err_mean']:.2e} "
+                f"max {r['one_step_obs_abs_err_max']:.2e} reward err max {r['one_step_reward_abs_err_max']:.2e} | "
+                f"rollout dev@10 {dev[9]:.2e} @100 {dev[99]:.2e} @1000 {dev[999]:.2e} "
+                f"return {r['rollout_return']:.1f} (dm_control {ref_ret:.1f})"
+            )
+            sys.stdout.flush()
+    return out
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("mode", choices=["throughput", "fidelity"])
+    p.add_argument("--tasks", nargs="+", default=sorted(TASKS))
+    p.add_argument("--solvers", nargs="+", default=["default", "dm_control"])
+    p.add_argument("--batches", nargs="+", type=int, default=[1, 16, 256, 1024, 4096])
+    p.add_argument("--unroll", action="store_true", help="unroll the physics substeps of a control step")
+    p.add_argument("--max-dm-batch", type=int, default=4096, help="skip dm_control solver above this batch")
+    p.add_argument("--fidelity-states", type=int, default=200)
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    args = p.parse_args()
+    results = _load(args.out)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.mode == "throughput":
+        key = lambda r: (r["device"], r["task"], r["solver"], r["batch"], r.get("unroll_substeps", False))
+        for row in throughput(args):
+            # Rows of the two presets form the main table; every setting also goes to the sweep behind the choice.
+            parts = ("rows", "solver_sweep") if row["solver"] in SOLVERS and not args.unroll else ("solver_sweep",)
+            for part in parts:
+                results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]
+            args.out.write_text(json.dumps(results, indent=1))
+    else:
+        results["fidelity"] = {
+            "date": datetime.date.today().isoformat(),
+            "jax": jax.__version__,
+            "device": _device(),
+            "command": " ".join(["python"] + sys.argv),
+            "tasks": fidelity(args),
+        }
+        args.out.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""Frozen configuration dataclasses, named presets and validation.
+
+Every field is documented; ``python -m rebel_jax.train --help`` shows these docstrings.
+Static sizes (network widths, batch sizes, counts) are Python ints baked into the
+compiled program; float hyperparameters are plain data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+Algo = Literal["sac", "pebble", "surf", "rebel"]
+Precision = Literal["tf32", "highest", "bf16"]
+
+
+class ConfigError(ValueError):
+    """A configuration value is out of its allowed range."""
+
+
+def _check(cond: bool, field: str, value, allowed: str) -> None:
+    if not cond:
+        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """The task and how many copies of it each seed runs."""
+
+    task: str = "walker_walk"
+    """Task name: walker_stand, walker_walk, walker_run or cheetah_run."""
+    solver: str = "default"
+    """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
+    num_envs: int = 10
+    """Environments stepped together per seed; each vector step collects ``num_envs`` transitions."""
+    episode_length: int = 1000
+    """Control steps per episode (dm_control: 1000)."""
+
+    def validate(self) -> None:
+        from rebel_jax.envs import SOLVERS, TASKS
+
+        _check(self.task in TASKS, "env.task", self.task, f"one of {sorted(TASKS)}")
+        _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
+        _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
+        _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class SACConfig:
+    """Soft actor-critic (Haarnoja et al. 2018) with B-Pref's settings by default."""
+
+    hidden: int = 1024
+    """Width of each hidden layer of the actor and of each critic."""
+    depth: int = 2
+    """Hidden layers of the actor and of each critic."""
+    batch_size: int = 1024
+    """Transitions per gradient step."""
+    actor_lr: float = 5e-4
+    """Adam learning rate of the actor."""
+    critic_lr: float = 5e-4
+    """Adam learning rate of the twin critic."""
+    alpha_lr: float = 1e-4
+    """Adam learning rate of the log-temperature."""
+    init_temperature: float = 0.1
+    """Initial entropy temperature alpha."""
+    gamma: float = 0.99
+    """Discount factor."""
+    tau: float = 0.005
+    """Polyak rate of the target critic."""
+    target_every: int = 2
+    """Gradient steps between target-critic updates."""
+    log_std_min: float = -5.0
+    """Lower clamp of the actor's log standard deviation."""
+    log_std_max: float = 2.0
+    """Upper clamp of the actor's log standard deviation."""
+    utd: float = 1.0
+    """Gradient updates per collected transition (update-to-data ratio)."""
+    precision: Precision = "tf32"
+    """Matmul precision: ``tf32`` (XLA's default on GPU), ``highest`` (fp32) or ``bf16`` (bf16 compute, fp32 params)."""
+
+    def validate(self) -> None:
+        for name in ("hidden", "depth", "batch_size", "target_every"):
+            _check(getattr(self, name) >= 1, f"sac.{name}", getattr(self, name), ">= 1")
+        for name in ("actor_lr", "critic_lr", "alpha_lr", "init_temperature"):
+            _check(getattr(self, name) > 0, f"sac.{name}", getattr(self, name), "> 0")
+        _check(0 <= self.gamma < 1, "sac.gamma", self.gamma, "[0, 1)")
+        _check(0 < self.tau <= 1, "sac.tau", self.tau, "(0, 1]")
+        _check(self.log_std_min < self.log_std_max, "sac.log_std_min", self.log_std_min, "< log_std_max")
+        _check(self.utd > 0, "sac.utd", self.utd, "> 0")
+        _check(self.precision in ("tf32", "highest", "bf16"), "sac.precision", self.precision, "tf32, highest, bf16")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """The schedule of one run."""
+
+    total_steps: int = 500_000
+    """Environment steps per seed (all ``num_envs`` environments together)."""
+    seed_steps: int = 1_000
+    """Initial environment steps with uniformly random actions."""
+    steps_per_round: int = 10_000
+    """Environment steps per jitted round (the unit of progress, logging and checkpoints)."""
+    eval_every: int = 10_000
+    """Environment steps between evaluations; a multiple of ``steps_per_round``."""
+    eval_episodes: int = 10
+    """Deterministic evaluation episodes on the true reward."""
+    buffer_capacity: int = 0
+    """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref)."""
+    seed: int = 0
+    """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
+
+    def validate(self, num_envs: int) -> None:
+        for name in ("total_steps", "steps_per_round", "eval_every", "eval_episodes"):
+            _check(getattr(self, name) >= 1, f"train.{name}", getattr(self, name), ">= 1")
+        _check(self.seed_steps >= 0, "train.seed_steps", self.seed_steps, ">= 0")
+        _check(
+            self.steps_per_round % num_envs == 0,
+            "train.steps_per_round",
+            self.steps_per_round,
+            f"a multiple of env.num_envs={num_envs}",
+        )
+        _check(
+            self.eval_every % self.steps_per_round == 0,
+            "train.eval_every",
+            self.eval_every,
+            f"a multiple of train.steps_per_round={self.steps_per_round}",
+        )
+        _check(self.buffer_capacity >= 0, "train.buffer_capacity", self.buffer_capacity, ">= 0")
+
+    @property
+    def capacity(self) -> int:
+        return self.buffer_capacity or self.total_steps
+
+    @property
+    def num_rounds(self) -> int:
+        return math.ceil(self.total_steps / self.steps_per_round)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole run."""
+
+    algo: Algo = "sac"
+    """sac (true reward), pebble, surf (PEBBLE+SURF) or rebel."""
+    env: EnvConfig = EnvConfig()
+    sac: SACConfig = SACConfig()
+    train: TrainConfig = TrainConfig()
+
+    def validate(self) -> Config:
+        _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
+        self.env.validate()
+        self.sac.validate()
+        self.train.validate(self.env.num_envs)
+        return self
+
+
+def _tiny() -> Config:
+    return Config(
+        env=EnvConfig(num_envs=4, episode_length=100),
+        sac=SACConfig(hidden=64, batch_size=128, utd=0.25),
+        train=TrainConfig(total_steps=6_000, seed_steps=400, steps_per_round=2_000, eval_every=2_000, eval_episodes=2),
+    )
+
+
+PRESETS: dict[str, Config] = {
+    "paper": Config(),
+    "tiny": _tiny(),
+}
+"""``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2). ``tiny``: CPU tests and the README's run."""

@@ -1,0 +1,304 @@
+"""DeepMind-Control-equivalent walker and cheetah tasks on MJX.
+
+Each task follows brax's ``Env`` / ``State`` interface: a pure ``reset(key) -> State``
+and ``step(state, action) -> State``, jittable and vmappable. Observations, rewards,
+reset distributions, control and physics time steps and the 1000-step episode are
+dm_control's (suite ``walker.py`` and ``cheetah.py``); the tests compare them with
+dm_control on the same physics states.
+
+References:
+  Tassa et al., "DeepMind Control Suite", 2018 (arXiv:1801.00690).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from rebel_jax.envs import models
+from rebel_jax.envs.rewards import tolerance
+
+
+@struct.dataclass
+class State:
+    """One environment's state (brax's ``State``).
+
+    Attributes:
+      pipeline_state: the MJX physics data.
+      obs: the observation.
+      reward: the task's true reward for the last transition.
+      done: 1.0 when the episode has ended (here only by the time limit).
+      metrics: reward components and physical quantities behind the reward.
+      info: ``steps`` (control steps in this episode), ``truncation`` (1.0 when the
+        episode ended by the time limit rather than by termination).
+    """
+
+    pipeline_state: mjx.Data
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    metrics: dict[str, jax.Array] = struct.field(default_factory=dict)
+    info: dict[str, Any] = struct.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Solver:
+    """MJX constraint-solver settings.
+
+    Attributes:
+      iterations: maximum Newton iterations per physics step (MuJoCo default 100).
+      ls_iterations: maximum line-search iterations per Newton iteration (default 50).
+      tolerance: the solver stops early once the relative cost improvement is below
+        it (MuJoCo default 1e-8; under ``vmap`` the loop runs until every member stops).
+      eulerdamp: integrate joint damping implicitly in the Euler integrator, as
+        MuJoCo does by default (MuJoCo Playground turns it off).
+    """
+
+    iterations: int
+    ls_iterations: int
+    tolerance: float = 1e-8
+    eulerdamp: bool = True
+
+    def __post_init__(self):
+        if self.iterations < 1 or self.ls_iterations < 1:
+            raise ValueError(f"solver iterations and ls_iterations must be >= 1; got {self}")
+        if not self.tolerance >= 0:
+            raise ValueError(f"solver tolerance must be >= 0; got {self.tolerance}")
+
+
+SOLVERS: dict[str, Solver] = {
+    # dm_control's own settings (MuJoCo's defaults).
+    "dm_control": Solver(iterations=100, ls_iterations=50),
+    # Our default, chosen by speed and fidelity: see BENCHMARKS.md ("Choice of solver").
+    "default": Solver(iterations=4, ls_iterations=8),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    """What distinguishes one task: its model, time steps, reset, observation and reward."""
+
+    name: str
+    xml: Callable[[], str]
+    total_mass: float | None
+    n_substeps: int
+    settle_steps: int
+    obs_size: int
+    obs_fn: Callable[[mjx.Data], jax.Array]
+    reward_fn: Callable[[mjx.Data], tuple[jax.Array, dict[str, jax.Array]]]
+
+
+def _observed(d: mjx.Data, m: mjx.Model) -> mjx.Data:
+    """Position and velocity quantities of ``d``'s current qpos/qvel.
+
+    ``mjx.step`` leaves kinematics at the pre-integration state; dm_control (legacy
+    stepping) observes after ``mj_step1``, i.e. at the new state. This recomputes
+    only what the observations and rewards read (no collision or constraint solve).
+    """
+    d = mjx.kinematics(m, d)
+    d = mjx.com_pos(m, d)
+    d = mjx.com_vel(m, d)
+    return mjx.subtree_vel(m, d)
+
+
+# Body index 1 is the torso in both models; index 0 is the world.
+_TORSO = 1
+
+
+def _torso_subtree_linvel_x(d: mjx.Data) -> jax.Array:
+    return d._impl.subtree_linvel[_TORSO, 0]
+
+
+def _walker_obs(d: mjx.Data) -> jax.Array:
+    orientations = d.xmat[1:].reshape(-1, 9)[:, jnp.array([0, 2])].ravel()  # xx, xz
+    return jnp.concatenate([orientations, d.xpos[_TORSO, 2:3], d.qvel])
+
+
+def _walker_reward(move_speed: float):
+    stand_height = 1.2
+
+    def reward_fn(d: mjx.Data):
+        height = d.xpos[_TORSO, 2]
+        upright = (1.0 + d.xmat[_TORSO, 2, 2]) / 2.0
+        standing = tolerance(height, bounds=(stand_height, jnp.inf), margin=stand_height / 2)
+        stand = (3.0 * standing + upright) / 4.0
+        velocity = _torso_subtree_linvel_x(d)
+        metrics = {
+            "standing": standing,
+            "upright": upright,
+            "stand_reward": stand,
+            "torso_height": height,
+            "horizontal_velocity": velocity,
+        }
+        if move_speed == 0:
+            return stand, metrics
+        move = tolerance(
+            velocity,
+            bounds=(move_speed, jnp.inf),
+            margin=move_speed / 2,
+            value_at_margin=0.5,
+            sigmoid="linear",
+        )
+        metrics["move_reward"] = move
+        return stand * (5.0 * move + 1.0) / 6.0, metrics
+
+    return reward_fn
+
+
+def _cheetah_obs(d: mjx.Data) -> jax.Array:
+    return jnp.concatenate([d.qpos[1:], d.qvel])
+
+
+def _cheetah_reward(d: mjx.Data):
+    speed = _torso_subtree_linvel_x(d)
+    reward = tolerance(speed, bounds=(10.0, jnp.inf), margin=10.0, value_at_margin=0.0, sigmoid="linear")
+    return reward, {"speed": speed}
+
+
+def _walker(name: str, move_speed: float) -> TaskSpec:
+    return TaskSpec(name, models.walker_xml, None, 10, 0, 24, _walker_obs, _walker_reward(move_speed))
+
+
+TASKS: dict[str, TaskSpec] = {
+    "walker_stand": _walker("walker_stand", 0.0),
+    "walker_walk": _walker("walker_walk", 1.0),
+    "walker_run": _walker("walker_run", 8.0),
+    "cheetah_run": TaskSpec(
+        "cheetah_run", models.cheetah_xml, models.CHEETAH_TOTAL_MASS, 1, 200, 17, _cheetah_obs, _cheetah_reward
+    ),
+}
+
+
+def mj_model(task: str, solver: Solver | None = None) -> mujoco.MjModel:
+    """The compiled MuJoCo model of ``task``, with ``solver``'s options applied."""
+    spec = TASKS[task]
+    model = models.compile_model(spec.xml(), spec.total_mass)
+    if solver is not None:
+        model.opt.iterations = solver.iterations
+        model.opt.ls_iterations = solver.ls_iterations
+        model.opt.tolerance = solver.tolerance
+        if not solver.eulerdamp:
+            model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    return model
+
+
+class DMCEnv:
+    """A dm_control-equivalent task on MJX with brax's ``Env`` interface.
+
+    Use :func:`rebel_jax.envs.make_env` to build one.
+    """
+
+    def __init__(self, task: str, solver: Solver, episode_length: int = 1000, unroll_substeps: bool = False):
+        if episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1; got {episode_length}")
+        self.spec = TASKS[task]
+        self.solver = solver
+        self.episode_length = episode_length
+        self.unroll_substeps = unroll_substeps
+        self.mj_model = mj_model(task, solver)
+        self.sys = mjx.put_model(self.mj_model)
+        m = self.mj_model
+        # Reset: limited joints uniform in their range, unlimited hinges uniform in
+        # [-pi, pi], everything else (unlimited slides) left at qpos0.
+        low = np.array(m.qpos0, dtype=np.float32)
+        high = low.copy()
+        for j in range(m.njnt):
+            adr = m.jnt_qposadr[j]
+            if m.jnt_limited[j]:
+                low[adr], high[adr] = m.jnt_range[j]
+            elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                low[adr], high[adr] = -np.pi, np.pi
+        self._reset_low, self._reset_high = jnp.asarray(low), jnp.asarray(high)
+
+    # brax's Env properties.
+    @property
+    def observation_size(self) -> int:
+        return self.spec.obs_size
+
+    @property
+    def action_size(self) -> int:
+        return self.mj_model.nu
+
+    @property
+    def dt(self) -> float:
+        return float(self.mj_model.opt.timestep) * self.spec.n_substeps
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def unwrapped(self) -> DMCEnv:
+        return self
+
+    def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
+        return jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+
+    def observe(self, d: mjx.Data, steps: jax.Array, done: jax.Array) -> State:
+        """The ``State`` of physics data ``d`` whose qpos/qvel are current (kinematics are recomputed)."""
+        d = _observed(d, self.sys)
+        reward, metrics = self.spec.reward_fn(d)
+        info = {"steps": steps, "truncation": done}
+        return State(d, self.spec.obs_fn(d), reward, done, metrics, info)
+
+    def reset(self, rng: jax.Array) -> State:
+        """Samples an initial state from dm_control's reset distribution."""
+        u = jax.random.uniform(rng, self._reset_low.shape)
+        qpos = self._reset_low + u * (self._reset_high - self._reset_low)
+        d = mjx.make_data(self.sys).replace(qpos=qpos)
+        if self.spec.settle_steps:
+            d = self._physics_steps(d, self.spec.settle_steps).replace(time=jnp.zeros(()))
+        zero = jnp.zeros(())
+        return self.observe(d, jnp.zeros((), jnp.int32), zero)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """Applies ``action`` (clipped to [-1, 1] by MuJoCo) for one control step."""
+        if action.shape != (self.action_size,):
+            raise ValueError(
+                f"{self.spec.name}: action must have shape ({self.action_size},), got {action.shape}; "
+                "vmap the environment for a batch of actions"
+            )
+        d = state.pipeline_state.replace(ctrl=action.astype(state.pipeline_state.ctrl.dtype))
+        d = self._physics_steps(d, self.spec.n_substeps, self.unroll_substeps)
+        steps = state.info["steps"] + 1
+        done = (steps >= self.episode_length).astype(jnp.float32)
+        return self.observe(d, steps, done)
+
+
+def parse_solver(solver: str | Solver) -> Solver:
+    """A :class:`Solver` from a preset name or ``"ITERATIONS/LS_ITERATIONS[/noeulerdamp]"``."""
+    if isinstance(solver, Solver):
+        return solver
+    if solver in SOLVERS:
+        return SOLVERS[solver]
+    parts = solver.split("/")
+    if len(parts) in (2, 3) and all(p.isdigit() for p in parts[:2]) and parts[2:] in ([], ["noeulerdamp"]):
+        return Solver(int(parts[0]), int(parts[1]), eulerdamp=len(parts) == 2)
+    raise ValueError(
+        f"unknown solver {solver!r}; valid: {', '.join(SOLVERS)}, 'ITERATIONS/LS_ITERATIONS[/noeulerdamp]' or a Solver"
+    )
+
+
+def make_env(
+    name: str, solver: str | Solver = "default", episode_length: int = 1000, unroll_substeps: bool = False
+) -> DMCEnv:
+    """Builds a task by name.
+
+    Args:
+      name: one of ``walker_stand``, ``walker_walk``, ``walker_run``, ``cheetah_run``.
+      solver: a name from :data:`SOLVERS` (``default`` or ``dm_control``) or a :class:`Solver`.
+      episode_length: control steps per episode (dm_control: 1000).
+      unroll_substeps: unroll the physics substeps of a control step in the compiled
+        program instead of looping over them (longer compile, fewer loop round trips).
+    """
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}")
+    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps)

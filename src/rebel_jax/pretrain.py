@@ -1,0 +1,180 @@
+"""Unsupervised pre-training reward: state entropy by k-nearest neighbours (PEBBLE, REFERENCE.md section 2).
+
+During pre-training the critic target uses an intrinsic reward instead of the task reward:
+for every observation of the SAC batch, its distance to its k-th nearest neighbour among the
+replay buffer's observations (a particle estimate of state entropy, Liu & Abbeel 2021 / PEBBLE
+eq. 3), divided by a running standard deviation of these distances. B-Pref takes the
+``(k+1)``-th smallest distance (``torch.kthvalue(dists, k + 1)``) because each batch
+observation is itself in the buffer at distance 0; ``knn_reward`` does the same.
+
+Distances are computed chunk by chunk over the buffer with a running top-(k+1), so memory is
+O(N * chunk) whatever the buffer size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+
+def _check(cond: bool, field: str, value, allowed: str) -> None:
+    if not cond:
+        from rebel_jax.config import ConfigError  # Lazy: config imports this module.
+
+        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PretrainConfig:
+    """Unsupervised state-entropy exploration (PEBBLE's pre-training phase)."""
+
+    steps: int = 9_000
+    """Environment steps of unsupervised pre-training after the seed steps (B-Pref: 9,000)."""
+    k: int = 5
+    """Neighbour rank: the reward is the distance to the k-th nearest other buffer observation (B-Pref: 5)."""
+    chunk_size: int = 4096
+    """Buffer observations compared per chunk; bounds memory to batch_size x chunk_size distances."""
+
+    def validate(self) -> None:
+        _check(self.steps >= 0, "pretrain.steps", self.steps, ">= 0")
+        _check(self.k >= 1, "pretrain.k", self.k, ">= 1")
+        _check(self.chunk_size >= 1, "pretrain.chunk_size", self.chunk_size, ">= 1")
+
+
+@flax.struct.dataclass
+class RunningStats:
+    """Running mean and variance of a scalar stream (parallel/Chan update, as baselines' RunningMeanStd)."""
+
+    mean: jax.Array
+    """Mean of everything seen so far."""
+    var: jax.Array
+    """Population variance of everything seen so far (1 before any data)."""
+    count: jax.Array
+    """Number of values seen."""
+
+
+def init_stats() -> RunningStats:
+    """Empty statistics: mean 0, variance 1, count 0 (``normalize`` is the identity until updated)."""
+    return RunningStats(mean=jnp.zeros(()), var=jnp.ones(()), count=jnp.zeros(()))
+
+
+def update(stats: RunningStats, values: jax.Array) -> RunningStats:
+    """Merges a batch of values into the running statistics (Chan et al.'s parallel algorithm).
+
+    Args:
+      stats: statistics so far.
+      values: (N,) new values.
+
+    Returns:
+      Statistics of all values seen, exactly the mean and population variance of their concatenation.
+    """
+    batch_count = jnp.asarray(values.size, stats.count.dtype)
+    batch_mean = jnp.mean(values)
+    batch_var = jnp.var(values)
+    total = stats.count + batch_count
+    delta = batch_mean - stats.mean
+    mean = stats.mean + delta * batch_count / total
+    m2 = stats.var * stats.count + batch_var * batch_count + delta**2 * stats.count * batch_count / total
+    return RunningStats(mean=mean, var=m2 / total, count=total)
+
+
+def normalize(stats: RunningStats, values: jax.Array) -> jax.Array:
+    """Divides by the running standard deviation (not centred, as B-Pref's intrinsic reward).
+
+    Args:
+      stats: running statistics.
+      values: values to scale.
+
+    Returns:
+      ``values / sqrt(var)`` (std floored at 1e-8).
+    """
+    return values / jnp.maximum(jnp.sqrt(stats.var), 1e-8)
+
+
+def _sq_distances(batch_obs: jax.Array, chunk: jax.Array) -> jax.Array:
+    """Squared Euclidean distances (N, C), with a full-precision matmul (TF32 would blur them)."""
+    cross = jnp.matmul(batch_obs, chunk.T, precision=jax.lax.Precision.HIGHEST)
+    sq = jnp.sum(batch_obs**2, axis=1)[:, None] + jnp.sum(chunk**2, axis=1)[None, :] - 2.0 * cross
+    return jnp.maximum(sq, 0.0)
+
+
+def knn_reward(
+    batch_obs: jax.Array, buffer_obs: jax.Array, valid_mask: jax.Array, k: int, chunk_size: int = 4096
+) -> jax.Array:
+    """Distance of each batch observation to its k-th nearest neighbour in the buffer (B-Pref).
+
+    Returns the ``(k+1)``-th smallest distance to the valid buffer observations: the nearest
+    one is the observation itself when the batch was sampled from the buffer.
+
+    Args:
+      batch_obs: (N, D) observations to reward.
+      buffer_obs: (P, D) buffer observations.
+      valid_mask: (P,) bool, True for filled buffer rows.
+      k: neighbour rank (static).
+      chunk_size: buffer observations per chunk (static).
+
+    Returns:
+      (N,) distances; ``inf`` if fewer than k+1 buffer observations are valid.
+
+    References:
+      Liu & Abbeel, APT, 2021; Lee, Smith, Abbeel, PEBBLE, ICML 2021, eq. (3).
+    """
+    num, rank = buffer_obs.shape[0], k + 1
+    chunk = min(chunk_size, num)
+    num_chunks = -(-num // chunk)
+
+    def body(index, best):
+        start = jnp.minimum(index * chunk, num - chunk)  # The last chunk overlaps its predecessor...
+        position = start + jnp.arange(chunk)
+        fresh = position >= index * chunk  # ...whose rows are masked out here.
+        rows = jax.lax.dynamic_slice_in_dim(buffer_obs, start, chunk)
+        valid = jax.lax.dynamic_slice_in_dim(valid_mask, start, chunk) & fresh
+        sq = jnp.where(valid[None, :], _sq_distances(batch_obs, rows), jnp.inf)
+        merged = jnp.concatenate([best, sq], axis=1)
+        return -jax.lax.top_k(-merged, rank)[0]
+
+    best = jnp.full((batch_obs.shape[0], rank), jnp.inf, batch_obs.dtype)
+    best = jax.lax.fori_loop(0, num_chunks, body, best)
+    return jnp.sqrt(best[:, k])
+
+
+def flatten_buffer_obs(buffer: Any) -> tuple[jax.Array, jax.Array]:
+    """The buffer's observations as one (T*E, D) array and their validity.
+
+    Args:
+      buffer: replay buffer with ``obs`` (T, E, D), ``ptr`` and ``size`` (filled rows, written
+        in a ring ending at ``ptr - 1``).
+
+    Returns:
+      obs: (T*E, D); valid: (T*E,) bool, True for rows among the ``size`` most recent.
+    """
+    capacity, num_envs = buffer.obs.shape[:2]
+    age = (buffer.ptr - 1 - jnp.arange(capacity)) % capacity  # 0 for the newest row.
+    valid = jnp.repeat(age < buffer.size, num_envs)
+    return buffer.obs.reshape(capacity * num_envs, -1), valid
+
+
+def intrinsic_reward(
+    cfg: PretrainConfig, stats: RunningStats, batch_obs: jax.Array, buffer: Any
+) -> tuple[jax.Array, RunningStats]:
+    """PEBBLE's pre-training reward for a SAC batch: kNN distance over its running std.
+
+    The statistics are updated with this batch first, then used to scale it (B-Pref's order).
+
+    Args:
+      cfg: the pre-training settings.
+      stats: running statistics of past kNN distances.
+      batch_obs: (N, D) observations of the SAC batch.
+      buffer: the replay buffer (see ``flatten_buffer_obs``).
+
+    Returns:
+      (N,) rewards and the updated statistics.
+    """
+    obs, valid = flatten_buffer_obs(buffer)
+    distance = knn_reward(batch_obs, obs, valid, cfg.k, cfg.chunk_size)
+    stats = update(stats, distance)
+    return normalize(stats, distance), stats

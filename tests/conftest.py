@@ -1,0 +1,62 @@
+"""Shared test setup: JAX's persistent compilation cache and compiled env functions.
+
+MJX compiles slowly on CPU, so every compiled environment function is built once per
+session here and shared by the tests.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import pathlib
+import warnings
+
+import jax
+import pytest
+
+_CACHE = pathlib.Path(os.environ.get("REBEL_JAX_TEST_CACHE", pathlib.Path(__file__).parents[1] / ".jax_cache"))
+jax.config.update("jax_compilation_cache_dir", str(_CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+warnings.filterwarnings("ignore", message=".*settotalmass.*")
+
+
+class CompiledEnv:
+    """An environment with its jitted reset/step (single and batched), built lazily."""
+
+    def __init__(self, task: str, solver: str):
+        from rebel_jax.envs import make_env
+
+        self.env = make_env(task, solver=solver)
+
+    @functools.cached_property
+    def reset(self):
+        return jax.jit(self.env.reset)
+
+    @functools.cached_property
+    def step(self):
+        return jax.jit(self.env.step)
+
+    @functools.cached_property
+    def batch_reset(self):
+        return jax.jit(jax.vmap(self.env.reset))
+
+    @functools.cached_property
+    def batch_step(self):
+        return jax.jit(jax.vmap(self.env.step))
+
+    @functools.cached_property
+    def observe(self):
+        return jax.jit(jax.vmap(self.env.observe))
+
+
+@pytest.fixture(scope="session")
+def compiled_env():
+    """``compiled_env(task, solver="default")`` returns a shared :class:`CompiledEnv`."""
+    cache: dict[tuple[str, str], CompiledEnv] = {}
+
+    def get(task: str, solver: str = "default") -> CompiledEnv:
+        if (task, solver) not in cache:
+            cache[(task, solver)] = CompiledEnv(task, solver)
+        return cache[(task, solver)]
+
+    return get

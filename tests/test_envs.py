@@ -1,0 +1,86 @@
+"""Every task resets and steps under jit; batching, episode bookkeeping and errors."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rebel_jax.envs import TASKS, AutoResetWrapper, make_env
+
+OBS_SIZE = {"walker_stand": 24, "walker_walk": 24, "walker_run": 24, "cheetah_run": 17}
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_batched_reset_and_step_are_finite_with_documented_shapes(compiled_env, task):
+    c = compiled_env(task)
+    state = c.batch_reset(jax.random.split(jax.random.PRNGKey(0), 3))
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (3, 6), minval=-1, maxval=1)
+    for _ in range(3):
+        state = c.batch_step(state, actions)
+    assert c.env.observation_size == OBS_SIZE[task]
+    assert c.env.action_size == 6
+    assert state.obs.shape == (3, OBS_SIZE[task])
+    assert state.reward.shape == (3,) and state.done.shape == (3,)
+    assert np.all(np.isfinite(state.obs)) and np.all(np.isfinite(state.reward))
+    assert np.all((state.reward >= 0) & (state.reward <= 1))
+    np.testing.assert_array_equal(state.info["steps"], 3)
+    # Distinct keys give distinct initial states.
+    assert not np.allclose(state.obs[0], state.obs[1])
+
+
+def test_vmapped_step_equals_stepping_each_env_alone(compiled_env):
+    c = compiled_env("walker_walk")
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (3, 6), minval=-1, maxval=1)
+    batched = c.batch_step(c.batch_reset(keys), actions)
+    for i in range(3):
+        alone = c.step(c.reset(keys[i]), actions[i])
+        np.testing.assert_allclose(batched.obs[i], alone.obs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(batched.reward[i], alone.reward, rtol=1e-5, atol=1e-6)
+
+
+def test_time_limit_truncates_without_terminating():
+    env = make_env("walker_walk", episode_length=2)
+    step = jax.jit(env.step)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    state = step(state, jnp.zeros(6))
+    assert float(state.done) == 0.0 and float(state.info["truncation"]) == 0.0
+    state = step(state, jnp.zeros(6))
+    assert float(state.done) == 1.0 and float(state.info["truncation"]) == 1.0
+
+
+def test_auto_reset_restarts_finished_episodes_and_keeps_final_obs():
+    wrapped = AutoResetWrapper(make_env("walker_walk", episode_length=2), num_envs=2)
+    step = jax.jit(wrapped.step)
+    state = jax.jit(wrapped.reset)(jax.random.PRNGKey(0))
+    first_obs = state.obs
+    state = step(state, jnp.zeros((2, 6)))
+    state = step(state, jnp.zeros((2, 6)))
+    np.testing.assert_array_equal(state.done, 1.0)
+    np.testing.assert_array_equal(state.info["steps"], 0)  # restarted
+    assert not np.allclose(state.info["final_obs"], state.obs)  # the episode's last obs is kept
+    assert not np.allclose(state.obs, first_obs)  # a fresh draw, not the first state again
+    state = step(state, jnp.zeros((2, 6)))
+    np.testing.assert_array_equal(state.done, 0.0)
+    np.testing.assert_array_equal(state.info["steps"], 1)
+
+
+def test_unknown_task_lists_valid_tasks():
+    with pytest.raises(ValueError, match="walker_walk.*") as err:
+        make_env("walker_fly")
+    for task in TASKS:
+        assert task in str(err.value)
+
+
+def test_wrong_action_shape_says_what_was_expected():
+    env = make_env("cheetah_run")
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match=r"shape \(6,\), got \(5,\)"):
+        jax.eval_shape(env.step, state, jnp.zeros(5))
+
+
+def test_unknown_solver_is_rejected():
+    with pytest.raises(ValueError, match="dm_control"):
+        make_env("walker_walk", solver="fastest")

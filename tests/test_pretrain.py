@@ -1,0 +1,123 @@
+"""kNN state-entropy reward and running statistics against brute-force NumPy."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rebel_jax import pretrain
+
+
+@flax.struct.dataclass
+class FakeBuffer:
+    """The fields of replay.py's buffer that pre-training reads."""
+
+    obs: jax.Array
+    ptr: jax.Array
+    size: jax.Array
+
+
+def _brute_force_knn(batch, points, k):
+    dist = np.sqrt(((batch[:, None, :].astype(np.float64) - points[None, :, :]) ** 2).sum(-1))
+    return np.sort(dist, axis=1)[:, k]
+
+
+@pytest.mark.parametrize("chunk_size", [16, 103, 1000])
+def test_knn_reward_equals_brute_force(chunk_size):
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(103, 5)).astype(np.float32)
+    valid = rng.random(103) < 0.7
+    batch = np.concatenate([points[valid][:10], rng.normal(size=(6, 5)).astype(np.float32)])
+    knn = jax.jit(pretrain.knn_reward, static_argnums=(3, 4))
+    got = np.asarray(knn(batch, points, valid, 3, chunk_size))
+    np.testing.assert_allclose(got, _brute_force_knn(batch, points[valid], 3), rtol=1e-4, atol=1e-5)
+    # Batch observations drawn from the buffer skip themselves (distance 0): rank k + 1, as B-Pref.
+    assert np.all(got[:10] > 0)
+
+
+def test_knn_reward_is_inf_without_enough_valid_points():
+    points = np.zeros((8, 2), np.float32)
+    valid = np.array([True, True] + [False] * 6)
+    got = jax.jit(pretrain.knn_reward, static_argnums=(3, 4))(points[:2], points, valid, 2, 4)
+    assert np.all(np.isinf(np.asarray(got)))
+
+
+def test_running_stats_equal_numpy_over_all_batches():
+    rng = np.random.default_rng(1)
+    batches = [rng.gamma(2.0, size=n).astype(np.float32) for n in (7, 50, 1, 13)]
+    update = jax.jit(pretrain.update)
+    stats = pretrain.init_stats()
+    np.testing.assert_allclose(np.asarray(pretrain.normalize(stats, batches[0])), batches[0])
+    for i, batch in enumerate(batches):
+        stats = update(stats, batch)
+        seen = np.concatenate(batches[: i + 1]).astype(np.float64)
+        np.testing.assert_allclose(float(stats.mean), seen.mean(), rtol=1e-5)
+        np.testing.assert_allclose(float(stats.var), seen.var(), rtol=1e-4)
+        assert int(stats.count) == seen.size
+    scaled = np.asarray(pretrain.normalize(stats, batches[1]))
+    np.testing.assert_allclose(scaled, batches[1] / np.concatenate(batches).std(), rtol=1e-4)
+
+
+def _ring_buffer(num_writes, capacity=12, num_envs=3):
+    obs = np.full((capacity, num_envs, 2), np.nan, np.float32)
+    written = []
+    rng = np.random.default_rng(num_writes)
+    for time in range(num_writes):
+        obs[time % capacity] = rng.normal(size=(num_envs, 2))
+        written.append(time % capacity)
+    buffer = FakeBuffer(
+        obs=jnp.asarray(np.nan_to_num(obs, nan=0.0)),
+        ptr=jnp.asarray(num_writes % capacity, jnp.int32),
+        size=jnp.asarray(min(num_writes, capacity), jnp.int32),
+    )
+    return buffer, sorted(set(written)), obs
+
+
+@pytest.mark.parametrize("num_writes", [5, 12, 30])
+def test_flatten_buffer_obs_marks_exactly_the_written_rows(num_writes):
+    buffer, rows, _ = _ring_buffer(num_writes)
+    obs, valid = jax.jit(pretrain.flatten_buffer_obs)(buffer)
+    expected = np.zeros((12, 3), bool)
+    expected[rows] = True
+    np.testing.assert_array_equal(np.asarray(valid), expected.reshape(-1))
+    np.testing.assert_array_equal(np.asarray(obs), np.asarray(buffer.obs).reshape(36, 2))
+
+
+def test_intrinsic_reward_is_knn_over_the_updated_std():
+    cfg = pretrain.PretrainConfig(k=2, chunk_size=8)
+    buffer, rows, obs = _ring_buffer(7)
+    points = obs[rows].reshape(-1, 2)
+    batch = points[[0, 4, 9, 13]]
+    stats = pretrain.update(pretrain.init_stats(), jnp.array([0.5, 1.5, 2.5]))
+    reward_fn = jax.jit(functools.partial(pretrain.intrinsic_reward, cfg))
+    reward, new_stats = reward_fn(stats, batch, buffer)
+    distance = _brute_force_knn(batch, points, 2)
+    seen = np.concatenate([[0.5, 1.5, 2.5], distance])
+    np.testing.assert_allclose(np.asarray(reward), distance / seen.std(), rtol=1e-4)
+    assert int(new_stats.count) == 7
+
+
+def test_vmap_over_seeds_equals_separate_calls():
+    buffers = [_ring_buffer(n)[0] for n in (7, 30)]
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *buffers)
+    batch = np.random.default_rng(3).normal(size=(2, 5, 2)).astype(np.float32)
+    cfg = pretrain.PretrainConfig(k=3, chunk_size=10)
+    stats = jax.tree.map(lambda x: jnp.stack([x, x]), pretrain.init_stats())
+    fn = functools.partial(pretrain.intrinsic_reward, cfg)
+    batched, _ = jax.jit(jax.vmap(fn))(stats, batch, stacked)
+    for i in range(2):
+        alone, _ = jax.jit(fn)(pretrain.init_stats(), batch[i], buffers[i])
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(alone), rtol=1e-6)
+
+
+@pytest.mark.parametrize("field,value", [("steps", -1), ("k", 0), ("chunk_size", 0)])
+def test_validate_names_the_field(field, value):
+    with pytest.raises(ValueError, match=f"pretrain.{field}"):
+        dataclasses.replace(pretrain.PretrainConfig(), **{field: value}).validate()
+    pretrain.PretrainConfig().validate()
