@@ -32,8 +32,10 @@ class EnvConfig:
     """Task name: walker_stand, walker_walk, walker_run or cheetah_run."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
-    num_envs: int = 10
-    """Environments stepped together per seed; each vector step collects ``num_envs`` transitions."""
+    num_envs: int = 40
+    """Environments stepped together per seed; each vector step collects ``num_envs`` transitions.
+
+    B-Pref steps one environment; MJX's per-step latency (BENCHMARKS.md) makes many per seed necessary."""
     episode_length: int = 1000
     """Control steps per episode (dm_control: 1000)."""
 
@@ -74,8 +76,10 @@ class SACConfig:
     """Lower clamp of the actor's log standard deviation."""
     log_std_max: float = 2.0
     """Upper clamp of the actor's log standard deviation."""
-    utd: float = 1.0
-    """Gradient updates per collected transition (update-to-data ratio)."""
+    utd: float = 0.25
+    """Gradient updates per collected transition (update-to-data ratio); ``utd * num_envs`` per vector step.
+
+    B-Pref uses 1; 0.25 makes 10 seeds x 500k steps fit a 10-minute GPU call (BENCHMARKS.md)."""
     precision: Precision = "tf32"
     """Matmul precision: ``tf32`` (XLA's default on GPU), ``highest`` (fp32) or ``bf16`` (bf16 compute, fp32 params)."""
 
