@@ -13,6 +13,8 @@ from rebel_jax.envs.dmc import mj_model
 
 suite = pytest.importorskip("dm_control.suite")
 
+B = 32  # the batch size of tests/test_envs.py, so compiled functions are shared
+
 MODEL_FIELDS = [
     "body_mass", "body_inertia", "body_pos", "body_quat", "body_ipos", "body_iquat", "body_parentid",
     "geom_type", "geom_size", "geom_pos", "geom_quat", "geom_bodyid", "geom_friction", "geom_contype",
@@ -72,7 +74,7 @@ def _batch_with_states(c, qpos, qvel, warm):
 
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_observation_and_reward_equal_dm_control_on_same_states(compiled_env, task):
-    qpos, qvel, _, _, _, _ = _reference_trajectory(task, 40)
+    qpos, qvel, _, _, _, _ = _reference_trajectory(task, B)
     ref, obs_ref, rew_ref = _dm_env(task), [], []
     for q, v in zip(np.asarray(qpos, np.float64), np.asarray(qvel, np.float64), strict=True):
         with ref.physics.reset_context():
@@ -88,25 +90,27 @@ def test_observation_and_reward_equal_dm_control_on_same_states(compiled_env, ta
 
 
 @pytest.mark.parametrize("task", ["walker_walk", "cheetah_run"])
-@pytest.mark.parametrize("solver,atol", [("dm_control", 2e-3), ("default", 0.1)])
-def test_one_control_step_matches_dm_control(compiled_env, task, solver, atol):
-    """From the same 24 states and actions, one control step lands where dm_control's does.
+@pytest.mark.parametrize("solver,mean_tol,max_tol", [("dm_control", 1e-4, 2e-3), ("default", 1e-2, 0.5)])
+def test_one_control_step_matches_dm_control(compiled_env, task, solver, mean_tol, max_tol):
+    """From the same 32 states and actions, one control step lands where dm_control's does.
 
-    With dm_control's solver settings MJX agrees to float32 precision; the fast default
-    trades a bounded one-step error (figures in BENCHMARKS.md) for speed.
+    With dm_control's solver settings MJX agrees to float32 precision; the faster default
+    (4 Newton / 8 line-search iterations) leaves a small mean and a bounded worst-case
+    one-step error in contact-rich steps (figures in BENCHMARKS.md).
     """
-    qpos, qvel, warm, actions, obs_ref, rew_ref = _reference_trajectory(task, 24)
+    qpos, qvel, warm, actions, obs_ref, rew_ref = _reference_trajectory(task, B)
     c = compiled_env(task, solver)
     nxt = c.batch_step(_batch_with_states(c, qpos, qvel, warm), actions)
     scale = np.maximum(1.0, np.abs(obs_ref))  # velocities reach tens of units
-    assert np.max(np.abs(np.asarray(nxt.obs) - obs_ref) / scale) < atol
-    assert np.max(np.abs(np.asarray(nxt.reward) - rew_ref)) < 10 * atol
+    rel = np.abs(np.asarray(nxt.obs) - obs_ref) / scale
+    assert rel.mean() < mean_tol and rel.max() < max_tol, (rel.mean(), rel.max())
+    assert np.max(np.abs(np.asarray(nxt.reward) - rew_ref)) < max_tol
 
 
 @pytest.mark.parametrize("task", ["walker_walk", "cheetah_run"])
 def test_reset_distribution_matches_dm_control(compiled_env, task):
-    n = 200
-    ours = np.asarray(compiled_env(task).batch_reset(jax.random.split(jax.random.PRNGKey(7), n)).obs)
+    n, reset = 6 * B, compiled_env(task).batch_reset
+    ours = np.concatenate([np.asarray(reset(jax.random.split(jax.random.PRNGKey(i), B)).obs) for i in range(6)])
     ref_env = _dm_env(task, seed=1)
     ref = np.array([_dm_obs(ref_env.reset()) for _ in range(n)])
     assert ours.shape == ref.shape
