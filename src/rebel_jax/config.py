@@ -153,6 +153,7 @@ class Config:
 
     def validate(self) -> Config:
         _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
+        _check(self.algo == "sac", "algo", self.algo, "sac for now: the preference methods are not yet in the trainer")
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)

@@ -78,7 +78,7 @@ class Trainer:
         self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
         self.steps_per_round = cfg.train.steps_per_round // cfg.env.num_envs  # vector steps
         self.updates_per_step = max(1, round(cfg.sac.utd * cfg.env.num_envs))
-        self.use_learned_reward = cfg.algo != "sac"
+        self.use_learned_reward = cfg.algo != "sac"  # the preference methods train on the learned reward
         self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
