@@ -19,13 +19,12 @@ import datetime
 import functools
 import json
 import pathlib
-import statistics
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from timing import median_seconds
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
 
@@ -54,13 +53,7 @@ def time_rollout(env, batch: int, repeats: int = 5) -> float:
         return state
 
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch))
-    state = jax.block_until_ready(run(state, jax.random.PRNGKey(1)))  # compile + warm-up
-    times = []
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        state = jax.block_until_ready(run(state, jax.random.PRNGKey(2 + i)))
-        times.append((time.perf_counter() - t0) / STEPS_PER_CALL)
-    return statistics.median(times)
+    return median_seconds(run, state, STEPS_PER_CALL, repeats)
 
 
 def throughput(args):

@@ -20,10 +20,10 @@ import json
 import pathlib
 import statistics
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
+from timing import median_seconds
 
 from rebel_jax import replay
 from rebel_jax.config import PRESETS
@@ -63,13 +63,7 @@ def time_update(num_seeds: int, precision: str, repeats: int = 5) -> float:
         return jax.lax.scan(body, state, jax.random.split(key, UPDATES_PER_CALL))[0]
 
     run = jax.jit(many, donate_argnums=0)
-    state = jax.block_until_ready(run(state, jax.random.PRNGKey(1)))
-    times = []
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        state = jax.block_until_ready(run(state, jax.random.PRNGKey(2 + i)))
-        times.append((time.perf_counter() - t0) / UPDATES_PER_CALL)
-    return statistics.median(times)
+    return median_seconds(run, state, UPDATES_PER_CALL, repeats)
 
 
 def update_rows(args):

@@ -1,0 +1,26 @@
+"""Shared timing for the benchmarks: median seconds per inner step of a jitted stateful call."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import jax
+
+
+def median_seconds(run, state, per_call: int, repeats: int = 5) -> float:
+    """Median seconds per inner step of ``state = run(state, key)`` after a compile + warm-up call.
+
+    Args:
+      run: jitted ``(state, key) -> state`` doing ``per_call`` inner steps.
+      state: its initial state.
+      per_call: inner steps per call.
+      repeats: timed calls.
+    """
+    state = jax.block_until_ready(run(state, jax.random.PRNGKey(1)))  # compile + warm-up
+    times = []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        state = jax.block_until_ready(run(state, jax.random.PRNGKey(2 + i)))
+        times.append((time.perf_counter() - t0) / per_call)
+    return statistics.median(times)
