@@ -5,6 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 ARGS ?=
+PYTEST_ARGS ?=
 
 .PHONY: train test lint clean
 
@@ -19,14 +20,14 @@ $(VENV)/.test: $(VENV)/.base
 	touch $@
 
 train: $(VENV)/.base
-	$(PY) -m rebel_jax.train --preset tiny $(ARGS)
+	$(PY) -m rebel_jax.train --preset tiny --algo rebel --rebel.lam -0.1 $(ARGS)
 
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) .jax_cache runs

@@ -1,7 +1,9 @@
-"""Shared test setup: JAX's persistent compilation cache and compiled env functions.
+"""Shared test setup: JAX's persistent compilation cache, compiled env functions, xdist groups.
 
 MJX compiles slowly on CPU, so every compiled environment function is built once per
-session here and shared by the tests.
+session here and shared by the tests. ``make test`` runs two pytest-xdist workers with
+``--dist loadgroup``: each test file is one group (so its module fixtures compile once), and
+the env files share a group (so they share the compiled environments).
 """
 
 from __future__ import annotations
@@ -60,3 +62,12 @@ def compiled_env():
         return cache[(task, solver)]
 
     return get
+
+
+_SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group(_SHARED_GROUPS.get(name, name)))

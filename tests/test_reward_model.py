@@ -235,7 +235,15 @@ def test_pref_probs_are_sigmoid_of_return_differences():
 
 
 @pytest.mark.parametrize(
-    "field,value", [("ensemble_size", 0), ("lr", 0.0), ("batch_size", 0), ("stop_accuracy", 1.5), ("label_capacity", 0)]
+    "field,value",
+    [
+        ("ensemble_size", 0),
+        ("lr", 0.0),
+        ("batch_size", 0),
+        ("stop_accuracy", 1.5),
+        ("label_capacity", 0),
+        ("output", "relu"),
+    ],
 )
 def test_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"reward.{field}"):

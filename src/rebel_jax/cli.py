@@ -1,8 +1,10 @@
 """``python -m rebel_jax.train``: the host loop over jitted rounds, and its command line.
 
     python -m rebel_jax.train --preset paper --algo sac --task walker_walk --seeds 5
+    python -m rebel_jax.train --preset paper --algo pebble --labels 100 --teacher noisy
 
-``--preset`` (``paper`` or ``tiny``) picks the defaults; every other flag overrides one
+``--preset`` (``paper`` or ``tiny``) picks the defaults and ``--teacher`` (a B-Pref teacher:
+oracle, noisy, mistake, skip, equal, myopic) the teacher; every other flag overrides one
 field of :class:`rebel_jax.config.Config` (``--help`` lists them with their docs).
 """
 
@@ -23,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import tyro
 
-from rebel_jax import sweep
+from rebel_jax import sweep, teachers
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.logging import RunLogger
@@ -34,7 +36,7 @@ from rebel_jax.train import Trainer, compiled, seed_keys
 class Args:
     """Train one configuration on several seeds."""
 
-    config: Annotated[Config, tyro.conf.OmitArgPrefixes]
+    config: Annotated[Config, tyro.conf.arg(name="")]
     seeds: int = 1
     """Seeds run together (vmapped; sharded over all devices when there are several)."""
     run_dir: pathlib.Path | None = None
@@ -49,12 +51,25 @@ class Args:
     """Write TensorBoard event files."""
     distributed: bool = False
     """Call ``jax.distributed.initialize()`` first (multi-host runs)."""
+    lam_grid: tuple[float, ...] = ()
+    """``--algo rebel`` only: run every seed with each of these lambdas in one vmapped program
+    (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
+    for every lambda). Empty: ``rebel.lam`` only."""
+
+    @property
+    def lams(self) -> tuple[float, ...]:
+        return self.lam_grid or (self.config.rebel.lam,)
+
+    @property
+    def columns(self) -> int:
+        """Runs vmapped together: seeds x lambdas."""
+        return self.seeds * len(self.lams)
 
 
 def _git_commit() -> str | None:
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or None
+        return out.stdout.strip() if out.returncode == 0 else None
     except OSError:
         return None
 
@@ -69,6 +84,8 @@ def _write_meta(run_dir: pathlib.Path, args: Args) -> None:
         "git_commit": _git_commit(),
         "command": " ".join(sys.argv),
         "seeds": args.seeds,
+        "columns": args.columns,
+        "lams": [lam for lam in args.lams for _ in range(args.seeds)] if args.config.algo == "rebel" else None,
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
     }
     (run_dir / "meta.json").write_text(json.dumps(meta, indent=1))
@@ -80,9 +97,13 @@ def run(args: Args) -> dict:
     run_dir = args.run_dir or pathlib.Path("runs") / f"{cfg.algo}_{cfg.env.task}_{time.strftime('%Y%m%d-%H%M%S')}"
     trainer = Trainer(cfg)
     init, round_fn, evaluate = compiled(trainer)
-    sharding = sweep.seed_sharding(args.seeds)
-    keys = sweep.shard_seeds(seed_keys(cfg.train.seed, args.seeds), sharding)
-    state = sweep.shard_seeds(init(keys), sharding)
+    sharding = sweep.seed_sharding(args.columns)
+    keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (len(args.lams), 1))
+    keys = sweep.shard_seeds(keys, sharding)
+    state = init(keys)
+    if cfg.algo == "rebel":
+        state = state.replace(lam=jnp.repeat(jnp.asarray(args.lams, jnp.float32), args.seeds))
+    state = sweep.shard_seeds(state, sharding)
     ckpt = Checkpointer(run_dir / "checkpoints") if args.checkpoint_every else None
     start = 0
     if args.resume:
@@ -102,7 +123,7 @@ def run(args: Args) -> dict:
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:
                 metrics.pop("eval_return")
-            extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.seeds / seconds}
+            extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.columns / seconds}
             logger.write(env_steps, metrics, extra)
             if ckpt is not None and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
                 ckpt.save(r + 1, state)
@@ -113,24 +134,34 @@ def run(args: Args) -> dict:
         logger.close()
         if ckpt is not None:
             ckpt.close()
-    print(f"final evaluation return over {args.seeds} seed(s): {result['mean']:.1f} +- {result['std']:.1f}")
+    for i, lam in enumerate(args.lams):
+        part = final[i * args.seeds : (i + 1) * args.seeds]
+        which = f" (lambda {lam:g})" if cfg.algo == "rebel" else ""
+        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f} +- {part.std():.1f}")
     print(f"run directory: {run_dir}")
     return result
 
 
 def parse(argv: list[str] | None = None) -> Args:
-    """Reads ``--preset`` first, then every other flag as an override of that preset."""
-    pre = argparse.ArgumentParser(add_help=False)
+    """Reads ``--preset`` and ``--teacher`` first, then every other flag as an override of them."""
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default="paper")
+    pre.add_argument("--teacher", choices=list(teachers.PRESETS), default="oracle")
     known, rest = pre.parse_known_args(argv)
-    description = f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper)."
-    args = tyro.cli(Args, default=Args(config=PRESETS[known.preset]), args=rest, description=description)
+    description = (
+        f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper)."
+        f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it."
+    )
+    config = dataclasses.replace(PRESETS[known.preset], teacher=teachers.PRESETS[known.teacher])
+    args = tyro.cli(Args, default=Args(config=config), args=rest, description=description)
     try:
         args.config.validate()
         if args.seeds < 1:
             raise ConfigError(f"seeds={args.seeds!r} is invalid: allowed >= 1")
         if args.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
+        if args.lam_grid and args.config.algo != "rebel":
+            raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from err

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
+from typing import Annotated, Literal
+
+import tyro
+
+from rebel_jax.pretrain import PretrainConfig
+from rebel_jax.queries import QueryConfig
+from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
+from rebel_jax.teachers import TeacherConfig
 
 Algo = Literal["sac", "pebble", "surf", "rebel"]
 Precision = Literal["tf32", "highest", "bf16"]
@@ -142,21 +149,89 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class FeedbackConfig:
+    """When the teacher is asked, and how much (B-Pref's schedule).
+
+    The first session comes at env step ``train.seed_steps + pretrain.steps`` (the end of
+    unsupervised pre-training, as B-Pref), then one every ``interval`` steps while the seed
+    has labels left. Only answered pairs count against the budget: a skipped pair does not.
+    """
+
+    labels: int = 100
+    """Total label budget per seed (answered pairs)."""
+    per_session: int = 0
+    """Pairs asked per session; 0 means ``labels // 10`` (B-Pref: 10 sessions, e.g. 10 for 100 labels)."""
+    interval: int = 20_000
+    """Environment steps between feedback sessions; a multiple of ``train.steps_per_round``."""
+
+    @property
+    def queries(self) -> int:
+        return self.per_session or max(1, self.labels // 10)
+
+    def validate(self) -> None:
+        _check(self.labels >= 1, "feedback.labels", self.labels, ">= 1")
+        _check(self.per_session >= 0, "feedback.per_session", self.per_session, ">= 0 (0: labels // 10)")
+        _check(self.interval >= 1, "feedback.interval", self.interval, ">= 1")
+
+
+def _check_round_multiple(value: int, field: str, steps_per_round: int) -> None:
+    _check(value % steps_per_round == 0, field, value, f"a multiple of train.steps_per_round={steps_per_round}")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """A whole run."""
 
     algo: Algo = "sac"
     """sac (true reward), pebble, surf (PEBBLE+SURF) or rebel."""
-    env: EnvConfig = EnvConfig()
-    sac: SACConfig = SACConfig()
-    train: TrainConfig = TrainConfig()
+    env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
+    sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
+    train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
+    feedback: Annotated[FeedbackConfig, tyro.conf.OmitArgPrefixes] = FeedbackConfig()
+    reward: RewardConfig = RewardConfig()
+    teacher: TeacherConfig = TeacherConfig()
+    query: QueryConfig = QueryConfig()
+    pretrain: PretrainConfig = PretrainConfig()
+    """Unsupervised pre-training; used by the preference methods only (``--algo sac`` skips it)."""
+    surf: SURFConfig = SURFConfig()
+    """PEBBLE+SURF's semi-supervised terms; used by ``--algo surf`` only."""
+    rebel: AgentPreferenceConfig = AgentPreferenceConfig()
+    """REBEL's agent-preference term; used by ``--algo rebel`` only."""
+
+    @property
+    def preference(self) -> bool:
+        """Whether the agent learns from preferences (everything but ``sac``)."""
+        return self.algo != "sac"
+
+    @property
+    def feedback_start(self) -> int:
+        """Env step of the first feedback session (= end of pre-training)."""
+        return self.train.seed_steps + self.pretrain.steps
 
     def validate(self) -> Config:
         _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
-        _check(self.algo == "sac", "algo", self.algo, "sac for now: the preference methods are not yet in the trainer")
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
+        if self.preference:
+            for part in (self.feedback, self.reward, self.teacher, self.pretrain):
+                part.validate()
+            self.query.validate(self.env.episode_length)
+            if self.algo == "surf":
+                self.surf.validate(self.query.segment_length)
+            if self.algo == "rebel":
+                self.rebel.validate()
+                length = self.rebel.segment_length
+                _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
+            steps = self.train.steps_per_round
+            _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)
+            _check_round_multiple(self.feedback.interval, "feedback.interval", steps)
+            _check(
+                self.train.capacity >= self.train.total_steps,
+                "train.buffer_capacity",
+                self.train.buffer_capacity,
+                f"0 or >= train.total_steps={self.train.total_steps} (relabelling and queries assume no eviction)",
+            )
         return self
 
 
@@ -164,7 +239,13 @@ def _tiny() -> Config:
     return Config(
         env=EnvConfig(num_envs=4, episode_length=100),
         sac=SACConfig(hidden=64, batch_size=128, utd=0.25),
-        train=TrainConfig(total_steps=6_000, seed_steps=400, steps_per_round=2_000, eval_every=2_000, eval_episodes=2),
+        train=TrainConfig(total_steps=8_000, seed_steps=400, steps_per_round=2_000, eval_every=2_000, eval_episodes=2),
+        feedback=FeedbackConfig(labels=60, per_session=20, interval=2_000),
+        reward=RewardConfig(hidden=64),
+        query=QueryConfig(segment_length=25),
+        pretrain=PretrainConfig(steps=1_600),
+        surf=SURFConfig(pool_size=512),
+        rebel=AgentPreferenceConfig(segment_length=25),
     )
 
 

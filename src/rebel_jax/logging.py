@@ -53,6 +53,8 @@ class RunLogger:
         postfix = {"steps/s": f"{extra.get('env_steps_per_s', 0):,.0f}"}
         if record.get("eval_return_mean") is not None:
             postfix["eval"] = f"{record['eval_return_mean']:.1f}"
+        if record.get("labels_used_mean") is not None:
+            postfix["labels"] = f"{record['labels_used_mean']:.0f}"
         self.bar.set_postfix(postfix, refresh=False)
         self.bar.update(env_steps - self.bar.n)
 

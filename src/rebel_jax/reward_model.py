@@ -1,24 +1,33 @@
 """Reward ensemble learned from preferences with the Bradley-Terry model (PEBBLE / B-Pref).
 
 The model is an ensemble of M MLPs ``r(s, a)`` over ``concat(s, a)`` (LeakyReLU hidden layers,
-tanh output) whose parameters are stacked on a leading member axis and trained by ONE Adam
-(B-Pref sums the members' losses into one backward pass; Adam being per-coordinate, this equals
-M separate optimisers). The reward used by the agent is the ensemble mean.
+tanh output, or sigmoid for a non-negative reward) whose parameters are stacked on a leading
+member axis and trained by ONE Adam (B-Pref sums the members' losses into one backward pass;
+Adam being per-coordinate, this equals M separate optimisers). The reward used by the agent is
+the ensemble mean.
 
 Label convention (``teachers``): ``label = P(seg_b preferred to seg_a)`` in {0, 0.5, 1}.
 
 The training loss is a sum of *terms*, each a pure ``(params, batch, key) -> (loss, metrics)``
 over the whole ensemble's ``params`` and a ``PrefBatch`` of labelled pairs (with a leading
 member axis: every member sees its own shuffle, as in B-Pref). ``bt_loss`` is the
-Bradley-Terry term; REBEL's agent-preference term ``lambda * V`` or SURF's terms are further
-factories of the same type, which close over their own data, and are passed to ``train``.
+Bradley-Terry term. Further factories of the same type close over their own data and are
+passed to ``train``:
+
+- ``agent_value_term``: REBEL's agent preference ``lambda * V``, the learned reward's value
+  on segments visited by the current policy;
+- ``cropped_bt_loss`` and ``pseudo_label_term``: SURF's temporal cropping of the labelled pairs
+  and its confidence-thresholded pseudo-labels on unlabelled pairs. With SURF, segments are
+  stored at length ``L = H + 2 * crop`` and a crop is a 0/1 step mask over them, so every
+  shape stays static.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import flax.linen as nn
 import flax.struct
@@ -45,7 +54,7 @@ class RewardConfig:
     hidden: int = 256
     """Width of each hidden layer."""
     depth: int = 3
-    """Hidden layers (LeakyReLU) before the tanh output."""
+    """Hidden layers (LeakyReLU) before the squashed output (see ``output``)."""
     lr: float = 3e-4
     """Adam learning rate, one optimiser over all members."""
     batch_size: int = 128
@@ -56,26 +65,35 @@ class RewardConfig:
     """Stop a session early once the members' mean training accuracy of an epoch exceeds this."""
     label_capacity: int = 1000
     """Stored labelled pairs (>= the total feedback budget; older pairs are overwritten beyond it)."""
+    output: Literal["tanh", "sigmoid"] = "tanh"
+    """Output squashing: ``tanh`` (B-Pref's, r in (-1, 1)) or ``sigmoid`` (r in (0, 1), the
+    non-negative reward that REBEL's bound assumes)."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "label_capacity"):
             _check(getattr(self, name) >= 1, f"reward.{name}", getattr(self, name), ">= 1")
         _check(self.lr > 0, "reward.lr", self.lr, "> 0")
         _check(0 <= self.stop_accuracy <= 1, "reward.stop_accuracy", self.stop_accuracy, "[0, 1]")
+        _check(self.output in ("tanh", "sigmoid"), "reward.output", self.output, "tanh, sigmoid")
 
 
 class RewardMLP(nn.Module):
-    """One member: ``tanh(MLP(concat(obs, action)))``, a scalar per step (B-Pref's ``gen_net``)."""
+    """One member: ``squash(MLP(concat(obs, action)))``, a scalar per step (B-Pref's ``gen_net``).
+
+    ``squash`` is ``tanh`` (B-Pref's ``activation='tanh'``) or ``sigmoid`` (its ``'sig'``).
+    """
 
     hidden: int
     depth: int
+    output: str = "tanh"
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
         for _ in range(self.depth):
             x = nn.leaky_relu(nn.Dense(self.hidden)(x))
-        return jnp.tanh(nn.Dense(1)(x))[..., 0]
+        squash = jax.nn.sigmoid if self.output == "sigmoid" else jnp.tanh
+        return squash(nn.Dense(1)(x))[..., 0]
 
 
 @flax.struct.dataclass
@@ -122,7 +140,7 @@ class PrefBatch:
 
 
 def _network(cfg: RewardConfig) -> RewardMLP:
-    return RewardMLP(hidden=cfg.hidden, depth=cfg.depth)
+    return RewardMLP(hidden=cfg.hidden, depth=cfg.depth, output=cfg.output)
 
 
 def _optimizer(cfg: RewardConfig) -> optax.GradientTransformation:
@@ -167,7 +185,7 @@ def predict(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -
       action: (..., act_size).
 
     Returns:
-      (M, ...) rewards in (-1, 1).
+      (M, ...) rewards in (-1, 1) (``tanh`` output) or (0, 1) (``sigmoid``).
     """
     return jax.vmap(_network(cfg).apply, in_axes=(0, None, None))(params, obs, action)
 
@@ -250,15 +268,19 @@ def bt_loss(cfg: RewardConfig) -> LossTerm:
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
-        logits = _member_logits(cfg, params, batch)
-        per_pair = bt_cross_entropy(logits, batch.labels) * batch.weight
-        per_member = jnp.sum(per_pair, axis=1) / jnp.maximum(jnp.sum(batch.weight, axis=1), 1.0)
-        loss = jnp.sum(per_member)
-        correct, hard = _hard_correct(logits, batch.labels)
-        accuracy = jnp.sum(correct * batch.weight) / jnp.maximum(jnp.sum(hard * batch.weight), 1.0)
-        return loss, {"bt_loss": loss, "bt_accuracy": accuracy}
+        return _bt_term(_member_logits(cfg, params, batch), batch)
 
     return loss_fn
+
+
+def _bt_term(logits: jax.Array, batch: PrefBatch) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The BT term and its metrics from the members' (M, B) logits on their own minibatches."""
+    per_pair = bt_cross_entropy(logits, batch.labels) * batch.weight
+    per_member = jnp.sum(per_pair, axis=1) / jnp.maximum(jnp.sum(batch.weight, axis=1), 1.0)
+    loss = jnp.sum(per_member)
+    correct, hard = _hard_correct(logits, batch.labels)
+    accuracy = jnp.sum(correct * batch.weight) / jnp.maximum(jnp.sum(hard * batch.weight), 1.0)
+    return loss, {"bt_loss": loss, "bt_accuracy": accuracy}
 
 
 def total_loss(terms: Sequence[LossTerm]) -> LossTerm:
@@ -472,3 +494,301 @@ def train(
     end = jax.lax.while_loop(cond, body, start)
     metrics = {"epochs": end.epoch, "train_accuracy": jnp.maximum(end.accuracy, 0.0), "loss": end.loss}
     return end.state, metrics
+
+
+# REBEL: the agent-preference term.
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentPreferenceConfig:
+    """REBEL's agent-preference term ``lambda * V`` added to the reward loss (REFERENCE section 1)."""
+
+    lam: float = 0.0
+    """Weight lambda, signed; the paper's equation adds ``+lambda * V`` to the minimised loss,
+    its prose says the term raises the current policy's value, which needs ``lambda < 0``
+    here. 0 turns the term off."""
+    estimator: Literal["discounted", "mean"] = "discounted"
+    """How V is estimated from the segments: ``discounted`` is the paper's
+    ``sum_h gamma^h r(s_h, a_h)`` over a segment, averaged over segments; ``mean`` is the
+    per-step mean reward over all their steps times the horizon ``1 / (1 - gamma)``, a
+    stationary estimate of the infinite-horizon value."""
+    num_segments: int = 64
+    """Segments N of recent agent experience, drawn by the caller once per feedback session,
+    over which V is averaged (their actions redrawn from the current policy)."""
+    segment_length: int = 50
+    """Steps H per segment."""
+    gamma: float = 0.99
+    """Discount of V; in [0, 1] for ``discounted``, in [0, 1) for ``mean``."""
+
+    def validate(self) -> None:
+        _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
+        _check(self.estimator in ("discounted", "mean"), "rebel.estimator", self.estimator, "discounted, mean")
+        for name in ("num_segments", "segment_length"):
+            _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
+        if self.estimator == "mean":
+            _check(0 <= self.gamma < 1, "rebel.gamma", self.gamma, "[0, 1) with estimator 'mean'")
+        else:
+            _check(0 <= self.gamma <= 1, "rebel.gamma", self.gamma, "[0, 1]")
+
+
+def agent_value(
+    cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array, gamma: float | jax.Array, estimator: str
+) -> jax.Array:
+    """Each member's value V_m of the current policy under its learned reward.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters.
+      obs: (N, H, obs_size) states of N segments of H consecutive steps visited by the agent.
+      action: (N, H, act_size) actions drawn in them from the current policy.
+      gamma: discount (a float or a traced scalar).
+      estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
+        ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
+
+    Returns:
+      (M,) values ``V_m``.
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    rewards = predict(cfg, params, obs, action)  # (M, N, H)
+    if estimator == "mean":
+        return jnp.mean(rewards, axis=(1, 2)) / (1.0 - gamma)
+    discounts = jnp.asarray(gamma, rewards.dtype) ** jnp.arange(rewards.shape[-1], dtype=rewards.dtype)
+    return jnp.mean(jnp.sum(rewards * discounts, axis=-1), axis=1)
+
+
+def agent_value_term(
+    cfg: RewardConfig,
+    lam: float | jax.Array,
+    obs: jax.Array,
+    action: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str = "discounted",
+) -> LossTerm:
+    """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
+
+    The term closes over N segments of states recently visited by the agent with actions
+    already drawn by the caller from the current policy ``pi_theta``, which is held fixed:
+    ``obs`` and ``action`` pass through ``stop_gradient``, so only the reward parameters get
+    gradients. The members' values are summed, as ``bt_loss`` sums the members' losses. The
+    equation is implemented literally: the loss adds ``+lambda * V``, so minimising it with
+    ``lambda > 0`` lowers the current policy's value and ``lambda < 0`` raises it.
+
+    Args:
+      cfg: the reward settings.
+      lam: signed weight lambda, a float or a traced scalar (e.g. ``vmap``-ed over).
+      obs: (N, H, obs_size) states.
+      action: (N, H, act_size) actions from the current policy.
+      gamma: discount of V.
+      estimator: ``"discounted"`` or ``"mean"``, see ``agent_value``.
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
+      mean V, unscaled) and ``agent_term`` (the loss).
+
+    References:
+      REBEL (AAAI 2025), the reward loss "mle_new" (REFERENCE section 1).
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        del batch, key  # Unused.
+        values = agent_value(cfg, params, jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action), gamma, estimator)
+        loss = lam * jnp.sum(values)
+        return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
+
+    return loss_fn
+
+
+# SURF: temporal cropping and pseudo-labels.
+
+
+@dataclasses.dataclass(frozen=True)
+class SURFConfig:
+    """SURF's semi-supervised reward learning with temporal cropping (walker_walk settings)."""
+
+    threshold: float = 0.99
+    """Pseudo-label confidence tau: an unlabelled pair counts when ``max(P, 1 - P) >= tau``."""
+    weight: float = 1.0
+    """Weight of the unlabelled (pseudo-label) loss."""
+    ratio: int = 4
+    """Unlabelled pairs per labelled pair in each minibatch (mu)."""
+    pool_size: int = 1000
+    """Unlabelled pairs U sampled by the caller per feedback session (SURF's ``inv_label_ratio``
+    times the queries per session; walker: 100 x 10 = 1000)."""
+    crop: int = 5
+    """Temporal crop c: segments are stored at length ``H + 2c``; each segment of a pair is
+    cropped to a length uniform in ``[H - c, H + c]`` (shared by the pair) with its own uniform
+    start; pseudo-labels come from the central H steps. 0 turns cropping off."""
+
+    def validate(self, segment_length: int | None = None) -> None:
+        """Checks the ranges; with ``segment_length`` (H) also that ``crop < H``."""
+        _check(0 <= self.threshold <= 1, "surf.threshold", self.threshold, "[0, 1]")
+        _check(self.weight >= 0, "surf.weight", self.weight, ">= 0")
+        for name in ("ratio", "pool_size"):
+            _check(getattr(self, name) >= 1, f"surf.{name}", getattr(self, name), ">= 1")
+        _check(self.crop >= 0, "surf.crop", self.crop, ">= 0")
+        if segment_length is not None:
+            _check(self.crop < segment_length, "surf.crop", self.crop, f"< segment_length {segment_length}")
+
+
+def _central_length(stored_length: int, crop: int) -> int:
+    """H of segments stored at length ``H + 2 * crop``, checked to leave crops of >= 1 step."""
+    length = stored_length - 2 * crop
+    _check(crop >= 0 and length - crop >= 1, "surf.crop", crop, f"< stored length {stored_length} / 3")
+    return length
+
+
+def crop_masks(key: jax.Array, shape: tuple[int, ...], stored_length: int, crop: int) -> tuple[jax.Array, jax.Array]:
+    """Random temporal crops of both segments of pairs, as 0/1 step masks (SURF's ``get_cropping_mask``).
+
+    With ``H = stored_length - 2 * crop``, each pair draws one length uniform in
+    ``[H - crop, H + crop]``, and each of its two segments its own start uniform in
+    ``[0, stored_length - length]``: both crops have the same length (as SURF's code), so the
+    logit compares sums over equally many steps.
+
+    Args:
+      key: PRNG key.
+      shape: leading shape of the pairs, e.g. ``(M, B)``.
+      stored_length: L, the stored segment length.
+      crop: the crop c.
+
+    Returns:
+      ``(mask_a, mask_b)``, each ``shape + (L,)`` float32, ones on the cropped steps.
+    """
+    length = _central_length(stored_length, crop)
+    key_length, key_a, key_b = jax.random.split(key, 3)
+    lengths = jax.random.randint(key_length, shape, length - crop, length + crop + 1)
+    steps = jnp.arange(stored_length)
+
+    def mask(key_start: jax.Array) -> jax.Array:
+        starts = jax.random.randint(key_start, shape, 0, stored_length - lengths + 1)
+        inside = (steps >= starts[..., None]) & (steps < (starts + lengths)[..., None])
+        return inside.astype(jnp.float32)
+
+    return mask(key_a), mask(key_b)
+
+
+def _masked_pair_logits(cfg: RewardConfig, member_params: Any, obs_a, act_a, obs_b, act_b, mask_a, mask_b):
+    """One member's logits ``G(b) - G(a)`` with G the sum over the masked steps, and its rewards."""
+    apply = _network(cfg).apply
+    reward_a = apply(member_params, obs_a, act_a)
+    reward_b = apply(member_params, obs_b, act_b)
+    logits = jnp.sum(reward_b * mask_b, axis=-1) - jnp.sum(reward_a * mask_a, axis=-1)
+    return logits, reward_a, reward_b
+
+
+def cropped_bt_loss(cfg: RewardConfig, surf: SURFConfig) -> LossTerm:
+    """The Bradley-Terry term on temporally cropped segments (SURF's temporal data augmentation).
+
+    As ``bt_loss`` (same metrics ``bt_loss`` and ``bt_accuracy``), but every member sums its
+    rewards over its own fresh crops (``crop_masks``, drawn from the term's key) of the stored
+    segments of length ``L = H + 2 * crop``. With ``crop = 0`` it equals ``bt_loss``.
+
+    Args:
+      cfg: the reward settings.
+      surf: the SURF settings (``crop``).
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)``.
+
+    References:
+      Park et al., SURF, ICLR 2022, section 4.2 (temporal cropping).
+    """
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        mask_a, mask_b = crop_masks(key, batch.labels.shape, batch.obs_a.shape[2], surf.crop)
+
+        def one(member_params, obs_a, act_a, obs_b, act_b, member_mask_a, member_mask_b):
+            return _masked_pair_logits(cfg, member_params, obs_a, act_a, obs_b, act_b, member_mask_a, member_mask_b)[0]
+
+        logits = jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, mask_a, mask_b)
+        return _bt_term(logits, batch)
+
+    return loss_fn
+
+
+def pseudo_labels(logits: jax.Array, threshold: float | jax.Array) -> tuple[jax.Array, jax.Array]:
+    """SURF's pseudo-labels and confidence mask from BT logits ``G(b) - G(a)``.
+
+    Args:
+      logits: BT logits of unlabelled pairs, any shape.
+      threshold: confidence tau.
+
+    Returns:
+      ``(labels, confident)`` float: ``labels = 1[P > 0.5]`` with ``P = sigmoid(logits)`` the
+      probability that b is preferred (ties go to a, as SURF's argmax), ``confident =
+      1[max(P, 1 - P) >= threshold]``.
+    """
+    prob = jax.nn.sigmoid(logits)
+    labels = (prob > 0.5).astype(logits.dtype)
+    confident = (jnp.maximum(prob, 1.0 - prob) >= threshold).astype(logits.dtype)
+    return labels, confident
+
+
+def pseudo_label_term(
+    cfg: RewardConfig,
+    surf: SURFConfig,
+    pool_obs_a: jax.Array,
+    pool_act_a: jax.Array,
+    pool_obs_b: jax.Array,
+    pool_act_b: jax.Array,
+) -> LossTerm:
+    """SURF's semi-supervised term on unlabelled pairs with confident pseudo-labels.
+
+    Each call draws, per member, ``ratio * B`` pairs of the pool uniformly with replacement
+    (B the labelled minibatch size, read from the batch's shape). Each member labels them
+    itself from its sums over the central H steps, without gradient (``pseudo_labels``), and
+    is trained on fresh crops of them (``crop_masks``):
+    ``loss_m = mean over the drawn pairs of CE(cropped logits, label) * confident`` (the mean
+    counts the unconfident pairs too, as SURF's ``mean(CE * mask)``); the term is
+    ``weight * sum_m loss_m``.
+
+    Args:
+      cfg: the reward settings.
+      surf: the SURF settings.
+      pool_obs_a: (U, L, obs_size) first segments of the unlabelled pairs, stored at
+        ``L = H + 2 * crop``, sampled by the caller once per session.
+      pool_act_a: (U, L, act_size) their actions.
+      pool_obs_b: (U, L, obs_size) second segments.
+      pool_act_b: (U, L, act_size) their actions.
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``pseudo_loss`` (the term) and
+      ``pseudo_fraction`` (the fraction of drawn pairs above the threshold, over members).
+
+    References:
+      Park et al., SURF, ICLR 2022, section 4.1 (semi-supervised reward learning).
+    """
+    pool_obs_a, pool_act_a, pool_obs_b, pool_act_b = map(jnp.asarray, (pool_obs_a, pool_act_a, pool_obs_b, pool_act_b))
+    pool_size, stored_length = pool_obs_a.shape[:2]
+    length = _central_length(stored_length, surf.crop)
+    central = slice(surf.crop, surf.crop + length)
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        members, labelled = batch.labels.shape
+        shape = (members, surf.ratio * labelled)
+        key_index, key_crop = jax.random.split(key)
+        index = jax.random.randint(key_index, shape, 0, pool_size)
+        mask_a, mask_b = crop_masks(key_crop, shape, stored_length, surf.crop)
+
+        def one(member_params, member_index, member_mask_a, member_mask_b):
+            logits, reward_a, reward_b = _masked_pair_logits(
+                cfg,
+                member_params,
+                pool_obs_a[member_index],
+                pool_act_a[member_index],
+                pool_obs_b[member_index],
+                pool_act_b[member_index],
+                member_mask_a,
+                member_mask_b,
+            )
+            central_logits = jnp.sum(reward_b[:, central], axis=-1) - jnp.sum(reward_a[:, central], axis=-1)
+            return logits, jax.lax.stop_gradient(central_logits)
+
+        logits, central_logits = jax.vmap(one)(params, index, mask_a, mask_b)
+        labels, confident = pseudo_labels(central_logits, surf.threshold)
+        per_member = jnp.mean(bt_cross_entropy(logits, labels) * confident, axis=1)
+        loss = surf.weight * jnp.sum(per_member)
+        return loss, {"pseudo_loss": loss, "pseudo_fraction": jnp.mean(confident)}
+
+    return loss_fn

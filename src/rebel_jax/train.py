@@ -12,6 +12,16 @@ is the same for every seed, so it is passed *unbatched* and the reset is a real
 ``lax.cond`` even under ``vmap`` (a per-environment auto-reset would become a select
 that pays for a reset every step).
 
+The preference methods (``pebble``, ``surf``, ``rebel``) add two things to a round.
+Vector steps before ``feedback_start`` update SAC on PEBBLE's unsupervised state-entropy
+reward (:mod:`rebel_jax.pretrain`), and a round that starts on the feedback schedule first
+runs a *feedback session*: :meth:`Trainer.select` picks query pairs, :meth:`Trainer.teach`
+labels them with the scripted teacher (the only place that reads the true reward), and
+:meth:`Trainer.learn` stores the labels, trains the reward ensemble with the algorithm's
+loss terms, relabels the whole buffer and, at the first session, re-initialises the critic.
+The three are separate pure functions, so a human can answer the queries between rounds.
+The session is a ``lax.cond`` on the (unbatched) round index, so rounds without one skip it.
+
 Evaluation runs inside the same batch: ``eval_episodes`` extra environments follow the
 deterministic policy (the mean action) next to the ``num_envs`` training environments,
 so evaluation costs no extra env-step latency. Their returns are those of the policy
@@ -21,16 +31,32 @@ the frozen-policy figure (used for the final evaluation).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import replay
+from rebel_jax import pretrain, queries, replay, reward_model, teachers
 from rebel_jax.config import Config
 from rebel_jax.envs import DMCEnv, State, make_env
+from rebel_jax.queries import Segments
 from rebel_jax.sac import SAC, SACState
+
+SESSION_METRICS = (
+    "session",
+    "labels_used",
+    "session_labels",
+    "session_skipped",
+    "session_equal",
+    "reward_accuracy_new",
+    "reward_accuracy_all",
+    "reward_epochs",
+    "reward_loss",
+    "reward_correlation",
+)
+"""Per-round metrics of the feedback session (NaN in rounds without one, except ``labels_used``)."""
 
 
 @struct.dataclass
@@ -58,6 +84,10 @@ class TrainState:
       env: batched env state, ``num_envs`` training then ``eval_episodes`` evaluation envs.
       episodes: running and last returns.
       key: the PRNG key of the run.
+      reward: the reward ensemble and its labels (preference methods; None for sac).
+      entropy_stats: running statistics of the pre-training kNN distances (None for sac).
+      lam: () REBEL's signed lambda, a traced value so that a sweep can vmap over it
+        (``rebel.lam`` at init; None for the other methods).
     """
 
     sac: SACState
@@ -65,6 +95,9 @@ class TrainState:
     env: State
     episodes: EpisodeStats
     key: jax.Array
+    reward: reward_model.RewardState | None = None
+    entropy_stats: pretrain.RunningStats | None = None
+    lam: jax.Array | None = None
 
 
 class Trainer:
@@ -78,7 +111,13 @@ class Trainer:
         self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
         self.steps_per_round = cfg.train.steps_per_round // cfg.env.num_envs  # vector steps
         self.updates_per_step = max(1, round(cfg.sac.utd * cfg.env.num_envs))
-        self.use_learned_reward = cfg.algo != "sac"  # the preference methods train on the learned reward
+        self.preference = cfg.preference  # the preference methods train SAC on the learned reward
+        # The label store holds exactly the budget; SURF stores segments longer by 2 * crop.
+        self.reward_cfg = dataclasses.replace(cfg.reward, label_capacity=cfg.feedback.labels)
+        self.horizon = cfg.query.segment_length
+        self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
+        self.stored_length = self.horizon + 2 * self.crop
+        self.pretrain_steps = cfg.feedback_start // cfg.env.num_envs if self.preference else 0  # vector steps
         self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
@@ -87,15 +126,20 @@ class Trainer:
         key, key_sac, key_env = jax.random.split(key, 3)
         env_state = self._reset_envs(key_env)
         nan = jnp.full((), jnp.nan, jnp.float32)
-        return TrainState(
+        obs_size, action_size = self.env.observation_size, self.env.action_size
+        ts = TrainState(
             sac=self.sac.init(key_sac),
-            buffer=replay.init(
-                self.cfg.train.capacity, self.num_train, self.env.observation_size, self.env.action_size
-            ),
+            buffer=replay.init(self.cfg.train.capacity, self.num_train, obs_size, action_size),
             env=env_state,
             episodes=EpisodeStats(jnp.zeros(self.num_all), nan, nan),
             key=key,
         )
+        if not self.preference:
+            return ts
+        key, key_reward = jax.random.split(key)
+        reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
+        lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
+        return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam)
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -122,6 +166,7 @@ class Trainer:
             terminal=(nxt.done - truncated)[:n],
             truncated=truncated[:n],
             episode_step=ts.env.info["steps"][:n],
+            learned_reward=self._learned_reward(ts, ts.env.obs[:n], action[:n]) if self.preference else None,
         )
         running = ts.episodes.running + nxt.reward
         done = nxt.done > 0
@@ -138,14 +183,27 @@ class Trainer:
         )
         return replay.add(ts.buffer, step), episodes
 
-    def _updates(self, sac_state: SACState, buffer: replay.Buffer, key: jax.Array):
-        def one(state, key):
-            key_sample, key_update = jax.random.split(key)
-            batch = replay.sample(buffer, key_sample, self.cfg.sac.batch_size, self.use_learned_reward)
-            return self.sac.update(state, batch, key_update)
+    def _learned_reward(self, ts: TrainState, obs: jax.Array, action: jax.Array) -> jax.Array:
+        return reward_model.mean_reward(self.reward_cfg, ts.reward.params, obs, action)
 
-        sac_state, metrics = jax.lax.scan(one, sac_state, jax.random.split(key, self.updates_per_step))
-        return sac_state, jax.tree.map(jnp.mean, metrics)
+    def _updates(self, ts: TrainState, buffer: replay.Buffer, key: jax.Array, intrinsic: bool):
+        """``utd * num_envs`` SAC updates on the learned (or true, for sac) or the intrinsic reward."""
+        # Pre-training happens before the buffer wraps: its kNN search needs only the rows written by then.
+        early = buffer.replace(obs=buffer.obs[: max(self.pretrain_steps, 1)])
+
+        def one(carry, key):
+            state, stats = carry
+            key_sample, key_update = jax.random.split(key)
+            batch = replay.sample(buffer, key_sample, self.cfg.sac.batch_size, self.preference)
+            if intrinsic:
+                reward, stats = pretrain.intrinsic_reward(self.cfg.pretrain, stats, batch.obs, early)
+                batch = batch.replace(reward=reward)
+            state, metrics = self.sac.update(state, batch, key_update)
+            return (state, stats), metrics
+
+        keys = jax.random.split(key, self.updates_per_step)
+        (sac_state, stats), metrics = jax.lax.scan(one, (ts.sac, ts.entropy_stats), keys)
+        return (sac_state, stats), jax.tree.map(jnp.mean, metrics)
 
     def vector_step(self, ts: TrainState, t: jax.Array) -> tuple[TrainState, dict]:
         """One step of every environment, then ``utd * num_envs`` SAC updates.
@@ -163,14 +221,141 @@ class Trainer:
         buffer, episodes = self._record(ts, nxt, action)
         learning = (t + 1) * self.num_train >= self.cfg.train.seed_steps
         zeros = {k: jnp.zeros(()) for k in ("critic_loss", "actor_loss", "alpha_loss", "alpha", "q", "entropy")}
-        sac_state, metrics = jax.lax.cond(
-            learning,
-            lambda: self._updates(ts.sac, buffer, key_update),
-            lambda: (ts.sac, zeros),
-        )
-        ts = ts.replace(sac=sac_state, buffer=buffer, env=nxt, episodes=episodes)
+        branches = [
+            lambda: ((ts.sac, ts.entropy_stats), zeros),
+            lambda: self._updates(ts, buffer, key_update, intrinsic=False),
+        ]
+        phase = learning.astype(jnp.int32)  # 0: seeding, 1: SAC on the stored reward
+        if self.pretrain_steps:
+            branches.append(lambda: self._updates(ts, buffer, key_update, intrinsic=True))
+            phase = jnp.where(learning & (t < self.pretrain_steps), 2, phase)  # 2: unsupervised pre-training
+        (sac_state, stats), metrics = jax.lax.switch(phase, branches)
+        ts = ts.replace(sac=sac_state, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
         metrics = dict(metrics, learning=learning.astype(jnp.float32))
         return ts, metrics
+
+    # -- feedback session (preference methods) ---------------------------------------------
+    def _central(self, seg: Segments) -> Segments:
+        """The middle ``segment_length`` steps of stored segments (all of them unless SURF crops)."""
+        return jax.tree.map(lambda x: x[:, self.crop : self.crop + self.horizon], seg)
+
+    def _sample_segments(self, buffer: replay.Buffer, key: jax.Array, n: int, length: int) -> Segments:
+        query = self.cfg.query
+        return queries.sample_segments(buffer, key, n, length, self.cfg.env.episode_length, query.recent_episodes)
+
+    def select(self, ts: TrainState, key: jax.Array, first: bool | jax.Array) -> tuple[Segments, Segments]:
+        """The session's query pairs (uniform at the first session), of the stored length."""
+        query = dataclasses.replace(self.cfg.query, segment_length=self.stored_length)
+
+        def pref_probs(seg_a, seg_b):
+            return reward_model.pref_probs(
+                self.reward_cfg, ts.reward.params, self._central(seg_a), self._central(seg_b)
+            )
+
+        num = self.cfg.feedback.queries
+        return queries.select_queries(query, key, ts.buffer, num, self.cfg.env.episode_length, pref_probs, first)
+
+    def teach(self, ts: TrainState, key: jax.Array, seg_a: Segments, seg_b: Segments):
+        """The scripted teacher's answers on the central steps, masked to the seed's remaining budget.
+
+        Returns:
+          labels (N,), mask (N,) and the teacher's ``num_skipped`` / ``num_equal`` counts.
+        """
+        query = self.cfg.query
+        margin = queries.reward_margin(ts.buffer, self.horizon, self.cfg.env.episode_length, query.recent_episodes)
+        labels, mask, info = teachers.label(self.cfg.teacher, key, self._central(seg_a), self._central(seg_b), margin)
+        remaining = self.cfg.feedback.labels - ts.reward.data.count
+        within = jnp.cumsum(mask) <= remaining  # Skipped pairs do not count against the budget.
+        return labels, mask * within, info
+
+    def _loss_terms(self, ts: TrainState, key: jax.Array) -> list[reward_model.LossTerm]:
+        cfg, rcfg = self.cfg, self.reward_cfg
+        if cfg.algo == "rebel":
+            key_segments, key_actions = jax.random.split(key)
+            seg = self._sample_segments(ts.buffer, key_segments, cfg.rebel.num_segments, cfg.rebel.segment_length)
+            actions = self.sac.act(ts.sac.actor_params, seg.obs, key_actions)  # a_h ~ pi_theta, held fixed
+            value = reward_model.agent_value_term(rcfg, ts.lam, seg.obs, actions, cfg.rebel.gamma, cfg.rebel.estimator)
+            return [reward_model.bt_loss(rcfg), value]
+        if cfg.algo == "surf":
+            pool_a, pool_b = queries.sample_pairs(
+                ts.buffer,
+                key,
+                cfg.surf.pool_size,
+                self.stored_length,
+                cfg.env.episode_length,
+                cfg.query.recent_episodes,
+            )
+            pseudo = reward_model.pseudo_label_term(
+                rcfg, cfg.surf, pool_a.obs, pool_a.action, pool_b.obs, pool_b.action
+            )
+            return [reward_model.cropped_bt_loss(rcfg, cfg.surf), pseudo]
+        return [reward_model.bt_loss(rcfg)]
+
+    def learn(
+        self,
+        ts: TrainState,
+        key: jax.Array,
+        seg_a: Segments,
+        seg_b: Segments,
+        labels: jax.Array,
+        mask: jax.Array,
+        first: bool | jax.Array,
+    ) -> tuple[TrainState, dict]:
+        """Stores the answers, trains the ensemble, relabels the buffer; resets the critic at the first session.
+
+        A seed whose answers are all masked (budget spent, or all skipped) keeps its reward model.
+        """
+        key_terms, key_train, key_fresh, key_critic = jax.random.split(key, 4)
+        rcfg = self.reward_cfg
+        accuracy_new = reward_model.accuracy(
+            rcfg, ts.reward.params, self._central(seg_a), self._central(seg_b), labels, mask
+        )
+        stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
+        trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
+        kept = jnp.sum(mask)
+        reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
+
+        def reward_fn(obs, action):
+            return reward_model.mean_reward(rcfg, reward.params, obs, action)
+
+        buffer = replay.relabel(ts.buffer, reward_fn, chunk_rows=max(1, 16_384 // self.num_train))
+        sac_state = ts.sac
+        if self.cfg.pretrain.steps:
+            sac_state = jax.lax.cond(first, lambda: self.sac.reset_critic(ts.sac, key_critic), lambda: ts.sac)
+        fresh = self._sample_segments(buffer, key_fresh, 64, self.horizon)
+        learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
+        metrics = {
+            "session_labels": kept,
+            "reward_accuracy_new": accuracy_new,
+            "reward_accuracy_all": train_metrics["train_accuracy"],
+            "reward_epochs": train_metrics["epochs"],
+            "reward_loss": train_metrics["loss"],
+            "reward_correlation": _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1)),
+        }
+        return ts.replace(sac=sac_state, buffer=buffer, reward=reward), metrics
+
+    def feedback_session(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, dict]:
+        """select -> teach -> learn, with the session's metrics (:data:`SESSION_METRICS`)."""
+        key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
+        ts = ts.replace(key=key)
+        seg_a, seg_b = self.select(ts, key_select, first)
+        labels, mask, info = self.teach(ts, key_teach, seg_a, seg_b)
+        ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first)
+        metrics = dict(metrics, session=1.0, session_skipped=info["num_skipped"], session_equal=info["num_equal"])
+        return ts, self._session_summary(ts, metrics)
+
+    def _session_summary(self, ts: TrainState, metrics: dict) -> dict:
+        nan = jnp.full((), jnp.nan, jnp.float32)
+        out = {k: jnp.asarray(metrics.get(k, nan), jnp.float32) for k in SESSION_METRICS}
+        out["labels_used"] = ts.reward.data.count.astype(jnp.float32)
+        return out
+
+    def session_due(self, round_index: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Whether round ``round_index`` starts with a feedback session, and whether it is the first."""
+        step = round_index * self.cfg.train.steps_per_round
+        start = self.cfg.feedback_start
+        due = (step >= start) & ((step - start) % self.cfg.feedback.interval == 0)
+        return due, step == start
 
     # -- the round ------------------------------------------------------------------------
     def round(self, ts: TrainState, round_index: jax.Array) -> tuple[TrainState, dict]:
@@ -185,6 +370,16 @@ class Trainer:
           learning steps, and the last finished training and evaluation returns.
         """
         self.trace_count += 1  # Python side effect: counts traces, not calls.
+        session = {}
+        if self.preference:
+            due, first = self.session_due(round_index)
+            ts, session = jax.lax.cond(
+                due,
+                self.feedback_session,
+                lambda ts, first: (ts, self._session_summary(ts, {})),
+                ts,
+                first,
+            )
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
         learning = metrics.pop("learning")
@@ -192,7 +387,7 @@ class Trainer:
         summary = {k: jnp.sum(v * weight) for k, v in metrics.items()}
         summary["train_return"] = ts.episodes.train_return
         summary["eval_return"] = ts.episodes.eval_return
-        return ts, summary
+        return ts, {**summary, **session}
 
     # -- frozen-policy evaluation ----------------------------------------------------------
     def evaluate(self, actor_params, key: jax.Array) -> jax.Array:
@@ -206,6 +401,12 @@ class Trainer:
 
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), length=self.env.episode_length)
         return total.mean()
+
+
+def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:
+    """Pearson correlation of two vectors (0 if either is constant)."""
+    x, y = x - x.mean(), y - y.mean()
+    return jnp.sum(x * y) / jnp.maximum(jnp.sqrt(jnp.sum(x * x) * jnp.sum(y * y)), 1e-12)
 
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:

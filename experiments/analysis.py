@@ -1,0 +1,506 @@
+"""Statistics and plots for comparing methods over seeds and tasks, rliable's way in NumPy/SciPy.
+
+Follows Agarwal et al. 2021 as implemented in ``rliable``: summarise the per-run scores of a
+method by their interquartile mean (IQM), with a percentile bootstrap confidence interval
+that, when several tasks are aggregated, resamples the runs of each task independently
+(stratified bootstrap). A "run" is one seed: a run directory written by
+``python -m rebel_jax.train --run-dir DIR`` holds all seeds of one invocation, vmapped.
+
+Sample efficiency (the paper's "up to 70% better sample efficiency") is reported as the
+ratio of environment steps two methods need for their mean evaluation curves to first reach
+a common return (``sample_efficiency_ratio``, ``common_threshold``), on curves reduced to
+the rounds where a new evaluation finished (``distinct_evaluations``).
+
+Scores of different tasks are pooled only on a common scale: dm_control returns lie in
+[0, 1000], so divide them by 1000 before ``aggregate_iqm_ci``.
+
+References:
+  Agarwal, Schwarzer, Castro, Courville, Bellemare. "Deep Reinforcement Learning at the Edge
+  of the Statistical Precipice". NeurIPS 2021. https://github.com/google-research/rliable
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pathlib
+from collections.abc import Callable, Iterable, Mapping
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+from numpy.typing import ArrayLike  # noqa: E402
+
+Curve = tuple[np.ndarray, np.ndarray]
+"""``(env_steps (evals,), returns (evals,) or (evals, seeds))``; a 2-D curve is averaged over seeds."""
+
+Interval = tuple[float, float]
+"""``(low, high)`` of a confidence interval; NaN where it is undefined."""
+
+
+# -- statistics over runs ------------------------------------------------------------------
+def iqm(scores: ArrayLike, axis: int | None = None) -> float | np.ndarray:
+    """Interquartile mean: the mean of the middle half of the scores.
+
+    The definition of rliable's ``aggregate_iqm``, ``scipy.stats.trim_mean(scores, 0.25)``:
+    sort, drop ``floor(n / 4)`` scores at each end, average the rest. For ``n`` not a multiple
+    of 4 only whole scores are dropped (the middle 3 of 5, the middle 4 of 6).
+
+    Args:
+      scores: per-run scores, ``(runs,)`` or ``(runs, tasks)``.
+      axis: the axis to reduce. ``None`` (rliable's choice for aggregates) pools every score,
+        e.g. all runs of all tasks.
+
+    Returns:
+      The IQM: a float for ``axis=None``, else an array without ``axis``.
+    """
+    return scipy.stats.trim_mean(np.asarray(scores, dtype=float), 0.25, axis=axis)
+
+
+def bootstrap_ci(
+    scores: ArrayLike,
+    statistic: Callable[..., np.ndarray] = iqm,
+    reps: int = 2000,
+    confidence: float = 0.95,
+    seed: int = 0,
+    method: str = "percentile",
+) -> Interval:
+    """Bootstrap confidence interval of a statistic of the runs of one task.
+
+    Resamples the runs with replacement ``reps`` times with ``scipy.stats.bootstrap``. The
+    default ``method="percentile"`` is rliable's: the ``(1 - confidence) / 2`` and
+    ``(1 + confidence) / 2`` quantiles of the statistic over the resamples. SciPy's ``"BCa"``
+    (bias-corrected and accelerated) and ``"basic"`` are the alternatives.
+
+    Args:
+      scores: ``(runs,)`` one finite score per run.
+      statistic: ``statistic(x, axis=...)``, vectorised over the other axes (``iqm``,
+        ``np.mean``, ``np.median``).
+      reps: bootstrap resamples.
+      confidence: the interval's coverage, in (0, 1).
+      seed: seed of the resampling generator (the interval is a function of it).
+      method: ``"percentile"``, ``"BCa"`` or ``"basic"``.
+
+    Returns:
+      ``(low, high)``; NaN for fewer than two runs, where no spread can be estimated.
+    """
+    x = np.asarray(scores, dtype=float).reshape(-1)
+    if x.size < 2:
+        return math.nan, math.nan
+    res = scipy.stats.bootstrap(
+        (x,),
+        statistic,
+        n_resamples=reps,
+        vectorized=True,
+        confidence_level=confidence,
+        method=method,
+        rng=np.random.default_rng(seed),
+    )
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def _pooled_iqm(*tasks: np.ndarray, axis: int = -1) -> np.ndarray:
+    """IQM of the scores of all tasks pooled along ``axis`` (the runs axis of each sample)."""
+    return iqm(np.concatenate(tasks, axis=axis), axis=axis)
+
+
+def aggregate_iqm_ci(
+    score_matrix: ArrayLike, reps: int = 2000, confidence: float = 0.95, seed: int = 0, method: str = "percentile"
+) -> tuple[float, Interval]:
+    """IQM over all runs and tasks with a stratified bootstrap confidence interval.
+
+    As rliable's ``StratifiedBootstrap``: every resample draws, for each task independently,
+    as many runs as it has with replacement, then takes the IQM of all drawn scores pooled.
+    With one task this is ``bootstrap_ci(scores, iqm)``.
+
+    Args:
+      score_matrix: ``(runs, tasks)`` normalised scores (or ``(runs,)`` for one task).
+      reps: bootstrap resamples.
+      confidence: the interval's coverage, in (0, 1).
+      seed: seed of the resampling generator.
+      method: ``"percentile"`` (rliable's) or SciPy's ``"BCa"`` or ``"basic"``.
+
+    Returns:
+      ``(iqm, (low, high))``; the interval is NaN for fewer than two runs.
+    """
+    m = np.asarray(score_matrix, dtype=float)
+    m = m[:, None] if m.ndim == 1 else m
+    point = float(iqm(m))
+    if m.shape[0] < 2:
+        return point, (math.nan, math.nan)
+    res = scipy.stats.bootstrap(
+        tuple(m.T),
+        _pooled_iqm,
+        n_resamples=reps,
+        vectorized=True,
+        paired=False,
+        confidence_level=confidence,
+        method=method,
+        rng=np.random.default_rng(seed),
+    )
+    return point, (float(res.confidence_interval.low), float(res.confidence_interval.high))
+
+
+# -- curves ------------------------------------------------------------------------------
+def _nanmean_std(x: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and (population) standard deviation over the finite entries; NaN where none are."""
+    finite = np.isfinite(x)
+    count = finite.sum(axis=axis)
+    safe = np.maximum(count, 1)
+    mean = np.where(finite, x, 0.0).sum(axis=axis) / safe
+    dev = np.where(finite, x - np.expand_dims(mean, axis), 0.0)
+    std = np.sqrt((dev**2).sum(axis=axis) / safe)
+    empty = count == 0
+    return np.where(empty, np.nan, mean), np.where(empty, np.nan, std)
+
+
+def mean_curve(curve: Curve) -> Curve:
+    """``(steps, mean over seeds)`` of a curve; a 1-D curve is returned as floats unchanged."""
+    steps, values = np.asarray(curve[0], dtype=float), np.asarray(curve[1], dtype=float)
+    return steps, (_nanmean_std(values, axis=1)[0] if values.ndim == 2 else values)
+
+
+def final_returns(returns: ArrayLike, last: int = 10) -> np.ndarray:
+    """Per seed, the mean of its last ``last`` finite evaluations.
+
+    Args:
+      returns: ``(evals, seeds)`` evaluation returns, NaN where a seed has none.
+      last: how many of the last evaluations to average.
+
+    Returns:
+      ``(seeds,)``; NaN for a seed without any evaluation.
+    """
+    r = np.asarray(returns, dtype=float)
+    out = np.full(r.shape[1], np.nan)
+    for j in range(r.shape[1]):
+        seed_evals = r[np.isfinite(r[:, j]), j]
+        if seed_evals.size:
+            out[j] = seed_evals[-last:].mean()
+    return out
+
+
+def steps_to_reach(steps: ArrayLike, values: ArrayLike, threshold: float) -> float:
+    """The first environment step at which a curve reaches ``threshold``.
+
+    Interpolates linearly between the last evaluation below the threshold and the first at or
+    above it; non-finite evaluations are skipped. If the first evaluation already reaches it,
+    its step is returned (an upper bound: nothing is known before it).
+
+    Args:
+      steps: ``(evals,)`` increasing environment steps of the evaluations.
+      values: ``(evals,)`` the (mean) return at each.
+      threshold: the return to reach.
+
+    Returns:
+      The step as a float, or NaN if the curve never reaches the threshold.
+    """
+    s, v = np.asarray(steps, dtype=float), np.asarray(values, dtype=float)
+    keep = np.isfinite(v)
+    s, v = s[keep], v[keep]
+    reached = np.flatnonzero(v >= threshold)
+    if reached.size == 0:
+        return math.nan
+    i = reached[0]
+    if i == 0:
+        return float(s[0])
+    return float(s[i - 1] + (threshold - v[i - 1]) / (v[i] - v[i - 1]) * (s[i] - s[i - 1]))
+
+
+def common_threshold(final_means: Iterable[float], fraction: float = 0.8) -> float:
+    """A return every compared method reaches: ``fraction`` of the lowest final mean return.
+
+    Pass each method's final mean return, the ``mean`` of its ``summary`` (per seed the mean
+    of the last 10 logged rounds, then the mean over seeds). For ``0 < fraction <= 1`` and
+    non-negative returns every mean curve reaches the threshold (the maximum of its last
+    rounds is at least their mean), so the sample-efficiency ratio is defined; the default
+    0.8 measures the climb rather than the plateau, where the noise of a flat curve would
+    decide the crossing.
+
+    Args:
+      final_means: one final mean return per compared method.
+      fraction: the fraction of the lowest of them.
+
+    Returns:
+      The threshold.
+    """
+    return fraction * min(final_means)
+
+
+def _steps_ratio(steps_a: float, steps_b: float) -> float:
+    """``steps_b / steps_a`` with "never reached" (NaN) as infinitely many steps."""
+    a = math.inf if math.isnan(steps_a) else steps_a
+    b = math.inf if math.isnan(steps_b) else steps_b
+    if math.isinf(a) and math.isinf(b):
+        return math.nan
+    if math.isinf(b) or a == 0:
+        return math.inf
+    return b / a
+
+
+def sample_efficiency_ratio(curve_a: Curve, curve_b: Curve, threshold: float) -> float:
+    """How many times more environment steps method b needs than a to reach ``threshold``.
+
+    ``steps_b / steps_a`` of ``steps_to_reach`` on the mean curves. A ratio of 1.7 reads "a is
+    70% more sample-efficient than b" (b needs 1.7x the steps of a; equivalently a needs
+    ``1 - 1 / 1.7 = 41%`` fewer steps). Choose the threshold with ``common_threshold`` and
+    pass curves reduced by ``distinct_evaluations``.
+
+    Args:
+      curve_a: method a's curve (2-D curves are averaged over seeds).
+      curve_b: method b's curve.
+      threshold: the common return.
+
+    Returns:
+      The ratio; ``inf`` if only a reaches the threshold, 0 if only b does, NaN if neither.
+    """
+    steps_a = steps_to_reach(*mean_curve(curve_a), threshold)
+    return _steps_ratio(steps_a, steps_to_reach(*mean_curve(curve_b), threshold))
+
+
+def sample_efficiency_ratio_ci(
+    run_a: Curve, run_b: Curve, threshold: float, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> Interval:
+    """Percentile bootstrap interval of ``sample_efficiency_ratio`` over the seeds.
+
+    Each resample draws the seeds of a and of b independently with replacement (stratified
+    by method), averages the drawn curves and takes the ratio. A resample in which a method
+    never reaches the threshold counts as an infinite number of its steps (see
+    ``sample_efficiency_ratio``); the quantiles are taken over the resamples' ratios as they
+    are (``inverted_cdf``, no interpolation across ``inf``), excluding resamples where
+    neither method reaches the threshold.
+
+    Args:
+      run_a: ``(steps, returns (evals, seeds))`` of method a.
+      run_b: the same for method b.
+      threshold: the common return.
+      reps: bootstrap resamples.
+      confidence: the interval's coverage, in (0, 1).
+      seed: seed of the resampling generator.
+
+    Returns:
+      ``(low, high)``; NaN if no resample has a defined ratio.
+    """
+    rng = np.random.default_rng(seed)
+    resampled = []
+    for steps, returns in (run_a, run_b):
+        r = np.asarray(returns, dtype=float)
+        idx = rng.integers(0, r.shape[1], size=(reps, r.shape[1]))
+        resampled.append((np.asarray(steps, dtype=float), _nanmean_std(r[:, idx], axis=2)[0]))  # (evals, reps)
+    (steps_a, means_a), (steps_b, means_b) = resampled
+    reach_a = [steps_to_reach(steps_a, means_a[:, k], threshold) for k in range(reps)]
+    reach_b = [steps_to_reach(steps_b, means_b[:, k], threshold) for k in range(reps)]
+    ratios = np.array([_steps_ratio(a, b) for a, b in zip(reach_a, reach_b, strict=True)])
+    ratios = ratios[~np.isnan(ratios)]
+    if ratios.size == 0:
+        return math.nan, math.nan
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(ratios, [alpha, 1 - alpha], method="inverted_cdf")
+    return float(low), float(high)
+
+
+# -- run directories -----------------------------------------------------------------------
+def _records(run_dir: pathlib.Path) -> list[dict]:
+    """The rounds of ``metrics.jsonl`` in step order, one per ``env_steps``.
+
+    A resumed run appends the rounds after its last checkpoint again; the last record of a
+    step wins, as it is the one the finished run continued from.
+    """
+    by_step = {}
+    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+        if line.strip():
+            record = json.loads(line)
+            by_step[record["env_steps"]] = record
+    return [by_step[s] for s in sorted(by_step)]
+
+
+def _per_seed(value) -> list[float]:
+    """A logged per-seed list (or a scalar, for one seed) with ``None`` as NaN."""
+    values = value if isinstance(value, list) else [value]
+    return [math.nan if v is None else float(v) for v in values]
+
+
+def load_runs(run_dir: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The per-seed evaluation curves of one run directory.
+
+    Args:
+      run_dir: a directory written by ``python -m rebel_jax.train`` (``metrics.jsonl``).
+
+    Returns:
+      ``(steps (evals,) int, returns (evals, seeds) float)``: one row per round with an
+      evaluation return for at least one seed, NaN for the seeds without one (``null``).
+      Rounds repeat the last finished evaluation (see ``distinct_evaluations``).
+    """
+    records = _records(pathlib.Path(run_dir))
+    rows = [(r["env_steps"], _per_seed(r.get("eval_return"))) for r in records]
+    rows = [(s, v) for s, v in rows if any(math.isfinite(x) for x in v)]
+    seeds = len(_per_seed(records[0].get("eval_return"))) if records else 0
+    steps = np.array([s for s, _ in rows], dtype=np.int64)
+    returns = np.array([v for _, v in rows], dtype=float).reshape(len(rows), seeds)
+    return steps, returns
+
+
+def distinct_evaluations(curve: Curve) -> Curve:
+    """Only the rounds in which a new evaluation finished.
+
+    The trainer logs, every round, the return of the *last finished* evaluation episodes, so
+    a round that ends inside an episode repeats the previous value (a new evaluation finishes
+    every ``episode_length * num_envs`` environment steps: 40k for walker at 40 envs, four
+    10k rounds). A row is kept when any seed's return differs from the row before. Use the
+    result for ``steps_to_reach`` so that it interpolates between true evaluations rather than
+    across a repeated plateau; ``summary`` keeps every round (the RESULTS.md convention).
+
+    Args:
+      curve: ``(steps (evals,), returns (evals, seeds))``, e.g. from ``load_runs``.
+
+    Returns:
+      The same curve without the repeated rows.
+    """
+    steps, returns = np.asarray(curve[0]), np.asarray(curve[1], dtype=float)
+    same = (returns[1:] == returns[:-1]) | (np.isnan(returns[1:]) & np.isnan(returns[:-1]))
+    keep = np.concatenate([[True], ~same.all(axis=1)])[: len(steps)]
+    return steps[keep], returns[keep]
+
+
+def merge_runs(*runs: Curve) -> Curve:
+    """The seeds of several run directories of one method side by side, on their common steps.
+
+    Args:
+      *runs: ``load_runs`` results, ``(steps, returns (evals, seeds))``.
+
+    Returns:
+      ``(steps, returns (common evals, total seeds))``.
+    """
+    common = runs[0][0]
+    for steps, _ in runs[1:]:
+        common = np.intersect1d(common, steps)
+    columns = [returns[np.searchsorted(steps, common)] for steps, returns in runs]
+    return common, np.concatenate(columns, axis=1)
+
+
+def _preset(command: str) -> str:
+    """The ``--preset`` of a recorded command line; the CLI's default ``paper`` without one."""
+    tokens = command.split()
+    for i, token in enumerate(tokens):
+        if token == "--preset" and i + 1 < len(tokens):
+            return tokens[i + 1]
+        if token.startswith("--preset="):
+            return token.split("=", 1)[1]
+    return "paper"
+
+
+def _json_float(x: float) -> float | None:
+    """A float for JSON: ``None`` for NaN or infinity (strict JSON has neither)."""
+    return float(x) if math.isfinite(x) else None
+
+
+def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
+    """The JSON summary of one run directory (the schema of RESULTS.md) plus ``extra``.
+
+    Keys: task, algo, preset, seeds, env_steps (of the last round), num_envs, utd,
+    final_returns (per seed the mean of its last ``last`` evaluations), mean, std (population)
+    and iqm with iqm_ci (95% percentile bootstrap over seeds, ``bootstrap_ci``) of the
+    final returns, curve {env_steps, mean, std} over seeds, evaluation, device, date, command,
+    then ``extra`` (e.g. labels, teacher, lam), which may override any of them. Non-finite
+    numbers are written as ``None``.
+
+    Args:
+      run_dir: a directory written by ``python -m rebel_jax.train``.
+      last: evaluations averaged into a seed's final return.
+      **extra: further keys.
+
+    Returns:
+      A JSON-serialisable dict.
+    """
+    run_dir = pathlib.Path(run_dir)
+    cfg = json.loads((run_dir / "config.json").read_text())
+    meta = json.loads((run_dir / "meta.json").read_text())
+    records = _records(run_dir)
+    steps, returns = load_runs(run_dir)
+    final = final_returns(returns, last)
+    scores = final[np.isfinite(final)]
+    low, high = bootstrap_ci(scores, iqm)
+    curve_mean, curve_std = _nanmean_std(returns, axis=1)
+    train = cfg.get("train", {})
+    return {
+        "task": cfg["env"]["task"],
+        "algo": cfg["algo"],
+        "preset": _preset(meta["command"]),
+        "seeds": meta["seeds"],
+        "env_steps": records[-1]["env_steps"] if records else 0,
+        "num_envs": cfg["env"].get("num_envs"),
+        "utd": cfg.get("sac", {}).get("utd"),
+        "final_returns": [_json_float(x) for x in final],
+        "mean": _json_float(scores.mean()) if scores.size else None,
+        "std": _json_float(scores.std()) if scores.size else None,
+        "iqm": _json_float(iqm(scores)) if scores.size else None,
+        "iqm_ci": [_json_float(low), _json_float(high)],
+        "curve": {
+            "env_steps": steps.tolist(),
+            "mean": [_json_float(x) for x in curve_mean],
+            "std": [_json_float(x) for x in curve_std],
+        },
+        "evaluation": (
+            f"in-batch deterministic episodes (see rebel_jax.train), {train.get('eval_episodes', '?')} per seed "
+            f"per {cfg['env'].get('episode_length', '?')}-step episode; final return = per seed the mean of the "
+            f"last {last} evaluations"
+        ),
+        "device": meta["devices"][0],
+        "date": meta["started"][:10],
+        "command": meta["command"],
+        **extra,
+    }
+
+
+# -- plots -------------------------------------------------------------------------------
+def plot_curves(ax, runs: Mapping[str, Curve]) -> None:
+    """Mean +- std over seeds of the evaluation return of each run, one line and band per label.
+
+    Args:
+      ax: a matplotlib ``Axes``.
+      runs: ``{label: (steps (evals,), returns (evals, seeds))}``, e.g. from ``load_runs``.
+    """
+    for label, (steps, returns) in runs.items():
+        r = np.asarray(returns, dtype=float)
+        r = r[:, None] if r.ndim == 1 else r
+        mean, std = _nanmean_std(r, axis=1)
+        n = r.shape[1]
+        (line,) = ax.plot(steps, mean, label=f"{label} ({n} seed{'' if n == 1 else 's'})")
+        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.25, linewidth=0)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("evaluation return (true reward)")
+    ax.legend()
+
+
+def plot_iqm(
+    ax, scores: Mapping[str, ArrayLike], reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> dict[str, tuple[float, Interval]]:
+    """Horizontal IQM bars with bootstrap confidence-interval whiskers, one per label.
+
+    Whiskers are drawn from the interval's ends (a percentile interval need not contain the
+    point estimate, so they are not symmetric error bars). The first label is on top.
+
+    Args:
+      ax: a matplotlib ``Axes``.
+      scores: ``{label: (runs,) or (runs, tasks) scores}``; several tasks are aggregated with
+        the stratified bootstrap of ``aggregate_iqm_ci``.
+      reps: bootstrap resamples.
+      confidence: the intervals' coverage.
+      seed: seed of the resampling generator.
+
+    Returns:
+      ``{label: (iqm, (low, high))}``, the plotted numbers.
+    """
+    stats = {label: aggregate_iqm_ci(s, reps, confidence, seed) for label, s in scores.items()}
+    y = np.arange(len(stats))
+    points = np.array([p for p, _ in stats.values()])
+    lows, highs = (np.array([ci[k] for _, ci in stats.values()]) for k in (0, 1))
+    ax.barh(y, points, height=0.6, alpha=0.7)
+    ax.hlines(y, lows, highs, color="black", linewidth=1.5)
+    ax.vlines(np.concatenate([lows, highs]), np.tile(y, 2) - 0.15, np.tile(y, 2) + 0.15, color="black", linewidth=1.5)
+    ax.set_yticks(y, list(stats))
+    ax.set_ylim(len(stats) - 0.5, -0.5)
+    ax.set_xlabel(f"IQM ({confidence:.0%} bootstrap CI)")
+    return stats

@@ -1,0 +1,270 @@
+"""Statistics, curve readers and plots of ``experiments/analysis.py`` on hand-checked data."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import pathlib
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+_PATH = pathlib.Path(__file__).parents[1] / "experiments" / "analysis.py"
+_SPEC = importlib.util.spec_from_file_location("analysis", _PATH)
+analysis = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(analysis)
+
+
+def trimmed_mean_reference(scores: list[float]) -> float:
+    """scipy's ``trim_mean(x, 0.25)`` in plain Python: drop int(n / 4) sorted scores per end."""
+    ordered = sorted(scores)
+    cut = len(ordered) // 4
+    kept = ordered[cut : len(ordered) - cut]
+    return sum(kept) / len(kept)
+
+
+# -- IQM ---------------------------------------------------------------------------------
+def test_iqm_by_hand():
+    # n = 8: drop the 2 lowest and the 2 highest.
+    assert analysis.iqm([7.0, -50.0, 3.0, 1.0, 90.0, 5.0, 2.0, 1000.0]) == pytest.approx((2 + 3 + 5 + 7) / 4)
+    # n = 5: floor(5 / 4) = 1 per end, the middle 3 (not a fractional weighting of 2.5 scores).
+    assert analysis.iqm([10.0, 1.0, 7.0, 3.0, 100.0]) == pytest.approx((3 + 7 + 10) / 3)
+    # n = 6: still 1 per end, the middle 4.
+    assert analysis.iqm([1.0, 2.0, 3.0, 4.0, 5.0, 600.0]) == pytest.approx(3.5)
+
+
+@pytest.mark.parametrize("n", [4, 5, 6, 7, 9, 10, 13, 50])
+def test_iqm_matches_plain_python_trimmed_mean(n):
+    scores = np.random.default_rng(n).lognormal(size=n)
+    assert analysis.iqm(scores) == pytest.approx(trimmed_mean_reference(scores.tolist()), rel=1e-12)
+
+
+def test_iqm_pools_tasks_by_default_and_reduces_an_axis_on_request():
+    matrix = np.random.default_rng(0).normal(size=(7, 3)) + np.arange(3)
+    assert analysis.iqm(matrix) == pytest.approx(trimmed_mean_reference(matrix.ravel().tolist()))
+    per_task = analysis.iqm(matrix, axis=0)
+    assert per_task == pytest.approx([trimmed_mean_reference(matrix[:, t].tolist()) for t in range(3)])
+
+
+# -- bootstrap ---------------------------------------------------------------------------
+def test_bootstrap_ci_contains_the_iqm_and_narrows_with_more_runs():
+    rng = np.random.default_rng(1)
+    widths = []
+    for runs in (5, 50):
+        scores = rng.normal(500.0, 100.0, size=runs)
+        low, high = analysis.bootstrap_ci(scores)
+        assert low <= analysis.iqm(scores) <= high
+        assert low < high
+        widths.append(high - low)
+    assert widths[1] < 0.6 * widths[0]
+
+
+def test_bootstrap_ci_is_a_function_of_its_seed_and_bca_agrees_on_a_large_sample():
+    scores = np.random.default_rng(2).normal(size=60)
+    assert analysis.bootstrap_ci(scores, seed=3) == analysis.bootstrap_ci(scores, seed=3)
+    assert analysis.bootstrap_ci(scores, seed=3) != analysis.bootstrap_ci(scores, seed=4)
+    percentile = analysis.bootstrap_ci(scores)
+    bca = analysis.bootstrap_ci(scores, method="BCa")
+    assert bca[0] <= analysis.iqm(scores) <= bca[1]
+    assert np.allclose(bca, percentile, atol=0.25 * (percentile[1] - percentile[0]))
+
+
+def test_bootstrap_ci_of_the_mean_matches_the_normal_interval():
+    scores = np.random.default_rng(5).normal(10.0, 2.0, size=400)
+    low, high = analysis.bootstrap_ci(scores, np.mean, reps=4000)
+    half = 1.96 * scores.std() / math.sqrt(scores.size)
+    assert low == pytest.approx(scores.mean() - half, abs=0.1 * half)
+    assert high == pytest.approx(scores.mean() + half, abs=0.1 * half)
+
+
+def test_bootstrap_ci_is_undefined_for_one_run():
+    assert all(math.isnan(x) for x in analysis.bootstrap_ci([3.0]))
+
+
+def test_stratified_bootstrap_keeps_every_task_in_each_resample():
+    # Tasks on very different levels with little spread inside each: resampling runs within
+    # each task barely moves the pooled IQM, resampling the pooled runs changes the task mix.
+    rng = np.random.default_rng(6)
+    matrix = np.array([0.0, 0.5, 1.0]) + rng.normal(0.0, 0.01, size=(10, 3))
+    point, (low, high) = analysis.aggregate_iqm_ci(matrix)
+    assert point == pytest.approx(analysis.iqm(matrix))
+    assert low <= point <= high
+    pooled_low, pooled_high = analysis.bootstrap_ci(matrix.ravel())
+    assert high - low < 0.2 * (pooled_high - pooled_low)
+
+
+def test_aggregate_iqm_ci_of_one_task_is_the_plain_bootstrap():
+    scores = np.random.default_rng(7).normal(size=12)
+    point, ci = analysis.aggregate_iqm_ci(scores)
+    assert point == pytest.approx(analysis.iqm(scores))
+    assert ci == pytest.approx(analysis.bootstrap_ci(scores))
+
+
+# -- steps to reach and sample efficiency ------------------------------------------------
+def test_steps_to_reach_interpolates_between_evaluations():
+    steps, values = [0, 10, 20, 30], [0.0, 2.0, 6.0, 10.0]
+    assert analysis.steps_to_reach(steps, values, 5.0) == pytest.approx(10 + (5 - 2) / (6 - 2) * 10)  # 17.5
+    assert analysis.steps_to_reach(steps, values, 6.0) == pytest.approx(20.0)
+    assert analysis.steps_to_reach(steps, values, -1.0) == pytest.approx(0.0)  # the first evaluation
+    # The first crossing counts, even if the curve drops below again.
+    assert analysis.steps_to_reach(steps, [0.0, 6.0, 2.0, 8.0], 5.0) == pytest.approx(5 / 6 * 10)
+    # A missing evaluation is skipped: interpolate across it.
+    assert analysis.steps_to_reach([0, 10, 20], [0.0, math.nan, 6.0], 3.0) == pytest.approx(10.0)
+
+
+def test_steps_to_reach_never():
+    assert math.isnan(analysis.steps_to_reach([0, 10, 20], [0.0, 4.0, 9.9], 10.0))
+    assert math.isnan(analysis.steps_to_reach([0, 10], [math.nan, math.nan], 0.0))
+
+
+def test_sample_efficiency_ratio_of_a_curve_twice_as_slow():
+    steps, values = np.array([0, 10, 20, 30]), np.array([0.0, 2.0, 6.0, 10.0])
+    fast, slow = (steps, values), (2 * steps, values)
+    assert analysis.sample_efficiency_ratio(fast, slow, 5.0) == pytest.approx(2.0)
+    assert analysis.sample_efficiency_ratio(slow, fast, 5.0) == pytest.approx(0.5)
+    # Per-seed curves are averaged first: seeds 4 and 8 at step 20 make the mean 6.
+    seeds = np.stack([values, values], axis=1)
+    seeds[2] = [4.0, 8.0]
+    assert analysis.sample_efficiency_ratio((steps, seeds), slow, 5.0) == pytest.approx(2.0)
+    assert math.isnan(analysis.sample_efficiency_ratio(fast, slow, 20.0))  # neither reaches 20
+    assert analysis.sample_efficiency_ratio(fast, (steps, values / 10), 5.0) == math.inf
+    assert analysis.sample_efficiency_ratio((steps, values / 10), fast, 5.0) == 0.0
+
+
+def test_common_threshold_is_reached_by_every_mean_curve():
+    rng = np.random.default_rng(9)
+    steps = np.arange(0, 200, 10)
+    runs = [(steps, np.linspace(0, top, 20)[:, None] + rng.normal(0, 5, (20, 5))) for top in (900.0, 300.0)]
+    finals = [analysis.final_returns(returns).mean() for _, returns in runs]
+    threshold = analysis.common_threshold(finals)
+    assert threshold == pytest.approx(0.8 * min(finals))
+    for run in runs:
+        assert math.isfinite(analysis.steps_to_reach(*analysis.mean_curve(run), threshold))
+    assert analysis.common_threshold([100.0, 50.0], fraction=0.5) == pytest.approx(25.0)
+
+
+def test_sample_efficiency_ratio_ci():
+    steps = np.arange(0, 100, 10)
+    clean = np.repeat(np.arange(10.0)[:, None] * 10, 5, axis=1)
+    # Identical seeds: every resample has the same curves, the ratio is exactly 2.
+    assert analysis.sample_efficiency_ratio_ci((steps, clean), (2 * steps, clean), 45.0) == pytest.approx((2.0, 2.0))
+    noisy = clean + np.random.default_rng(8).normal(0.0, 3.0, size=clean.shape)
+    ratio = analysis.sample_efficiency_ratio((steps, noisy), (2 * steps, clean), 45.0)
+    low, high = analysis.sample_efficiency_ratio_ci((steps, noisy), (2 * steps, clean), 45.0)
+    assert low <= ratio <= high and low < high
+
+
+# -- run directories ---------------------------------------------------------------------
+def write_run(run_dir: pathlib.Path, eval_returns: list, steps_per_round: int = 10) -> pathlib.Path:
+    """A synthetic ``python -m rebel_jax.train`` run directory with the given per-round returns."""
+    run_dir.mkdir()
+    config = {
+        "algo": "rebel",
+        "env": {"task": "walker_walk", "num_envs": 4, "episode_length": 1000},
+        "sac": {"utd": 0.25},
+        "train": {"eval_episodes": 10},
+    }
+    meta = {
+        "jax": "0.10.2",
+        "devices": ["TFRT_CPU_0"],
+        "git_commit": "HEAD",
+        "command": "train.py --preset tiny --algo rebel --seeds 3",
+        "seeds": 3,
+        "started": "2026-11-23T10:00:00",
+    }
+    (run_dir / "config.json").write_text(json.dumps(config))
+    (run_dir / "meta.json").write_text(json.dumps(meta))
+    lines = []
+    for i, ret in enumerate(eval_returns):
+        record = {"env_steps": (i + 1) * steps_per_round, "round": i, "eval_return": ret, "train_return": ret}
+        lines.append(json.dumps(record))
+    (run_dir / "metrics.jsonl").write_text("\n".join(lines) + "\n\n")
+    return run_dir
+
+
+RETURNS = [
+    [None, None, None],  # before any evaluation: dropped
+    [1.0, None, 3.0],  # one seed without an evaluation yet: NaN
+    [2.0, 4.0, 6.0],
+    [4.0, 8.0, 12.0],
+    [5.0, 10.0, 15.0],
+]
+
+
+def test_load_runs_with_nulls(tmp_path):
+    steps, returns = analysis.load_runs(write_run(tmp_path / "run", RETURNS))
+    assert steps.tolist() == [20, 30, 40, 50]
+    assert returns.shape == (4, 3)
+    np.testing.assert_array_equal(returns[1:], np.array(RETURNS[2:], dtype=float))
+    assert returns[0, 0] == 1.0 and math.isnan(returns[0, 1]) and returns[0, 2] == 3.0
+
+
+def test_load_runs_keeps_the_last_record_of_a_resumed_round(tmp_path):
+    run_dir = write_run(tmp_path / "run", RETURNS)
+    with open(run_dir / "metrics.jsonl", "a") as f:  # a resume re-logging the round at step 40
+        f.write(json.dumps({"env_steps": 40, "round": 3, "eval_return": [7.0, 7.0, 7.0]}) + "\n")
+    steps, returns = analysis.load_runs(run_dir)
+    assert steps.tolist() == [20, 30, 40, 50]
+    assert returns[2].tolist() == [7.0, 7.0, 7.0]
+
+
+def test_distinct_evaluations_drops_repeated_rounds():
+    steps = np.array([10, 20, 30, 40, 50])
+    returns = np.array([[1.0, math.nan], [1.0, math.nan], [1.0, 2.0], [1.0, 2.0], [3.0, 2.0]])
+    kept_steps, kept = analysis.distinct_evaluations((steps, returns))
+    assert kept_steps.tolist() == [10, 30, 50]
+    np.testing.assert_array_equal(kept, returns[[0, 2, 4]])
+
+
+def test_final_returns_average_each_seeds_last_finite_evaluations():
+    returns = np.array([[1.0, math.nan], [2.0, 5.0], [3.0, math.nan], [4.0, 7.0]])
+    np.testing.assert_allclose(analysis.final_returns(returns, last=2), [3.5, 6.0])
+    np.testing.assert_allclose(analysis.final_returns(returns, last=10), [2.5, 6.0])
+
+
+def test_merge_runs_on_common_steps():
+    a = (np.array([10, 20, 30]), np.array([[1.0], [2.0], [3.0]]))
+    b = (np.array([20, 30, 40]), np.array([[5.0, 6.0], [7.0, 8.0], [9.0, 9.0]]))
+    steps, returns = analysis.merge_runs(a, b)
+    assert steps.tolist() == [20, 30]
+    np.testing.assert_array_equal(returns, [[2.0, 5.0, 6.0], [3.0, 7.0, 8.0]])
+
+
+def test_summary_schema_and_numbers(tmp_path):
+    s = analysis.summary(write_run(tmp_path / "run", RETURNS), last=2, labels=100, lam=0.1)
+    json.dumps(s, allow_nan=False)  # strict JSON
+    for key in ("task", "algo", "preset", "seeds", "env_steps", "final_returns", "mean", "std", "curve", "device"):
+        assert key in s
+    assert (s["task"], s["algo"], s["preset"], s["seeds"]) == ("walker_walk", "rebel", "tiny", 3)
+    assert (s["env_steps"], s["date"], s["device"]) == (50, "2026-11-23", "TFRT_CPU_0")
+    assert (s["labels"], s["lam"]) == (100, 0.1)
+    assert s["final_returns"] == pytest.approx([4.5, 9.0, 13.5])
+    assert s["mean"] == pytest.approx(9.0)
+    assert s["std"] == pytest.approx(np.std([4.5, 9.0, 13.5]))
+    assert s["iqm"] == pytest.approx(9.0)  # the middle of 3
+    assert s["iqm_ci"][0] <= s["iqm"] <= s["iqm_ci"][1]
+    assert s["curve"]["env_steps"] == [20, 30, 40, 50]
+    assert s["curve"]["mean"] == pytest.approx([2.0, 4.0, 8.0, 10.0])
+    assert s["curve"]["std"][0] == pytest.approx(1.0)
+
+
+# -- plots -------------------------------------------------------------------------------
+def test_plot_curves_and_iqm(tmp_path):
+    run = analysis.load_runs(write_run(tmp_path / "run", RETURNS))
+    fig, (ax_curves, ax_iqm) = plt.subplots(1, 2)
+    analysis.plot_curves(ax_curves, {"REBEL": run, "SAC": (run[0], 2 * run[1])})
+    assert [t.get_text() for t in ax_curves.get_legend().get_texts()] == ["REBEL (3 seeds)", "SAC (3 seeds)"]
+    np.testing.assert_allclose(ax_curves.get_lines()[1].get_ydata(), [4.0, 8.0, 16.0, 20.0])
+    scores = {"REBEL": [0.9, 0.8, 0.85, 0.7, 0.95], "PEBBLE": np.full((5, 2), 0.5)}
+    stats = analysis.plot_iqm(ax_iqm, scores)
+    assert [t.get_text() for t in ax_iqm.get_yticklabels()] == ["REBEL", "PEBBLE"]
+    assert [bar.get_width() for bar in ax_iqm.patches] == pytest.approx([0.85, 0.5])
+    assert stats["PEBBLE"][0] == pytest.approx(0.5) and stats["PEBBLE"][1] == pytest.approx((0.5, 0.5))
+    fig.savefig(tmp_path / "plot.png")
+    plt.close(fig)
+    assert (tmp_path / "plot.png").stat().st_size > 0

@@ -1,0 +1,364 @@
+"""Reward-model terms of REBEL (agent preference) and SURF (temporal crops, pseudo-labels), and the sigmoid head."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rebel_jax import reward_model as rm
+from rebel_jax.queries import Segments
+
+OBS, ACT, H = 3, 2, 6
+TRUE_W = np.array([1.0, -0.5, 0.8, 0.6, -0.4], np.float32)
+TINY = rm.RewardConfig(ensemble_size=2, hidden=4, depth=1)
+SMALL = rm.RewardConfig(
+    ensemble_size=2, hidden=16, depth=1, lr=3e-3, batch_size=16, max_epochs=8, stop_accuracy=1.0, label_capacity=64
+)
+
+_init = jax.jit(rm.init, static_argnums=(0, 2, 3, 4))
+_add_labels = jax.jit(rm.add_labels)
+_train = jax.jit(rm.train, static_argnums=0)
+
+
+def _segments(seed, n, length=H):
+    """Smooth synthetic segments: a random state-action per segment plus small per-step noise."""
+    rng = np.random.default_rng(seed)
+    obs = (rng.normal(size=(n, 1, OBS)) + 0.2 * rng.normal(size=(n, length, OBS))).astype(np.float32)
+    action = np.clip(rng.uniform(-1.0, 1.0, (n, 1, ACT)) + 0.1 * rng.normal(size=(n, length, ACT)), -1, 1)
+    action = action.astype(np.float32)
+    return Segments(obs=obs, action=action, true_reward=np.concatenate([obs, action], -1) @ TRUE_W)
+
+
+def _state_with_labels(cfg, seed, n, length=H):
+    """A fresh ensemble with n oracle-labelled pairs of segments of the given stored length."""
+    seg_a, seg_b = _segments(2 * seed, n, length), _segments(2 * seed + 1, n, length)
+    labels = (seg_b.true_reward.sum(1) > seg_a.true_reward.sum(1)).astype(np.float32)
+    state = _init(cfg, jax.random.key(seed), OBS, ACT, length)
+    return _add_labels(state, seg_a, seg_b, labels, np.ones(n, np.float32))
+
+
+def _numpy_rewards(params, obs, action, output="tanh"):
+    """Per-member rewards of a depth-1 ensemble, by hand in float64: (M, ...)."""
+    layers = jax.tree.map(lambda x: np.asarray(x, np.float64), params)["params"]
+    x = np.concatenate([obs, action], -1).astype(np.float64)
+    rewards = []
+    for m in range(layers["Dense_0"]["kernel"].shape[0]):
+        hidden = x @ layers["Dense_0"]["kernel"][m] + layers["Dense_0"]["bias"][m]
+        hidden = np.where(hidden > 0, hidden, 0.01 * hidden)  # Flax's leaky_relu slope.
+        z = (hidden @ layers["Dense_1"]["kernel"][m] + layers["Dense_1"]["bias"][m])[..., 0]
+        rewards.append(np.tanh(z) if output == "tanh" else 1.0 / (1.0 + np.exp(-z)))
+    return np.stack(rewards)
+
+
+def _numpy_ce(logits, labels):
+    return -(labels * np.log(1 / (1 + np.exp(-logits))) + (1 - labels) * np.log(1 / (1 + np.exp(logits))))
+
+
+def _tiny_params(cfg=TINY, seed=0):
+    return _init(cfg, jax.random.key(seed), OBS, ACT, H).params
+
+
+def _empty_batch(members=2, size=4):
+    zeros = jnp.zeros((members, size, H, OBS)), jnp.zeros((members, size, H, ACT))
+    return rm.PrefBatch(zeros[0], zeros[1], zeros[0], zeros[1], jnp.zeros((members, size)), jnp.ones((members, size)))
+
+
+# Reward head.
+
+
+@pytest.mark.parametrize("output", ["tanh", "sigmoid"])
+def test_reward_head_matches_hand_computation(output):
+    cfg = dataclasses.replace(TINY, output=output)
+    params = _tiny_params(cfg)
+    seg = _segments(1, 5)
+    got = np.asarray(jax.jit(rm.predict, static_argnums=0)(cfg, params, seg.obs, seg.action))
+    np.testing.assert_allclose(got, _numpy_rewards(params, seg.obs, seg.action, output), rtol=1e-5, atol=1e-6)
+    if output == "sigmoid":
+        assert got.min() > 0 and got.max() < 1
+    assert rm.RewardConfig().output == "tanh"
+
+
+# REBEL: agent-preference term.
+
+
+@pytest.mark.parametrize("estimator", ["discounted", "mean"])
+@pytest.mark.parametrize("output", ["tanh", "sigmoid"])
+def test_agent_value_term_equals_hand_computation(estimator, output):
+    cfg = dataclasses.replace(TINY, output=output)
+    params = _tiny_params(cfg, seed=1)
+    seg = _segments(2, 3, length=5)
+    lam, gamma = 0.7, 0.9
+    term = jax.jit(rm.agent_value_term(cfg, lam, seg.obs, seg.action, gamma, estimator))
+    loss, metrics = term(params, _empty_batch(), jax.random.key(0))
+
+    rewards = _numpy_rewards(params, seg.obs, seg.action, output)  # (M, N, H)
+    values = []
+    for m in range(cfg.ensemble_size):
+        if estimator == "discounted":
+            returns = [sum(gamma**h * rewards[m, n, h] for h in range(5)) for n in range(3)]
+            values.append(sum(returns) / 3)
+        else:
+            values.append(rewards[m].sum() / 15 / (1 - gamma))
+    np.testing.assert_allclose(float(loss), lam * sum(values), rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["agent_term"]), lam * sum(values), rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-5)
+
+
+def test_agent_value_term_gradients_reach_only_the_reward_params():
+    params = _tiny_params(seed=2)
+    seg = _segments(3, 4)
+    obs, action = jnp.asarray(seg.obs), jnp.asarray(seg.action)
+    batch, key, lam, gamma = _empty_batch(), jax.random.key(0), -0.3, 0.95
+
+    def loss(params, lam, obs, action):
+        return rm.agent_value_term(TINY, lam, obs, action, gamma)(params, batch, key)[0]
+
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(params, lam, obs, action)
+    value_grads = jax.grad(lambda p: jnp.sum(rm.agent_value(TINY, p, obs, action, gamma, "discounted")))(params)
+    for got, want in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(value_grads), strict=True):
+        np.testing.assert_allclose(np.asarray(got), lam * np.asarray(want), rtol=1e-5, atol=1e-7)
+    assert np.abs(np.asarray(jax.tree.leaves(value_grads)[0])).max() > 0
+    total_value = float(jnp.sum(rm.agent_value(TINY, params, obs, action, gamma, "discounted")))
+    np.testing.assert_allclose(float(grads[1]), total_value, rtol=1e-5)  # d loss / d lambda = sum_m V_m.
+    np.testing.assert_array_equal(np.asarray(grads[2]), 0.0)
+    np.testing.assert_array_equal(np.asarray(grads[3]), 0.0)
+
+    lams = jnp.array([-1.0, 0.0, 2.0])
+    losses = jax.jit(jax.vmap(loss, in_axes=(None, 0, None, None)))(params, lams, obs, action)
+    np.testing.assert_allclose(np.asarray(losses), np.asarray(lams) * total_value, rtol=1e-5)
+
+
+@jax.jit
+def _session_with_lambda(state, key, lam, agent_obs, agent_action):
+    """A BT + REBEL session with lambda traced: one compilation serves every lambda."""
+    terms = [rm.bt_loss(SMALL), rm.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
+    return rm.train(SMALL, state, key, terms)
+
+
+def test_zero_lambda_trains_exactly_like_bt_alone():
+    state = _state_with_labels(SMALL, 0, 40)
+    agent = _segments(50, 8)
+    key = jax.random.key(1)
+    alone, alone_metrics = _train(SMALL, state, key)
+    both, both_metrics = _session_with_lambda(state, key, 0.0, agent.obs, agent.action)
+    assert int(both_metrics["epochs"]) == int(alone_metrics["epochs"]) > 0
+    for x, y in zip(
+        jax.tree.leaves((alone.params, alone.opt_state)), jax.tree.leaves((both.params, both.opt_state)), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_lambda_sign_moves_the_agents_reward():
+    """lambda < 0 raises the learned reward on the agent's segments, lambda > 0 lowers it (eq. taken literally)."""
+    state = _state_with_labels(SMALL, 3, 40)
+    agent = _segments(51, 8)
+    key = jax.random.key(4)
+    rewards = {}
+    for lam in (0.3, 0.0, -0.3):
+        trained, _ = _session_with_lambda(state, key, lam, agent.obs, agent.action)
+        rewards[lam] = float(jnp.mean(rm.mean_reward(SMALL, trained.params, agent.obs, agent.action)))
+    assert rewards[0.3] < rewards[0.0] - 0.05 and rewards[-0.3] > rewards[0.0] + 0.05, rewards
+
+
+# SURF: temporal crops.
+
+
+def test_crop_masks_match_a_python_reference_with_the_same_draws():
+    key, shape, stored, crop = jax.random.key(5), (3, 7), 14, 3
+    central = stored - 2 * crop
+    mask_a, mask_b = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
+
+    @jax.jit
+    def draws(key):  # The documented draws: one length per pair, then a start per segment.
+        key_length, key_a, key_b = jax.random.split(key, 3)
+        lengths = jax.random.randint(key_length, shape, central - crop, central + crop + 1)
+        starts = [jax.random.randint(k, shape, 0, stored - lengths + 1) for k in (key_a, key_b)]
+        return lengths, starts
+
+    lengths, starts_ab = jax.tree.map(np.asarray, draws(key))
+    for starts, mask in zip(starts_ab, (mask_a, mask_b), strict=True):
+        expected = np.zeros(shape + (stored,), np.float32)
+        for i in range(shape[0]):
+            for j in range(shape[1]):
+                expected[i, j, starts[i, j] : starts[i, j] + lengths[i, j]] = 1.0
+        np.testing.assert_array_equal(np.asarray(mask), expected)
+
+
+def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
+    shape, stored, crop = (4000,), 12, 2
+    central = stored - 2 * crop
+    masks = np.stack(jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
+    assert set(np.unique(masks)) == {0.0, 1.0}
+    edges = np.diff(np.pad(masks, ((0, 0), (0, 0), (1, 1))), axis=-1)
+    assert np.all((edges == 1).sum(-1) == 1) and np.all((edges == -1).sum(-1) == 1)  # One contiguous run.
+    lengths = masks.sum(-1)
+    np.testing.assert_array_equal(lengths[0], lengths[1])  # Both segments of a pair keep as many steps.
+    assert set(lengths[0].astype(int)) == set(range(central - crop, central + crop + 1))
+    starts = np.argmax(masks, axis=-1)
+    for length in range(central - crop, central + crop + 1):  # Every start in [0, L - length] occurs.
+        assert set(starts[0][lengths[0] == length]) == set(range(stored - length + 1))
+    full = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
+    np.testing.assert_array_equal(np.stack(full), 1.0)
+
+
+def _surf_batch(seed, members, size, stored):
+    """A minibatch of (M, B) labelled pairs of segments of the stored length, soft and padded pairs included."""
+    seg_a, seg_b = _segments(seed, members * size, stored), _segments(seed + 1, members * size, stored)
+    labels = (seg_b.true_reward.sum(1) > seg_a.true_reward.sum(1)).astype(np.float32)
+    labels[1] = 0.5
+    weight = np.ones(members * size, np.float32)
+    weight[-1] = 0.0
+
+    def split(x):
+        return jnp.asarray(x.reshape((members, size) + x.shape[1:]))
+
+    return rm.PrefBatch(*map(split, (seg_a.obs, seg_a.action, seg_b.obs, seg_b.action, labels, weight)))
+
+
+def test_cropped_bt_loss_without_crop_is_bt_loss_exactly():
+    params = _init(SMALL, jax.random.key(8), OBS, ACT, H).params
+    batch, key = _surf_batch(9, 2, 5, H), jax.random.key(10)
+    surf = rm.SURFConfig(crop=0)
+    value_and_grad = functools.partial(jax.value_and_grad, has_aux=True)
+    plain = jax.jit(value_and_grad(rm.bt_loss(SMALL)))(params, batch, key)
+    cropped = jax.jit(value_and_grad(rm.cropped_bt_loss(SMALL, surf)))(params, batch, key)
+    for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(cropped), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
+    surf = rm.SURFConfig(crop=2)
+    stored = H + 2 * surf.crop
+    params = _tiny_params(seed=12)
+    batch, key = _surf_batch(13, 2, 5, stored), jax.random.key(14)
+    loss, metrics = jax.jit(rm.cropped_bt_loss(TINY, surf))(params, batch, key)
+    mask_a, mask_b = map(np.asarray, jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf.crop))
+    assert not np.array_equal(mask_a[0], mask_a[1])  # Members see different crops.
+    expected = 0.0
+    for m in range(2):
+        rewards_a = _numpy_rewards(params, np.asarray(batch.obs_a[m]), np.asarray(batch.act_a[m]))[m]
+        rewards_b = _numpy_rewards(params, np.asarray(batch.obs_b[m]), np.asarray(batch.act_b[m]))[m]
+        logits = (rewards_b * mask_b[m]).sum(-1) - (rewards_a * mask_a[m]).sum(-1)
+        weight = np.asarray(batch.weight[m])
+        expected += (_numpy_ce(logits, np.asarray(batch.labels[m])) * weight).sum() / weight.sum()
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["bt_loss"]), expected, rtol=1e-5)
+
+
+# SURF: pseudo-labels.
+
+
+def test_pseudo_labels_match_numpy():
+    logits = np.array([-3.0, -0.5, -1e-3, 0.0, 1e-3, 0.4, 1.2, 2.5, 6.0], np.float32)
+    for threshold in (0.5, 0.6, 0.9, 0.99):
+        labels, confident = jax.jit(rm.pseudo_labels)(logits, threshold)
+        prob = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
+        np.testing.assert_array_equal(np.asarray(labels), (prob > 0.5).astype(np.float32))
+        np.testing.assert_array_equal(
+            np.asarray(confident), (np.maximum(prob, 1 - prob) >= threshold).astype(np.float32)
+        )
+
+
+def _pool(seed, size, stored):
+    seg_a, seg_b = _segments(seed, size, stored), _segments(seed + 1, size, stored)
+    return tuple(map(jnp.asarray, (seg_a.obs, seg_a.action, seg_b.obs, seg_b.action)))
+
+
+def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
+    surf = rm.SURFConfig(threshold=0.6, weight=0.5, ratio=3, crop=2)
+    stored = H + 2 * surf.crop
+    params = _init(TINY, jax.random.key(15), OBS, ACT, stored).params
+    params = jax.tree.map(lambda x: 3.0 * x, params)  # Sharper preferences: some pairs pass the threshold.
+    pool = _pool(16, 30, stored)
+    batch, key = _surf_batch(17, 2, 4, stored), jax.random.key(18)
+    term = rm.pseudo_label_term(TINY, surf, *pool)
+    (loss, metrics), grads = jax.jit(jax.value_and_grad(term, has_aux=True))(params, batch, key)
+
+    @jax.jit
+    def draws(key):  # The documented draws: pool indices, then crops.
+        key_index, key_crop = jax.random.split(key)
+        return jax.random.randint(key_index, (2, 12), 0, 30), *rm.crop_masks(key_crop, (2, 12), stored, surf.crop)
+
+    index, mask_a, mask_b = map(np.asarray, draws(key))
+    expected, confident_count, fixed_labels, fixed_confident = 0.0, 0, [], []
+    for m in range(2):
+        obs_a, act_a, obs_b, act_b = (np.asarray(x)[index[m]] for x in pool)
+        rewards_a, rewards_b = _numpy_rewards(params, obs_a, act_a)[m], _numpy_rewards(params, obs_b, act_b)[m]
+        central = slice(surf.crop, surf.crop + H)
+        prob = 1.0 / (1.0 + np.exp(-(rewards_b[:, central].sum(-1) - rewards_a[:, central].sum(-1))))
+        assert np.all(np.abs(np.maximum(prob, 1 - prob) - surf.threshold) > 1e-4)  # No float32 borderline case.
+        labels = (prob > 0.5).astype(np.float64)
+        confident = (np.maximum(prob, 1 - prob) >= surf.threshold).astype(np.float64)
+        logits = (rewards_b * mask_b[m]).sum(-1) - (rewards_a * mask_a[m]).sum(-1)
+        expected += surf.weight * np.mean(_numpy_ce(logits, labels) * confident)
+        confident_count += confident.sum()
+        fixed_labels.append(labels)
+        fixed_confident.append(confident)
+    assert 0 < confident_count < 24  # Both confident and unconfident pairs are drawn.
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["pseudo_loss"]), expected, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["pseudo_fraction"]), confident_count / 24, rtol=1e-6)
+
+    # The pseudo-labels carry no gradient: the term's gradient is that of CE with the labels held fixed.
+    fixed_labels, fixed_confident = jnp.asarray(np.stack(fixed_labels)), jnp.asarray(np.stack(fixed_confident))
+
+    def fixed_loss(params):
+        def one(member_params, member_index, member_mask_a, member_mask_b):
+            reward_a = rm._network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
+            reward_b = rm._network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
+            return jnp.sum(reward_b * member_mask_b, -1) - jnp.sum(reward_a * member_mask_a, -1)
+
+        logits = jax.vmap(one)(params, jnp.asarray(index), jnp.asarray(mask_a), jnp.asarray(mask_b))
+        return surf.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
+
+    for x, y in zip(jax.tree.leaves(grads), jax.tree.leaves(jax.jit(jax.grad(fixed_loss))(params)), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+
+
+def test_surf_session_runs_under_jit_and_vmap_over_keys():
+    surf = rm.SURFConfig(threshold=0.7, ratio=2, crop=2)
+    stored = H + 2 * surf.crop
+    state = _state_with_labels(SMALL, 19, 40, stored)
+    terms = [rm.cropped_bt_loss(SMALL, surf), rm.pseudo_label_term(SMALL, surf, *_pool(20, 50, stored))]
+    session = functools.partial(rm.train, SMALL, terms=terms)
+    keys = jax.random.split(jax.random.key(21), 2)
+    batched, batched_metrics = jax.jit(jax.vmap(session, in_axes=(None, 0)))(state, keys)
+    assert np.all(np.asarray(batched_metrics["epochs"]) == SMALL.max_epochs)
+    assert np.all(np.isfinite(np.asarray(batched_metrics["loss"])))
+    for i in range(2):
+        alone, metrics = jax.jit(session)(state, keys[i])
+        np.testing.assert_allclose(float(batched_metrics["loss"][i]), float(metrics["loss"]), rtol=1e-5)
+        for x, y in zip(jax.tree.leaves(alone.params), jax.tree.leaves(batched.params), strict=True):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y)[i], rtol=1e-4, atol=1e-6)
+
+
+# Validation.
+
+
+@pytest.mark.parametrize(
+    "field,value",
+    [("lam", float("nan")), ("estimator", "max"), ("num_segments", 0), ("segment_length", 0), ("gamma", 1.5)],
+)
+def test_agent_preference_validate_names_the_field(field, value):
+    with pytest.raises(ValueError, match=f"rebel.{field}"):
+        dataclasses.replace(rm.AgentPreferenceConfig(), **{field: value}).validate()
+    with pytest.raises(ValueError, match="rebel.gamma"):
+        rm.AgentPreferenceConfig(estimator="mean", gamma=1.0).validate()
+    rm.AgentPreferenceConfig().validate()
+    rm.AgentPreferenceConfig(gamma=1.0).validate()
+
+
+@pytest.mark.parametrize(
+    "field,value", [("threshold", 1.5), ("weight", -1.0), ("ratio", 0), ("pool_size", 0), ("crop", -1)]
+)
+def test_surf_validate_names_the_field(field, value):
+    with pytest.raises(ValueError, match=f"surf.{field}"):
+        dataclasses.replace(rm.SURFConfig(), **{field: value}).validate()
+    with pytest.raises(ValueError, match="surf.crop"):
+        rm.SURFConfig(crop=5).validate(segment_length=5)
+    rm.SURFConfig().validate(segment_length=50)
