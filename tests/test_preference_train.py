@@ -14,6 +14,7 @@ from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, Train
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
+from rebel_jax.teachers import TeacherConfig
 from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a
@@ -128,11 +129,20 @@ def test_rebel_lambda_is_traced_and_changes_the_learned_reward(rebel_runs):
     assert np.all(np.isfinite(metrics[-1]["reward_loss"])) and np.all(np.isfinite(metrics[-1]["critic_loss"]))
 
 
-def test_surf_runs_end_to_end():
-    cfg = dataclasses.replace(MICRO_PEBBLE, algo="surf")
+def test_surf_with_disagreement_queries_and_a_skipping_teacher():
+    """SURF end to end, with the non-default query scheme and teacher; skipped pairs are free."""
+    cfg = dataclasses.replace(
+        MICRO_PEBBLE,
+        algo="surf",
+        query=dataclasses.replace(MICRO_PEBBLE.query, sampling="disagreement"),
+        teacher=TeacherConfig(eps_skip=0.5, eps_equal=0.1),
+    )
     trainer, state, metrics = _run(cfg, seed_keys(4, 2))
     assert trainer.stored_length == cfg.query.segment_length + 2 * cfg.surf.crop
     assert state.reward.data.obs_a.shape[2] == trainer.stored_length
-    np.testing.assert_array_equal(metrics[-1]["labels_used"], [48, 48])
-    assert np.all(metrics[-1]["reward_accuracy_all"] >= 0.8)
+    sessions = [m for m in metrics if np.all(m["session"] == 1.0)]
+    skipped = sum(m["session_skipped"] for m in sessions)
+    assert np.all(skipped > 0)  # half the margin skips some pairs of a near-random policy
+    np.testing.assert_array_equal(metrics[-1]["labels_used"], 48 - skipped)
+    assert np.all(metrics[-1]["reward_accuracy_all"] >= 0.7)
     assert np.all(np.isfinite(metrics[-1]["critic_loss"]))
