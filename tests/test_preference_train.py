@@ -95,24 +95,6 @@ def test_pebble_relabel_matches_the_reward_model(pebble_run):
     np.testing.assert_allclose(seed.buffer.learned_reward, expected, rtol=1e-5, atol=1e-6)
 
 
-def test_first_session_resets_the_critic_and_keeps_the_actor():
-    trainer = Trainer(MICRO_PEBBLE)
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(1))
-    session = jax.jit(trainer.feedback_session)
-
-    def same(a, b):
-        return [np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]
-
-    first, _ = session(state, jnp.bool_(True))
-    assert all(same(first.sac.actor_params, state.sac.actor_params))
-    random = [np.any(x != 0) for x in jax.tree.leaves(state.sac.critic_params)]  # not the zero biases
-    unchanged = same(first.sac.critic_params, state.sac.critic_params)
-    assert any(random) and not any(u for u, r in zip(unchanged, random, strict=True) if r)
-    assert all(same(first.sac.target_critic_params, first.sac.critic_params))
-    later, _ = session(state, jnp.bool_(False))
-    assert all(same(later.sac.critic_params, state.sac.critic_params))
-
-
 def test_rebel_with_lambda_zero_is_pebble_bit_for_bit(pebble_run, rebel_runs):
     _, pebble, _ = pebble_run
     _, rebel, _ = rebel_runs

@@ -129,37 +129,44 @@ def test_cli_overrides_preset_fields():
 
 SHARDED = textwrap.dedent(
     """
+    import sys
     import jax, jax.numpy as jnp, numpy as np
     from rebel_jax import sweep
     from rebel_jax.train import Trainer, compiled, seed_keys
-    from tests.test_train import MICRO
-    assert len(jax.devices()) == 4
+    from tests.test_train import MICRO, SHARDED_SEEDS, SHARDED_ROUNDS
+    assert len(jax.devices()) == SHARDED_SEEDS
     init, round_fn, _ = compiled(Trainer(MICRO))
-    keys = seed_keys(11, 4)
-    out = []
-    for sharding in (None, sweep.seed_sharding(4)):
-        state = sweep.shard_seeds(init(sweep.shard_seeds(keys, sharding)), sharding)
-        for r in range(2):
-            state, _ = round_fn(state, jnp.int32(r))
-        if sharding is not None:
-            assert len(state.sac.steps.sharding.device_set) == 4
-        out.append(jax.device_get(state.sac))
-    # One device's batch of 1 and a batch of 4 round differently; chaos and Adam amplify it.
-    for x, y in zip(jax.tree.leaves(out[0]), jax.tree.leaves(out[1])):
-        for i in range(4):
-            a, b = np.asarray(x[i], np.float64), np.asarray(y[i], np.float64)
-            assert np.linalg.norm(a - b) <= 5e-2 * max(np.linalg.norm(b), 1e-6), (a, b)
-    print("SHARDED-OK")
+    sharding = sweep.seed_sharding(SHARDED_SEEDS)
+    state = sweep.shard_seeds(init(sweep.shard_seeds(seed_keys(11, SHARDED_SEEDS), sharding)), sharding)
+    for r in range(SHARDED_ROUNDS):
+        state, _ = round_fn(state, jnp.int32(r))
+    assert len(state.sac.steps.sharding.device_set) == SHARDED_SEEDS
+    leaves = jax.device_get(jax.tree.leaves(state.sac))
+    np.savez(sys.argv[1], *leaves)
     """
 )
+SHARDED_SEEDS, SHARDED_ROUNDS = 2, 2
 
 
-def test_seeds_sharded_over_four_devices_equal_unsharded():
+def test_seeds_sharded_over_devices_equal_unsharded(micro, tmp_path):
+    """One seed per fake CPU device (a subprocess) against the module's vmapped program on one device."""
+    _, init, round_fn = micro
     root = pathlib.Path(__file__).parents[1]
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", PYTHONPATH=f"{root}/src:{root}")
-    cmd = [sys.executable, "-c", SHARDED]
+    flags = f"--xla_force_host_platform_device_count={SHARDED_SEEDS}"
+    env = dict(os.environ, XLA_FLAGS=flags, PYTHONPATH=f"{root}/src:{root}")
+    out_file = tmp_path / "sharded.npz"
+    cmd = [sys.executable, "-c", SHARDED, str(out_file)]
     out = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True, timeout=900)
-    assert "SHARDED-OK" in out.stdout, out.stderr[-3000:]
+    assert out.returncode == 0, out.stderr[-3000:]
+    unsharded, _ = _run(init, round_fn, seed_keys(11, SHARDED_SEEDS), rounds=SHARDED_ROUNDS)
+    leaves = jax.tree.leaves(unsharded.sac)
+    with np.load(out_file) as saved:
+        sharded = [saved[f"arr_{k}"] for k in range(len(leaves))]
+    # A device's batch of 1 and a vmapped batch of 2 round differently; chaos and Adam amplify it.
+    for x, y in zip(sharded, leaves, strict=True):
+        for i in range(SHARDED_SEEDS):
+            a, b = np.asarray(x[i], np.float64), np.asarray(y[i], np.float64)
+            assert np.linalg.norm(a - b) <= 5e-2 * max(np.linalg.norm(b), 1e-6), (a, b)
 
 
 def test_micro_config_is_what_the_tests_think():
