@@ -91,6 +91,13 @@ def _write_meta(run_dir: pathlib.Path, args: Args) -> None:
     (run_dir / "meta.json").write_text(json.dumps(meta, indent=1))
 
 
+def _drop_rounds_after(metrics: pathlib.Path, rounds: int) -> None:
+    """Keeps the first ``rounds`` rounds of a resumed run's log: later ones are run (and logged) again."""
+    if metrics.exists():
+        lines = metrics.read_text().splitlines(keepends=True)
+        metrics.write_text("".join(line for line in lines if json.loads(line)["round"] < rounds))
+
+
 def run(args: Args) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds; returns the final per-seed evaluation."""
     cfg = args.config
@@ -110,6 +117,7 @@ def run(args: Args) -> dict:
         if ckpt is None or ckpt.latest() is None:
             raise FileNotFoundError(f"--resume: no checkpoint under {run_dir / 'checkpoints'}")
         start, state = ckpt.restore(state)
+        _drop_rounds_after(run_dir / "metrics.jsonl", start)
     else:
         _write_meta(run_dir, args)
     per_round = cfg.train.steps_per_round

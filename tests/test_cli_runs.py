@@ -1,0 +1,131 @@
+"""Whole runs: ``python -m rebel_jax.train`` killed and resumed in subprocesses, and SAC learning.
+
+The subprocesses share the tests' persistent compilation cache (conftest sets it for this
+process; the children get it through ``JAX_COMPILATION_CACHE_DIR``), so only the first one
+compiles. The test process itself compiles nothing for the CLI test: it compares the saved
+arrays with orbax.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+ROOT = pathlib.Path(__file__).parents[1]
+
+# The sac flags of test_train.MICRO (two seeds): the same compiled round, so the cache is shared.
+MICRO_FLAGS = (
+    "--preset tiny --algo sac --task walker_walk --num-envs 2 --episode-length 20 --hidden 16 --batch-size 16"
+    " --utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
+    " --seeds 2 --seed 7 --no-tensorboard --no-progress"
+).split()
+ROUNDS = 3
+TIMING = ("seconds", "env_steps_per_s")  # the only fields of metrics.jsonl that may differ between runs
+
+# ``python -m rebel_jax.train`` that stops, alive, right after logging the round ending at
+# PAUSE_AT_STEPS (its checkpoint not yet written) and says so by creating PAUSE_MARKER.
+PAUSED_TRAIN = textwrap.dedent(
+    """
+    import os, pathlib, runpy, sys, time
+    from rebel_jax.logging import RunLogger
+
+    write = RunLogger.write
+
+    def write_then_pause(self, env_steps, metrics, extra):
+        write(self, env_steps, metrics, extra)
+        if env_steps == int(os.environ["PAUSE_AT_STEPS"]):
+            pathlib.Path(os.environ["PAUSE_MARKER"]).touch()
+            time.sleep(3600)
+
+    RunLogger.write = write_then_pause
+    sys.argv[0] = "rebel_jax.train"
+    runpy.run_module("rebel_jax.train", run_name="__main__")
+    """
+)
+
+
+def _env(**extra: str) -> dict[str, str]:
+    return dict(
+        os.environ,
+        PYTHONPATH=str(ROOT / "src"),
+        JAX_COMPILATION_CACHE_DIR=str(jax.config.jax_compilation_cache_dir),
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=str(jax.config.jax_persistent_cache_min_compile_time_secs),
+        **extra,
+    )
+
+
+def _train(run_dir: pathlib.Path, *flags: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "rebel_jax.train", *MICRO_FLAGS, "--run-dir", str(run_dir), *flags]
+    out = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=1200)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out
+
+
+def _steps_on_disk(run_dir: pathlib.Path) -> list[int]:
+    """Committed checkpoints (orbax renames a save's temporary directory to ``<step>`` when it is complete)."""
+    return sorted(int(p.name) for p in (run_dir / "checkpoints").iterdir() if p.name.isdigit())
+
+
+def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sharding info not provided")
+        with ocp.PyTreeCheckpointer() as checkpointer:
+            saved = checkpointer.restore((run_dir / "checkpoints" / str(step) / "default").absolute())
+    return {k: np.asarray(v) for k, v in saved.items()}
+
+
+def _metrics(run_dir: pathlib.Path) -> list[dict]:
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
+
+
+@pytest.mark.slow
+def test_cli_run_killed_after_a_checkpoint_resumes_to_the_same_result(tmp_path):
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    out_whole = _train(whole)  # compiles (or loads from the cache) everything the others load
+
+    marker = tmp_path / "paused"
+    per_round = 40
+    env = _env(PAUSE_AT_STEPS=str(3 * per_round), PAUSE_MARKER=str(marker))
+    cmd = [sys.executable, "-c", PAUSED_TRAIN, *MICRO_FLAGS, "--run-dir", str(killed)]
+    with open(tmp_path / "killed.log", "w") as log:
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 1200
+        while not marker.exists():
+            assert proc.poll() is None, (tmp_path / "killed.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "the run never reached round 3"
+            time.sleep(0.1)
+        # Round 3 is done and logged; its checkpoint is not written: the latest on disk is round 2's.
+        assert _steps_on_disk(killed) == [1, 2]
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (killed / "final.json").exists() and len(_metrics(killed)) == 3
+
+    out_resumed = _train(killed, "--resume")
+
+    assert _steps_on_disk(whole) == _steps_on_disk(killed) == [ROUNDS - 1, ROUNDS]
+    a, b = _saved_arrays(whole, ROUNDS), _saved_arrays(killed, ROUNDS)
+    assert a.keys() == b.keys() and len(a) > 50
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=f"leaf {k}")
+    assert json.loads((whole / "final.json").read_text()) == json.loads((killed / "final.json").read_text())
+    # The resumed run logged round 3 once more: one row per round, the same as the whole run's.
+    assert _metrics(whole) == _metrics(killed)
+    assert [row["round"] for row in _metrics(killed)] == list(range(ROUNDS))
+    final_line = [line for line in out_whole.stdout.splitlines() if line.startswith("final evaluation return")]
+    assert len(final_line) == 1 and final_line[0] in out_resumed.stdout.splitlines()
