@@ -45,6 +45,9 @@ class Args:
     """Continue from the latest checkpoint in ``run_dir``."""
     checkpoint_every: int = 1
     """Rounds between checkpoints; 0 disables them."""
+    time_limit: float = 0.0
+    """Seconds of wall time: stop after the last round that ends within it (checkpointing that
+    round) and continue later with ``--resume``. For calls with a wall-clock limit; 0: none."""
     progress: bool = True
     """Show a progress bar."""
     tensorboard: bool = True
@@ -122,12 +125,19 @@ def run(args: Args) -> dict:
         _write_meta(run_dir, args)
     per_round = cfg.train.steps_per_round
     logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard)
+    started, slowest = time.perf_counter(), 0.0
     try:
         for r in range(start, cfg.train.num_rounds):
+            if args.time_limit and r > start and time.perf_counter() - started + 1.2 * slowest > args.time_limit:
+                if ckpt is not None and ckpt.latest() != r:
+                    ckpt.save(r, state)
+                print(f"--time-limit {args.time_limit:g} s: stopped after round {r - 1}; continue with --resume")
+                return {"stopped_at_round": r}
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
             metrics = jax.device_get(metrics)
             seconds = time.perf_counter() - t0
+            slowest = max(slowest, seconds) if r > start else 0.0
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:
                 metrics.pop("eval_return")
@@ -168,6 +178,8 @@ def parse(argv: list[str] | None = None) -> Args:
             raise ConfigError(f"seeds={args.seeds!r} is invalid: allowed >= 1")
         if args.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
+        if args.time_limit < 0:
+            raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed >= 0")
         if args.lam_grid and args.config.algo != "rebel":
             raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
     except ConfigError as err:
