@@ -40,7 +40,8 @@ def _state(run_dir: pathlib.Path) -> str:
 
 def _command(job: dict, run_dir: pathlib.Path, seconds: float, state: str) -> list[str]:
     cmd = [sys.executable, "-m", "rebel_jax.train", *job["args"], "--run-dir", str(run_dir)]
-    cmd += ["--time-limit", f"{seconds:.0f}", "--checkpoint-every", str(CHECKPOINT_EVERY), "--no-progress", "--no-tensorboard"]
+    cmd += ["--time-limit", f"{seconds:.0f}", "--checkpoint-every", str(CHECKPOINT_EVERY)]
+    cmd += ["--no-progress", "--no-tensorboard"]
     return cmd + (["--resume"] if state == "resume" else [])
 
 
