@@ -42,18 +42,24 @@ RESULTS = pathlib.Path(__file__).parents[1] / "results"
 
 
 def methods(run_dir: pathlib.Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The run's curves per method label: ``{label: (steps, returns (evals, seeds))}``."""
+    """The run's curves per method label: ``{label: (steps, returns (evals, seeds))}``.
+
+    A grid run (``--lam-grid``, ``--teacher-grid``) is split into one label per grid point.
+    """
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text())
     steps, returns = load_runs(run_dir)
-    lams = meta.get("lams")
-    if cfg["algo"] != "rebel" or not lams:
-        return {cfg["algo"]: (steps, returns)}
-    out = {}
-    for lam in dict.fromkeys(lams):
-        label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
-        out[label] = (steps, returns[:, [i for i, x in enumerate(lams) if x == lam]])
-    return out
+    columns = returns.shape[1]
+    lams = meta.get("lams") or [None] * columns
+    teachers = meta.get("teachers") or [None] * columns
+    out: dict[str, list[int]] = {}
+    for i, (lam, teacher) in enumerate(zip(lams, teachers, strict=True)):
+        if lam is None:
+            label = cfg["algo"]
+        else:
+            label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
+        out.setdefault(label + (f", {teacher}" if teacher else ""), []).append(i)
+    return {label: (steps, returns[:, idx]) for label, idx in out.items()}
 
 
 def gather(run_dirs: list[pathlib.Path]) -> dict[str, tuple[np.ndarray, np.ndarray]]:

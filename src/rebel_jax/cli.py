@@ -59,14 +59,26 @@ class Args:
     (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
     for every lambda). Empty: ``rebel.lam`` only."""
 
+    teacher_grid: tuple[str, ...] = ()
+    """Preference methods only: run every seed (and lambda) with each of these B-Pref teachers
+    in one vmapped program (columns: lambda, then teacher, then seed). Empty: ``--teacher``."""
+
     @property
     def lams(self) -> tuple[float, ...]:
         return self.lam_grid or (self.config.rebel.lam,)
 
     @property
+    def teachers(self) -> tuple[str | None, ...]:
+        return self.teacher_grid or (None,)
+
+    def grid(self) -> list[tuple[float, str | None]]:
+        """(lambda, teacher preset or None for ``config.teacher``) of each column, seeds innermost."""
+        return [(lam, t) for lam in self.lams for t in self.teachers for _ in range(self.seeds)]
+
+    @property
     def columns(self) -> int:
-        """Runs vmapped together: seeds x lambdas."""
-        return self.seeds * len(self.lams)
+        """Runs vmapped together: seeds x lambdas x teachers."""
+        return self.seeds * len(self.lams) * len(self.teachers)
 
 
 def _git_commit() -> str | None:
@@ -88,7 +100,8 @@ def _write_meta(run_dir: pathlib.Path, args: Args) -> None:
         "command": " ".join(sys.argv),
         "seeds": args.seeds,
         "columns": args.columns,
-        "lams": [lam for lam in args.lams for _ in range(args.seeds)] if args.config.algo == "rebel" else None,
+        "lams": [lam for lam, _ in args.grid()] if args.config.algo == "rebel" else None,
+        "teachers": [t for _, t in args.grid()] if args.teacher_grid else None,
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
     }
     (run_dir / "meta.json").write_text(json.dumps(meta, indent=1))
@@ -108,11 +121,15 @@ def run(args: Args) -> dict:
     trainer = Trainer(cfg)
     init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
-    keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (len(args.lams), 1))
+    keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
     keys = sweep.shard_seeds(keys, sharding)
     state = init(keys)
+    grid = args.grid()
     if cfg.algo == "rebel":
-        state = state.replace(lam=jnp.repeat(jnp.asarray(args.lams, jnp.float32), args.seeds))
+        state = state.replace(lam=jnp.asarray([lam for lam, _ in grid], jnp.float32))
+    if args.teacher_grid:
+        knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
+        state = state.replace(teacher=jax.tree.map(lambda *xs: jnp.stack(xs), *knobs))
     state = sweep.shard_seeds(state, sharding)
     ckpt = Checkpointer(run_dir / "checkpoints") if args.checkpoint_every else None
     start = 0
@@ -152,9 +169,11 @@ def run(args: Args) -> dict:
         logger.close()
         if ckpt is not None:
             ckpt.close()
-    for i, lam in enumerate(args.lams):
-        part = final[i * args.seeds : (i + 1) * args.seeds]
-        which = f" (lambda {lam:g})" if cfg.algo == "rebel" else ""
+    for i in range(0, args.columns, args.seeds):
+        part = final[i : i + args.seeds]
+        lam, teacher = grid[i]
+        which = ([f"lambda {lam:g}"] if cfg.algo == "rebel" else []) + ([f"teacher {teacher}"] if teacher else [])
+        which = f" ({', '.join(which)})" if which else ""
         print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f} +- {part.std():.1f}")
     print(f"run directory: {run_dir}")
     return result
@@ -182,6 +201,11 @@ def parse(argv: list[str] | None = None) -> Args:
             raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed >= 0")
         if args.lam_grid and args.config.algo != "rebel":
             raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
+        if args.teacher_grid and not args.config.preference:
+            raise ConfigError(f"teacher_grid={args.teacher_grid!r} is invalid: allowed only with a preference algo")
+        unknown = [t for t in args.teacher_grid if t not in teachers.PRESETS]
+        if unknown:
+            raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from err

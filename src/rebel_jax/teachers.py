@@ -78,6 +78,11 @@ PRESETS: dict[str, TeacherConfig] = {
 """B-Pref's six teachers (REFERENCE.md section 3); combinations are plain ``TeacherConfig``s."""
 
 
+def knobs(cfg: TeacherConfig) -> dict[str, jax.Array]:
+    """The teacher's knobs as float32 scalars: a pytree a sweep can stack and vmap over."""
+    return {field.name: jnp.asarray(getattr(cfg, field.name), jnp.float32) for field in dataclasses.fields(cfg)}
+
+
 def myopic_returns(rewards: jax.Array, gamma: jax.Array | float) -> jax.Array:
     """Segment returns with B-Pref's myopic weights.
 

@@ -88,6 +88,8 @@ class TrainState:
       entropy_stats: running statistics of the pre-training kNN distances (None for sac).
       lam: () REBEL's signed lambda, a traced value so that a sweep can vmap over it
         (``rebel.lam`` at init; None for the other methods).
+      teacher: the scripted teacher's knobs (``teachers.knobs``), traced for the same reason
+        (``cfg.teacher`` at init; None for sac).
     """
 
     sac: SACState
@@ -98,6 +100,7 @@ class TrainState:
     reward: reward_model.RewardState | None = None
     entropy_stats: pretrain.RunningStats | None = None
     lam: jax.Array | None = None
+    teacher: dict[str, jax.Array] | None = None
 
 
 class Trainer:
@@ -139,7 +142,8 @@ class Trainer:
         key, key_reward = jax.random.split(key)
         reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
-        return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam)
+        teacher = teachers.knobs(self.cfg.teacher)
+        return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -263,7 +267,8 @@ class Trainer:
         """
         query = self.cfg.query
         margin = queries.reward_margin(ts.buffer, self.horizon, self.cfg.env.episode_length, query.recent_episodes)
-        labels, mask, info = teachers.label(self.cfg.teacher, key, self._central(seg_a), self._central(seg_b), margin)
+        teacher = teachers.TeacherConfig(**ts.teacher)
+        labels, mask, info = teachers.label(teacher, key, self._central(seg_a), self._central(seg_b), margin)
         remaining = self.cfg.feedback.labels - ts.reward.data.count
         within = jnp.cumsum(mask) <= remaining  # Skipped pairs do not count against the budget.
         return labels, mask * within, info
@@ -324,14 +329,15 @@ class Trainer:
             sac_state = jax.lax.cond(first, lambda: self.sac.reset_critic(ts.sac, key_critic), lambda: ts.sac)
         fresh = self._sample_segments(buffer, key_fresh, 64, self.horizon)
         learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
-        metrics = {
-            "session_labels": kept,
+        training = {  # NaN where no answer was kept: that training was discarded.
             "reward_accuracy_new": accuracy_new,
             "reward_accuracy_all": train_metrics["train_accuracy"],
             "reward_epochs": train_metrics["epochs"],
             "reward_loss": train_metrics["loss"],
-            "reward_correlation": _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1)),
         }
+        metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
+        metrics["session_labels"] = kept
+        metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
         return ts.replace(sac=sac_state, buffer=buffer, reward=reward), metrics
 
     def feedback_session(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, dict]:
