@@ -19,6 +19,12 @@ import pytest
 _CACHE = pathlib.Path(os.environ.get("REBEL_JAX_TEST_CACHE", pathlib.Path(__file__).parents[1] / ".jax_cache"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+# jaxlib 0.10.2's CPU runtime at times deadlocks running these programs (every thread idle in
+# block_until_ready; e.g. 7 of 12 runs of one train init) unless this scheduler is off (0 of 24).
+# Set before the first computation creates the backend; subprocesses inherit it.
+_NO_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+if _NO_DEADLOCK not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_NO_DEADLOCK}".strip()
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
 
 
