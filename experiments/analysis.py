@@ -380,7 +380,7 @@ def merge_runs(*runs: Curve) -> Curve:
     return common, np.concatenate(columns, axis=1)
 
 
-def _preset(command: str) -> str:
+def preset_name(command: str) -> str:
     """The ``--preset`` of a recorded command line; the CLI's default ``paper`` without one."""
     tokens = command.split()
     for i, token in enumerate(tokens):
@@ -427,7 +427,7 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
     return {
         "task": cfg["env"]["task"],
         "algo": cfg["algo"],
-        "preset": _preset(meta["command"]),
+        "preset": preset_name(meta["command"]),
         "seeds": meta["seeds"],
         "env_steps": records[-1]["env_steps"] if records else 0,
         "num_envs": cfg["env"].get("num_envs"),

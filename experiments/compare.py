@@ -1,22 +1,28 @@
 """The paper's comparison figure from finished runs: curves, IQM with bootstrap intervals, sample efficiency.
 
 Usage:
-  python experiments/compare.py RUN_DIR [RUN_DIR ...] --name NAME [--reference LABEL] [--out-dir DIR]
+  python experiments/compare.py RUN_DIR [RUN_DIR ...] --name NAME [--reference LABEL]
+      [--methods LABEL ...] [--max-steps N] [--out-dir DIR]
 
-Each run directory (``python -m rebel_jax.train``) contributes one method per lambda: a REBEL
-run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is labelled
-``pebble (rebel lam=0)``, which it equals bit for bit), other runs are labelled by their algo.
+Each run directory (``python -m rebel_jax.train``) contributes one method per grid point: a
+REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is
+labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
+its teachers (``..., noisy``); other runs are labelled by their algo, and budgets other than
+100 labels are named (``pebble 1000 labels``). ``--methods`` keeps a subset in a given order;
+``--max-steps`` cuts every curve (to compare runs of different lengths at equal steps).
 Run directories of the same method (e.g. seeds split over several GPU calls with different
 ``--seed``) are merged. Writes ``DIR/NAME.json`` (per method: final returns per seed, mean,
 std, IQM with its 95% percentile-bootstrap interval, mean curve, and the sample-efficiency
 ratio against ``--reference``: env steps the other method needs to reach a common return over
-the steps the reference needs) and ``DIR/NAME.png`` (mean +- std curves and IQM bars), and
+the steps the reference needs; and what the numbers are: task, algo, preset, labels,
+teacher, lambda, num_envs, utd, device, date, command) and ``DIR/NAME.png`` (mean +- std curves and IQM bars), and
 prints a Markdown table for RESULTS.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 
@@ -35,14 +41,43 @@ from analysis import (  # noqa: E402
     merge_runs,
     plot_curves,
     plot_iqm,
+    preset_name,
     sample_efficiency_ratio,
 )
+
+from rebel_jax import teachers  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 
 
-def methods(run_dir: pathlib.Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The run's curves per method label: ``{label: (steps, returns (evals, seeds))}``.
+def _teacher_name(knobs: dict) -> str:
+    """The B-Pref preset a run's teacher settings equal, else the settings themselves."""
+    named = [name for name, t in teachers.PRESETS.items() if dataclasses.asdict(t) == knobs]
+    return named[0] if named else json.dumps(knobs)
+
+
+def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
+    """What a method's numbers are: the run's settings, device, date and command."""
+    cfg = json.loads((run_dir / "config.json").read_text())
+    meta = json.loads((run_dir / "meta.json").read_text())
+    preference = cfg["algo"] != "sac"
+    return {
+        "task": cfg["env"]["task"],
+        "algo": cfg["algo"],
+        "preset": preset_name(meta["command"]),
+        "labels": cfg["feedback"]["labels"] if preference else None,
+        "teacher": (teacher or _teacher_name(cfg["teacher"])) if preference else None,
+        "lam": lam,
+        "num_envs": cfg["env"]["num_envs"],
+        "utd": cfg["sac"]["utd"],
+        "device": meta["devices"][0],
+        "date": meta["started"][:10],
+        "command": meta["command"],
+    }
+
+
+def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarray], dict]]:
+    """The run's curves per method label: ``{label: ((steps, returns (evals, seeds)), info)}``.
 
     A grid run (``--lam-grid``, ``--teacher-grid``) is split into one label per grid point.
     """
@@ -52,38 +87,59 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     columns = returns.shape[1]
     lams = meta.get("lams") or [None] * columns
     teachers = meta.get("teachers") or [None] * columns
-    out: dict[str, list[int]] = {}
+    out: dict[str, tuple[list[int], dict]] = {}
     for i, (lam, teacher) in enumerate(zip(lams, teachers, strict=True)):
         if lam is None:
             label = cfg["algo"]
         else:
             label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
-        out.setdefault(label + (f", {teacher}" if teacher else ""), []).append(i)
-    return {label: (steps, returns[:, idx]) for label, idx in out.items()}
+            if lam != 0 and cfg["rebel"]["estimator"] != "discounted":
+                label += f" ({cfg['rebel']['estimator']} estimator)"
+        if cfg["algo"] != "sac" and cfg["feedback"]["labels"] != 100:
+            label += f" {cfg['feedback']['labels']} labels"
+        label += f", {teacher}" if teacher else ""
+        out.setdefault(label, ([], _info(run_dir, lam, teacher)))[0].append(i)
+    return {label: ((steps, returns[:, idx]), info) for label, (idx, info) in out.items()}
 
 
-def gather(run_dirs: list[pathlib.Path]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Every method's curve, the seeds of run directories with the same label merged."""
+def gather(run_dirs: list[pathlib.Path], max_steps: int | None = None):
+    """Every method's curve (seeds of run directories with the same label merged) and its run info.
+
+    Returns ``(curves, infos)``, both keyed by label; curves stop at ``max_steps`` if given.
+    """
     parts: dict[str, list] = {}
+    infos: dict[str, dict] = {}
     for run_dir in run_dirs:
-        for label, curve in methods(run_dir).items():
+        for label, (curve, info) in methods(run_dir).items():
             parts.setdefault(label, []).append(curve)
-    return {label: merge_runs(*runs) for label, runs in parts.items()}
+            infos.setdefault(label, info)
+    curves = {label: merge_runs(*runs) for label, runs in parts.items()}
+    if max_steps is not None:
+        curves = {label: (steps[steps <= max_steps], r[steps <= max_steps]) for label, (steps, r) in curves.items()}
+    return curves, infos
 
 
-def compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], reference: str | None) -> dict:
-    """Per-method statistics (see the module docstring) of ``gather``'s curves."""
+def compare(
+    curves: dict[str, tuple[np.ndarray, np.ndarray]], reference: str | None, threshold: float | None = None
+) -> dict:
+    """Per-method statistics (see the module docstring) of ``gather``'s curves.
+
+    ``threshold`` is the return the sample-efficiency ratios count steps to (default:
+    ``common_threshold`` of the final means, one every method reaches); a method whose mean
+    curve never reaches it gets a NaN ratio.
+    """
     finals = {label: final_returns(returns) for label, (_, returns) in curves.items()}
-    threshold = common_threshold(np.nanmean(f) for f in finals.values())
+    if threshold is None:
+        threshold = common_threshold(np.nanmean(f) for f in finals.values())
     reference = reference or next(iter(curves))
     out = {"threshold": threshold, "reference": reference, "methods": {}}
     for label, (steps, returns) in curves.items():
         scores = finals[label][np.isfinite(finals[label])]
-        mean_curve = (steps, np.nanmean(returns, axis=1))
+        mean_curve, std_curve = np.nanmean(returns, axis=1), np.nanstd(returns, axis=1)
         ref_steps, ref_returns = curves[reference]
         ratio = sample_efficiency_ratio(
             distinct_evaluations((ref_steps, np.nanmean(ref_returns, axis=1)[:, None])),
-            distinct_evaluations((mean_curve[0], mean_curve[1][:, None])),
+            distinct_evaluations((steps, mean_curve[:, None])),
             threshold,
         )
         out["methods"][label] = {
@@ -95,7 +151,7 @@ def compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], reference: str | N
             "iqm": float(iqm(scores)),
             "iqm_ci": list(bootstrap_ci(scores, iqm)),
             "steps_ratio_vs_reference": ratio,
-            "curve": {"env_steps": steps.tolist(), "mean": mean_curve[1].tolist()},
+            "curve": {"env_steps": steps.tolist(), "mean": mean_curve.tolist(), "std": std_curve.tolist()},
         }
     return out
 
@@ -106,9 +162,19 @@ def main():
     p.add_argument("--name", required=True)
     p.add_argument("--reference", help="method label the sample-efficiency ratios are relative to (default: first)")
     p.add_argument("--out-dir", type=pathlib.Path, default=RESULTS)
+    p.add_argument("--methods", nargs="+", help="keep only these method labels, in this order (default: all)")
+    p.add_argument("--max-steps", type=int, help="cut every curve at this many env steps")
+    p.add_argument("--threshold", type=float, help="return for the sample-efficiency ratios (default: common)")
     args = p.parse_args()
-    curves = gather(args.run_dirs)
-    result = compare(curves, args.reference)
+    curves, infos = gather(args.run_dirs, args.max_steps)
+    if args.methods:
+        missing = [m for m in args.methods if m not in curves]
+        if missing:
+            raise SystemExit(f"error: --methods {missing} not among {list(curves)}")
+        curves = {m: curves[m] for m in args.methods}
+    result = compare(curves, args.reference, args.threshold)
+    for label, entry in result["methods"].items():
+        entry.update(infos[label])
     args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Every preference figure and JSON summary in results/ (RESULTS.md) from the logged runs.
+#
+# The runs: on a GPU machine, repeat until every job reads "done" (each call continues the last):
+#   python experiments/gpu_batch.py experiments/plans/paper.json --seconds 500   # 4 GPUs
+#   python experiments/gpu_batch.py experiments/plans/study.json --seconds 440   # 2 GPUs
+# then copy runs/batch/<job>/{config,meta,metrics,final}.json* to results/runs/{paper,study}/<job>/.
+# SAC baselines: results/runs/sac_* (RESULTS.md gives their commands).
+#
+# Usage: bash experiments/figures.sh   (from the repository root; CPU is enough)
+set -e
+export PYTHONPATH=src:experiments; P=results/runs/paper; S=results/runs/study; PY=.venv/bin/python
+$PY experiments/compare.py results/runs/sac_walker_walk $P/pebble_walker_1000 $P/rebel_walker_100_neg $P/rebel_walker_100_pos $P/surf_walker_100 --name paper_comparison_walker_walk --methods sac "pebble 1000 labels" "pebble (rebel lam=0)" surf "rebel lam=0.01" "rebel lam=-0.01" --reference "pebble (rebel lam=0)"
+$PY experiments/compare.py results/runs/sac_cheetah_run_utd025 $P/rebel_cheetah_100 $P/surf_cheetah_100 --name paper_comparison_cheetah_run --reference "pebble (rebel lam=0)"
+$PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos --name rebel_lambda_ablation_walker_walk --threshold 100
+$PY experiments/compare.py $P/rebel_walker_100_neg $S/teachers_pebble_walker_100_200k --name teachers_walker_walk_180k --max-steps 180000 --methods "pebble (rebel lam=0)" "pebble (rebel lam=0), noisy" "pebble (rebel lam=0), mistake" "pebble (rebel lam=0), skip" "pebble (rebel lam=0), equal" "pebble (rebel lam=0), myopic" --threshold 60
+$PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos $S/rebel_mean_walker_100_200k --name rebel_estimator_walker_walk_200k --max-steps 200000 --methods "pebble (rebel lam=0)" "rebel lam=0.01" "rebel lam=-0.01" "rebel lam=0.01 (mean estimator)" "rebel lam=-0.01 (mean estimator)" "rebel lam=0.001 (mean estimator)" "rebel lam=-0.001 (mean estimator)" --threshold 60
