@@ -20,7 +20,7 @@ $(VENV)/.test: $(VENV)/.base
 	touch $@
 
 train: $(VENV)/.base
-	$(PY) -m rebel_jax.train --preset tiny --algo rebel --rebel.lam -0.1 $(ARGS)
+	$(PY) -m rebel_jax.train --preset tiny --algo rebel --rebel.lam -0.01 $(ARGS)
 
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
