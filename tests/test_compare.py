@@ -1,0 +1,88 @@
+"""``experiments/compare.py``: grid runs split into methods, labels, subsets and cut curves."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+from rebel_jax.config import PRESETS
+
+sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "experiments"))
+import compare  # noqa: E402
+
+SEEDS = 2
+GRID = [(lam, teacher) for lam in (0.0, -0.1) for teacher in ("noisy", "skip") for _ in range(SEEDS)]
+
+
+def write_grid_run(run_dir: pathlib.Path, algo: str = "rebel", labels: int = 100, rounds: int = 4) -> np.ndarray:
+    """A run directory as ``python -m rebel_jax.train --lam-grid 0 -0.1 --teacher-grid noisy skip`` writes it.
+
+    Column j's evaluation return at round i is ``100 * j + i``, so every column is recognisable.
+    Returns the (rounds, columns) returns.
+    """
+    run_dir.mkdir(parents=True)
+    cfg = dataclasses.asdict(PRESETS["tiny"])
+    cfg["algo"], cfg["feedback"]["labels"] = algo, labels
+    meta = {
+        "devices": ["cpu"],
+        "command": "train.py --preset tiny",
+        "seeds": SEEDS,
+        "columns": len(GRID),
+        "lams": [lam for lam, _ in GRID] if algo == "rebel" else None,
+        "teachers": [t for _, t in GRID],
+        "started": "2026-11-22T10:00:00",
+    }
+    (run_dir / "config.json").write_text(json.dumps(cfg))
+    (run_dir / "meta.json").write_text(json.dumps(meta))
+    returns = np.array([[100.0 * j + i for j in range(len(GRID))] for i in range(rounds)])
+    rows = [{"env_steps": 10 * (i + 1), "round": i, "eval_return": r.tolist()} for i, r in enumerate(returns)]
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return returns
+
+
+def test_a_lambda_and_teacher_grid_splits_into_one_method_per_grid_point(tmp_path):
+    returns = write_grid_run(tmp_path / "run")
+    methods = compare.methods(tmp_path / "run")
+    expected = {}
+    for j, (lam, teacher) in enumerate(GRID):
+        label = ("pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}") + f", {teacher}"
+        expected.setdefault(label, []).append(j)
+    assert list(methods) == list(expected)
+    for label, columns in expected.items():
+        (steps, got), info = methods[label]
+        assert steps.tolist() == [10, 20, 30, 40]
+        np.testing.assert_array_equal(got, returns[:, columns])
+        lam, teacher = GRID[columns[0]]
+        assert (info["lam"], info["teacher"], info["labels"], info["algo"]) == (lam, teacher, 100, "rebel")
+
+
+def test_labels_name_other_budgets_and_curves_can_be_cut(tmp_path):
+    write_grid_run(tmp_path / "run", algo="pebble", labels=1000)
+    curves, infos = compare.gather([tmp_path / "run"], max_steps=25)
+    assert list(curves) == ["pebble 1000 labels, noisy", "pebble 1000 labels, skip"]
+    steps, got = curves["pebble 1000 labels, skip"]
+    assert steps.tolist() == [10, 20]
+    # Without lambdas (pebble) both halves of the grid are the same method: columns 2, 3, 6, 7.
+    np.testing.assert_array_equal(got, [[200.0, 300.0, 600.0, 700.0], [201.0, 301.0, 601.0, 701.0]])
+    assert infos["pebble 1000 labels, skip"]["lam"] is None
+
+
+def test_runs_of_the_same_method_merge_their_seeds(tmp_path):
+    write_grid_run(tmp_path / "a")
+    write_grid_run(tmp_path / "b")
+    curves, _ = compare.gather([tmp_path / "a", tmp_path / "b"])
+    assert curves["rebel lam=-0.1, skip"][1].shape == (4, 2 * SEEDS)
+
+
+def test_compare_reports_a_faster_method_with_a_ratio_below_one():
+    steps = np.array([10, 20, 30, 40])
+    slow = (steps, np.array([[0.0], [1.0], [2.0], [4.0]]))
+    fast = (steps, np.array([[0.0], [2.0], [4.0], [4.0]]))
+    out = compare.compare({"slow": slow, "fast": fast}, reference="slow", threshold=2.0)
+    assert out["methods"]["slow"]["steps_ratio_vs_reference"] == pytest.approx(1.0)
+    assert out["methods"]["fast"]["steps_ratio_vs_reference"] == pytest.approx(20 / 30)
