@@ -33,7 +33,8 @@ CHECKPOINT_EVERY = 10
 def _state(run_dir: pathlib.Path) -> str:
     if (run_dir / "final.json").exists():
         return "done"
-    if any((run_dir / "checkpoints").glob("[0-9]*")):
+    # Complete orbax saves only: an interrupted one is a temporary ``<step>.orbax-checkpoint-tmp-*``.
+    if any(p.name.isdigit() for p in (run_dir / "checkpoints").glob("*")):
         return "resume"
     return "new"
 
