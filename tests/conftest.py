@@ -3,7 +3,8 @@
 MJX compiles slowly on CPU, so every compiled environment function is built once per
 session here and shared by the tests. ``make test`` runs two pytest-xdist workers with
 ``--dist loadgroup``: each test file is one group (so its module fixtures compile once), and
-the env files share a group (so they share the compiled environments).
+the env files share a group (so they share the compiled environments); the grouping is done
+by :func:`pytest_xdist_make_scheduler` below.
 """
 
 from __future__ import annotations
@@ -73,7 +74,28 @@ def compiled_env():
 _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
 
 
-def pytest_collection_modifyitems(items):
-    for item in items:
-        name = item.path.name
-        item.add_marker(pytest.mark.xdist_group(_SHARED_GROUPS.get(name, name)))
+def _group(nodeid: str) -> str:
+    """The xdist work unit of a test: its file, or the group its file shares."""
+    name = nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+    return _SHARED_GROUPS.get(name, name)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup`` with every test file one group (and the env files one together).
+
+    Marking tests ``xdist_group`` does not group them with the pinned pytest 9.2 and
+    pytest-xdist 3.8: xdist appends the group to ``item._nodeid``, which pytest 9.2 no longer
+    reads, so every test became its own unit, split over both workers, and module fixtures
+    ran once per worker and again whenever another file's test came in between. This
+    scheduler groups by file name instead.
+    """
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileGroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _group(nodeid)
+
+    return FileGroupScheduling(config, log)

@@ -96,7 +96,7 @@ def _metrics(run_dir: pathlib.Path) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_cli_run_killed_after_a_checkpoint_resumes_to_the_same_result(tmp_path):
+def test_cli_run_killed_or_stopped_by_its_time_limit_resumes_to_the_same_result(tmp_path):
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     out_whole = _train(whole)  # compiles (or loads from the cache) everything the others load
 
@@ -133,6 +133,18 @@ def test_cli_run_killed_after_a_checkpoint_resumes_to_the_same_result(tmp_path):
     assert [row["round"] for row in _metrics(killed)] == list(range(ROUNDS))
     final_line = [line for line in out_whole.stdout.splitlines() if line.startswith("final evaluation return")]
     assert len(final_line) == 1 and final_line[0] in out_resumed.stdout.splitlines()
+
+    # --time-limit: stops after the first round with its checkpoint; --resume finishes the same run.
+    timed = tmp_path / "timed"
+    out_timed = _train(timed, "--time-limit", "1e-9")
+    assert "stopped after round 0" in out_timed.stdout
+    assert _steps_on_disk(timed) == [1] and not (timed / "final.json").exists() and len(_metrics(timed)) == 1
+    _train(timed, "--resume")
+    c = _saved_arrays(timed, ROUNDS)
+    for k in a:
+        np.testing.assert_array_equal(a[k], c[k], err_msg=f"leaf {k}")
+    assert json.loads((whole / "final.json").read_text()) == json.loads((timed / "final.json").read_text())
+    assert _metrics(whole) == _metrics(timed)
 
 
 # SAC on walker_stand with 100-step episodes (return in [0, 100]), tuned to learn fast on a

@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -150,6 +151,30 @@ def test_vmap_over_seeds_and_traced_knobs_equals_separate_calls():
     for i, beta in enumerate([0.5, 1.0, math.inf]):
         alone = _label(dataclasses.replace(COMBINED, beta=beta), keys[i], seg_a, seg_b, MARGIN)[0]
         np.testing.assert_array_equal(np.asarray(batched[i]), np.asarray(alone))
+
+
+def test_vmap_over_stacked_preset_knobs_equals_each_preset_alone():
+    """What ``--teacher-grid`` runs: ``knobs`` of several presets stacked, one teacher per column."""
+    seg_a, seg_b = _pairs(4)
+    key = jax.random.key(11)
+    cases = CASES  # B-Pref's six presets and one teacher with every knob on
+    names = sorted(cases)
+    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *[teachers.knobs(cases[n]) for n in names])
+    assert all(v.shape == (len(names),) and v.dtype == jnp.float32 for v in stacked.values())
+
+    def run(knobs):
+        return teachers.label(teachers.TeacherConfig(**knobs), key, seg_a, seg_b, MARGIN)
+
+    labels, mask, info = jax.jit(jax.vmap(run))(stacked)
+    for i, name in enumerate(names):
+        alone = _label(cases[name], key, seg_a, seg_b, MARGIN)
+        np.testing.assert_array_equal(np.asarray(labels[i]), np.asarray(alone[0]), err_msg=name)
+        np.testing.assert_array_equal(np.asarray(mask[i]), np.asarray(alone[1]), err_msg=name)
+        for k in alone[2]:
+            assert int(info[k][i]) == int(alone[2][k]), (name, k)
+    # The teachers answer differently on these pairs, so a column reading another's knobs would fail.
+    distinct = {np.asarray(labels[i]).tobytes() + np.asarray(mask[i]).tobytes() for i in range(len(names))}
+    assert len(distinct) == len(names)
 
 
 @pytest.mark.parametrize(

@@ -127,6 +127,41 @@ def test_cli_overrides_preset_fields():
     assert args.config.sac.hidden == 64  # the rest of the tiny preset is kept
 
 
+def test_cli_teacher_grid_columns_are_lambda_then_teacher_then_seed():
+    args = parse(["--preset", "tiny", "--algo", "pebble", "--seeds", "2", "--teacher-grid", "noisy", "skip"])
+    lam = args.config.rebel.lam
+    assert args.teacher_grid == ("noisy", "skip") and args.columns == 4
+    assert args.grid() == [(lam, "noisy"), (lam, "noisy"), (lam, "skip"), (lam, "skip")]
+
+    flags = ["--algo", "rebel", "--lam-grid", "0", "-0.1", "--teacher-grid", "noisy", "skip", "--seeds", "2"]
+    args = parse(["--preset", "tiny", *flags])
+    expected = []
+    for lam in (0.0, -0.1):
+        for teacher in ("noisy", "skip"):
+            expected += [(lam, teacher)] * 2  # seeds innermost
+    assert args.columns == 8 and len(args.grid()) == 8
+    assert args.grid() == expected
+
+    plain = parse(["--preset", "tiny", "--algo", "pebble", "--seeds", "3"])  # no grid: config.teacher, 3 columns
+    assert plain.columns == 3 and plain.grid() == [(plain.config.rebel.lam, None)] * 3
+
+
+@pytest.mark.parametrize(
+    "flags,names",
+    [
+        (["--algo", "pebble", "--teacher-grid", "noisy", "bogus"], "bogus"),
+        (["--algo", "sac", "--teacher-grid", "noisy"], "preference"),
+    ],
+    ids=["unknown-teacher", "sac"],
+)
+def test_cli_rejects_a_bad_teacher_grid(capsys, flags, names):
+    with pytest.raises(SystemExit) as err:
+        parse(["--preset", "tiny", *flags])
+    assert err.value.code == 2
+    message = capsys.readouterr().err
+    assert "teacher_grid=" in message and "invalid" in message and names in message, message
+
+
 SHARDED = textwrap.dedent(
     """
     import sys
