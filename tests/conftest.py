@@ -72,6 +72,9 @@ def compiled_env():
 
 
 _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
+# Minutes of compiling each (cold cache); test_train.py loads the programs the CLI runs of
+# test_cli_runs.py compiled into the persistent cache, so it comes after it.
+_SLOWEST_FIRST = ("test_cli_runs.py", "test_preference_train.py", "envs", "test_train.py")
 
 
 def _group(nodeid: str) -> str:
@@ -97,5 +100,13 @@ def pytest_xdist_make_scheduler(config, log):
     class FileGroupScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return _group(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            # The slowest groups first, so that neither worker is left with one at the end.
+            for group in _SLOWEST_FIRST:
+                if group in self.workqueue:
+                    self.workqueue.move_to_end(group, last=False)
+                    break
+            super()._assign_work_unit(node)
 
     return FileGroupScheduling(config, log)

@@ -149,11 +149,12 @@ def test_cli_run_killed_or_stopped_by_its_time_limit_resumes_to_the_same_result(
 
 # SAC on walker_stand with 100-step episodes (return in [0, 100]), tuned to learn fast on a
 # CPU: a high update rate (8 updates per vector step), large learning rates, a short horizon
-# (gamma 0.9) and a low initial temperature. 12 rounds of 800 steps per seed.
+# (gamma 0.9) and a low initial temperature. 12 rounds of 800 steps per seed. One evaluation
+# environment in the round (its returns are not used here) keeps the rounds cheap.
 LEARNING = Config(
     env=EnvConfig(task="walker_stand", num_envs=8, episode_length=100),
     sac=SACConfig(hidden=64, batch_size=128, utd=1.0, actor_lr=3e-3, critic_lr=3e-3, gamma=0.9, init_temperature=0.02),
-    train=TrainConfig(total_steps=9_600, seed_steps=400, steps_per_round=800, eval_every=800, eval_episodes=4),
+    train=TrainConfig(total_steps=9_600, seed_steps=400, steps_per_round=800, eval_every=800, eval_episodes=1),
 )
 EVAL_EPISODES = 16
 
@@ -177,6 +178,6 @@ def _learn(seed: int, seeds: int = 2) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.slow
 def test_sac_return_goes_up_on_walker_stand():
     before, after = _learn(seed=0)
-    # Seen (16-episode means, 2 seeds x 4 base seeds): before 20-26, after 31-38, gains 7.6-16.4.
+    # Seen (16-episode means, 2 seeds x base seeds 0-3): before 20-26, after 31-40, gains 6.0-19.0.
     assert np.all(after > before + 3), (before, after)
     assert after.mean() > before.mean() + 6 and after.mean() > 1.25 * before.mean(), (before, after)

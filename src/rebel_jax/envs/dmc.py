@@ -84,7 +84,13 @@ SOLVERS: dict[str, Solver] = {
 
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
-    """What distinguishes one task: its model, time steps, reset, observation and reward."""
+    """What distinguishes one task: its model, time steps, reset, observation and reward.
+
+    Attributes:
+      randomize_rotational: the reset also draws unlimited hinges uniformly in [-pi, pi]
+        (dm_control's ``randomize_limited_and_rotational_joints``, walker); otherwise only
+        limited joints are drawn, in their range (dm_control's cheetah).
+    """
 
     name: str
     xml: Callable[[], str]
@@ -94,6 +100,7 @@ class TaskSpec:
     obs_size: int
     obs_fn: Callable[[mjx.Data], jax.Array]
     reward_fn: Callable[[mjx.Data], tuple[jax.Array, dict[str, jax.Array]]]
+    randomize_rotational: bool
 
 
 def _observed(d: mjx.Data, m: mjx.Model) -> mjx.Data:
@@ -164,7 +171,9 @@ def _cheetah_reward(d: mjx.Data):
 
 
 def _walker(name: str, move_speed: float) -> TaskSpec:
-    return TaskSpec(name, models.walker_xml, None, 10, 0, 24, _walker_obs, _walker_reward(move_speed))
+    return TaskSpec(
+        name, models.walker_xml, None, 10, 0, 24, _walker_obs, _walker_reward(move_speed), randomize_rotational=True
+    )
 
 
 TASKS: dict[str, TaskSpec] = {
@@ -172,7 +181,15 @@ TASKS: dict[str, TaskSpec] = {
     "walker_walk": _walker("walker_walk", 1.0),
     "walker_run": _walker("walker_run", 8.0),
     "cheetah_run": TaskSpec(
-        "cheetah_run", models.cheetah_xml, models.CHEETAH_TOTAL_MASS, 1, 200, 17, _cheetah_obs, _cheetah_reward
+        "cheetah_run",
+        models.cheetah_xml,
+        models.CHEETAH_TOTAL_MASS,
+        1,
+        200,
+        17,
+        _cheetah_obs,
+        _cheetah_reward,
+        randomize_rotational=False,
     ),
 }
 
@@ -206,15 +223,16 @@ class DMCEnv:
         self.mj_model = mj_model(task, solver)
         self.sys = mjx.put_model(self.mj_model)
         m = self.mj_model
-        # Reset: limited joints uniform in their range, unlimited hinges uniform in
-        # [-pi, pi], everything else (unlimited slides) left at qpos0.
+        # Reset: limited joints uniform in their range; unlimited hinges uniform in
+        # [-pi, pi] where the task says so (walker; dm_control's cheetah leaves its root
+        # hinge upright); everything else (unlimited slides) left at qpos0.
         low = np.array(m.qpos0, dtype=np.float32)
         high = low.copy()
         for j in range(m.njnt):
             adr = m.jnt_qposadr[j]
             if m.jnt_limited[j]:
                 low[adr], high[adr] = m.jnt_range[j]
-            elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+            elif self.spec.randomize_rotational and m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
                 low[adr], high[adr] = -np.pi, np.pi
         self._reset_low, self._reset_high = jnp.asarray(low), jnp.asarray(high)
 
