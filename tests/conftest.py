@@ -72,9 +72,8 @@ def compiled_env():
 
 
 _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
-# Minutes of compiling each (cold cache); test_train.py loads the programs the CLI runs of
-# test_cli_runs.py compiled into the persistent cache, so it comes after it.
-_SLOWEST_FIRST = ("test_cli_runs.py", "test_preference_train.py", "envs", "test_train.py")
+# The groups that take longest (mostly compiling MJX, cold cache), longest first.
+_SLOWEST_FIRST = ("envs", "test_cli_runs.py", "test_preference_train.py", "test_train.py")
 
 
 def _group(nodeid: str) -> str:

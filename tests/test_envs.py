@@ -104,17 +104,17 @@ def test_time_limit_truncates_without_terminating(compiled_env):
 
 
 def test_auto_reset_restarts_finished_episodes_and_keeps_final_obs():
-    wrapped = AutoResetWrapper(make_env("walker_walk", episode_length=2), num_envs=2)  # reset is cheap for walker
+    wrapped = AutoResetWrapper(make_env("probe_point", episode_length=2), num_envs=2)  # the wrapper, not the physics
     step = jax.jit(wrapped.step)
     state = jax.jit(wrapped.reset)(jax.random.PRNGKey(0))
     first_obs = state.obs
-    state = step(state, jnp.zeros((2, 6)))
-    state = step(state, jnp.zeros((2, 6)))
+    state = step(state, jnp.ones((2, 2)))
+    state = step(state, jnp.ones((2, 2)))
     np.testing.assert_array_equal(state.done, 1.0)
     np.testing.assert_array_equal(state.info["steps"], 0)  # restarted
     assert not np.allclose(state.info["final_obs"], state.obs)  # the episode's last obs is kept
     assert not np.allclose(state.obs, first_obs)  # a fresh draw, not the first state again
-    state = step(state, jnp.zeros((2, 6)))
+    state = step(state, jnp.ones((2, 2)))
     np.testing.assert_array_equal(state.done, 0.0)
     np.testing.assert_array_equal(state.info["steps"], 1)
 

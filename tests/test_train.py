@@ -19,9 +19,10 @@ from rebel_jax.cli import parse
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
 from rebel_jax.train import Trainer, compiled, seed_keys
 
-# Episodes of 20 steps, rounds of 20 vector steps: resets, seeding and learning all happen.
+# Episodes of 20 steps, rounds of 20 vector steps: resets, seeding and learning all happen. The
+# probe task compiles in seconds; the MJX tasks have tests of their own (test_envs*.py).
 MICRO = Config(
-    env=EnvConfig(task="walker_walk", num_envs=2, episode_length=20),
+    env=EnvConfig(task="probe_point", num_envs=2, episode_length=20),
     sac=SACConfig(hidden=16, batch_size=16, utd=0.5),
     train=TrainConfig(total_steps=120, seed_steps=20, steps_per_round=40, eval_every=40, eval_episodes=1),
 )

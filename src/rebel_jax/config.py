@@ -36,7 +36,8 @@ class EnvConfig:
     """The task and how many copies of it each seed runs."""
 
     task: str = "walker_walk"
-    """Task name: walker_stand, walker_walk, walker_run or cheetah_run."""
+    """Task name: walker_stand, walker_walk, walker_run or cheetah_run (or ``probe_point``, a pure-JAX
+    point mass that compiles in seconds, for tests of the training loop)."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 40
@@ -47,9 +48,9 @@ class EnvConfig:
     """Control steps per episode (dm_control: 1000)."""
 
     def validate(self) -> None:
-        from rebel_jax.envs import SOLVERS, TASKS
+        from rebel_jax.envs import PROBES, SOLVERS, TASKS
 
-        _check(self.task in TASKS, "env.task", self.task, f"one of {sorted(TASKS)}")
+        _check(self.task in TASKS or self.task in PROBES, "env.task", self.task, f"one of {[*sorted(TASKS), *PROBES]}")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
         _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")

@@ -40,7 +40,7 @@ from flax import struct
 
 from rebel_jax import pretrain, queries, replay, reward_model, teachers
 from rebel_jax.config import Config
-from rebel_jax.envs import DMCEnv, State, make_env
+from rebel_jax.envs import DMCEnv, PointProbe, State, make_env
 from rebel_jax.queries import Segments
 from rebel_jax.sac import SAC, SACState
 
@@ -108,7 +108,9 @@ class Trainer:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg.validate()
-        self.env: DMCEnv = make_env(cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length)
+        self.env: DMCEnv | PointProbe = make_env(
+            cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length
+        )
         self.sac = SAC(cfg.sac, self.env.observation_size, self.env.action_size)
         self.num_train = cfg.env.num_envs
         self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
