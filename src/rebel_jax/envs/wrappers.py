@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from rebel_jax.envs.dmc import DMCEnv, State
+from rebel_jax.envs.probe import PointProbe
 
 
 def _select(mask: jax.Array, new, old):
@@ -29,7 +30,7 @@ class AutoResetWrapper:
     explicitly at episode boundaries instead, see ``rebel_jax.train``).
     """
 
-    def __init__(self, env: DMCEnv, num_envs: int):
+    def __init__(self, env: DMCEnv | PointProbe, num_envs: int):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1; got {num_envs}")
         self.env, self.num_envs = env, num_envs
