@@ -79,6 +79,17 @@ def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, 
         assert np.all(mine.reward <= state.reward + 1e-6) and np.any(mine.reward < state.reward - 1e-3)
 
 
+def test_cheetah_starts_upright_and_walker_at_any_pitch(compiled_env):
+    """dm_control draws the walker's root pitch over a full turn but not the cheetah's (a past bug)."""
+    keys = jax.random.split(jax.random.PRNGKey(3), B)
+    cheetah = compiled_env("cheetah_run").batch_reset(keys)
+    pitch = np.asarray(cheetah.pipeline_state.qpos[:, 2])  # rootx, rootz, rooty
+    assert np.all(np.abs(pitch) < np.pi / 2), pitch  # settled on its feet, never on its back
+    walker = compiled_env("walker_walk").batch_reset(keys)
+    pitch = np.asarray(walker.pipeline_state.qpos[:, 2])  # rootz, rootx, rooty
+    assert np.all(np.abs(pitch) <= np.pi) and np.mean(np.abs(pitch) > np.pi / 2) > 0.25, pitch
+
+
 def test_vmapped_step_equals_stepping_each_env_alone(compiled_env):
     c = compiled_env("walker_walk")
     keys = jax.random.split(jax.random.PRNGKey(2), B)
