@@ -46,11 +46,12 @@ def test_batched_reset_and_step_are_finite_with_documented_shapes(compiled_env, 
 def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, task):
     spec, walk = TASKS[task], TASKS["walker_walk"]
     assert spec.xml() == walk.xml() and spec.obs_fn is walk.obs_fn
-    assert (spec.total_mass, spec.n_substeps, spec.settle_steps, spec.obs_size) == (
+    assert (spec.total_mass, spec.n_substeps, spec.settle_steps, spec.obs_size, spec.randomize_rotational) == (
         walk.total_mass,
         walk.n_substeps,
         walk.settle_steps,
         walk.obs_size,
+        walk.randomize_rotational,
     )
     keys = jax.random.split(jax.random.PRNGKey(0), B)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (B, 6), minval=-1, maxval=1)
