@@ -40,10 +40,12 @@ class EnvConfig:
     point mass that compiles in seconds, for tests of the training loop)."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
-    num_envs: int = 40
+    num_envs: int = 10
     """Environments stepped together per seed; each vector step collects ``num_envs`` transitions.
 
-    B-Pref steps one environment; MJX's per-step latency (BENCHMARKS.md) makes many per seed necessary."""
+    B-Pref steps one environment; MJX's per-step latency (BENCHMARKS.md) makes several per seed
+    necessary. 10 is the most with which B-Pref's first feedback session (at 10k steps) finds
+    complete episodes to draw queries from (``query.pool='episodes'``), as B-Pref's 10."""
     episode_length: int = 1000
     """Control steps per episode (dm_control: 1000)."""
 
@@ -84,10 +86,9 @@ class SACConfig:
     """Lower clamp of the actor's log standard deviation."""
     log_std_max: float = 2.0
     """Upper clamp of the actor's log standard deviation."""
-    utd: float = 0.25
-    """Gradient updates per collected transition (update-to-data ratio); ``utd * num_envs`` per vector step.
-
-    B-Pref uses 1; 0.25 makes 10 seeds x 500k steps fit a 10-minute GPU call (BENCHMARKS.md)."""
+    utd: float = 1.0
+    """Gradient updates per collected transition (update-to-data ratio); ``round(utd * num_envs)`` per
+    vector step. B-Pref uses 1; lower values are cheaper (BENCHMARKS.md) and a recorded deviation."""
     precision: Precision = "tf32"
     """Matmul precision: ``tf32`` (XLA's default on GPU), ``highest`` (fp32) or ``bf16`` (bf16 compute, fp32 params)."""
 
@@ -224,6 +225,15 @@ class Config:
                 self.rebel.validate()
                 length = self.rebel.segment_length
                 _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
+            if self.query.pool == "episodes":
+                most = self.feedback_start // self.env.episode_length
+                _check(
+                    self.env.num_envs <= most,
+                    "env.num_envs",
+                    self.env.num_envs,
+                    f"<= {most} with query.pool='episodes': queries come from complete episodes, and the first "
+                    f"session (env step {self.feedback_start}) must find one (or use --query.pool rows)",
+                )
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)
             _check_round_multiple(self.feedback.interval, "feedback.interval", steps)
@@ -251,7 +261,8 @@ def _tiny() -> Config:
 
 
 PRESETS: dict[str, Config] = {
-    "paper": Config(),
+    "paper": Config(query=QueryConfig(sampling="disagreement")),
     "tiny": _tiny(),
 }
-"""``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2). ``tiny``: CPU tests and the README's run."""
+"""``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2), with its disagreement query
+sampling (``feed_type=1`` in B-Pref's and SURF's walker commands). ``tiny``: CPU tests and the README's run."""

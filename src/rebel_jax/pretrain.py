@@ -38,9 +38,14 @@ class PretrainConfig:
     """Neighbour rank: the reward is the distance to the k-th nearest other buffer observation (B-Pref: 5)."""
     chunk_size: int = 4096
     """Buffer observations compared per chunk; bounds memory to batch_size x chunk_size distances."""
+    reset_updates: int = 100
+    """SAC updates on the relabelled buffer right after the critic is re-initialised at the first
+    feedback session (B-Pref's ``reset_update``, 100: ``agent.update_after_reset`` in
+    ``train_PEBBLE.py``). 0 skips them (this project's earlier rule)."""
 
     def validate(self) -> None:
         _check(self.steps >= 0, "pretrain.steps", self.steps, ">= 0")
+        _check(self.reset_updates >= 0, "pretrain.reset_updates", self.reset_updates, ">= 0")
         _check(self.k >= 1, "pretrain.k", self.k, ">= 1")
         _check(self.chunk_size >= 1, "pretrain.chunk_size", self.chunk_size, ">= 1")
 

@@ -4,9 +4,15 @@ The replay buffer is time-major: every field is shaped (T, E, ...) with E enviro
 seed, rows are written in a ring at ``ptr`` and ``size`` rows are filled. Any object with the
 attributes ``obs``, ``action``, ``reward``, ``episode_step``, ``ptr`` and ``size`` works here.
 
-**Recent episodes.** B-Pref draws query segments from its last 100 complete episodes. The
-buffer here interleaves E environments row by row, so "the most recent ``recent_episodes``
-episodes" is approximated by the most recent
+**Recent episodes** (``QueryConfig.pool``). B-Pref draws query segments from its last 100
+*complete* episodes, each segment starting uniformly in ``[0, episode_length - H)``
+(``reward_model.py`` ``get_queries`` at rll-research/BPref f3ece2e, lines 300-331:
+``np.random.choice(len_traj - size_segment)``, the unfinished episode dropped). ``pool =
+"episodes"`` does exactly that (:func:`sample_episode_segments`): an episode is complete once
+its last transition (terminal, truncated or at step ``episode_length - 1``) is in the buffer.
+``pool = "rows"``, this project's earlier rule, kept for the ablation: the buffer interleaves
+E environments row by row, so "the most recent ``recent_episodes`` episodes" is approximated
+by the most recent
 ``W = ceil(recent_episodes * episode_length / E)`` rows (clipped to T): these rows hold
 ``recent_episodes * episode_length`` transitions, i.e. ``recent_episodes`` episodes' worth
 spread over the E environments. Unlike B-Pref, the current incomplete episode of each
@@ -53,6 +59,10 @@ class QueryConfig:
     """uniform, disagreement (std of the ensemble's preference probability) or entropy (of its mean)."""
     candidate_factor: int = 10
     """Disagreement/entropy score candidate_factor x num_queries uniform pairs and keep the top ones (B-Pref: 10)."""
+    pool: Literal["episodes", "rows"] = "episodes"
+    """Where segments come from: ``episodes``, B-Pref's last ``recent_episodes`` complete episodes with
+    starts uniform in [0, episode_length - H); ``rows``, the last rows holding that many episodes'
+    worth of transitions, unfinished episodes included (this project's earlier rule)."""
 
     def validate(self, episode_length: int | None = None) -> None:
         _check(self.segment_length >= 1, "query.segment_length", self.segment_length, ">= 1")
@@ -71,6 +81,7 @@ class QueryConfig:
             "uniform, disagreement, entropy",
         )
         _check(self.candidate_factor >= 1, "query.candidate_factor", self.candidate_factor, ">= 1")
+        _check(self.pool in ("episodes", "rows"), "query.pool", self.pool, "episodes, rows")
 
 
 @flax.struct.dataclass
@@ -133,10 +144,99 @@ def valid_starts(buffer: Any, segment_length: int, episode_length: int, recent_e
     return (filled & inside)[:, None] & continuous & fits
 
 
-def sample_segments(
+def _gather(buffer: Any, time: jax.Array, env: jax.Array) -> Segments:
+    """Segments at absolute rows ``time`` (n, H) of environments ``env`` (n, 1)."""
+    return Segments(obs=buffer.obs[time, env], action=buffer.action[time, env], true_reward=buffer.reward[time, env])
+
+
+def _draw_flat(key: jax.Array, valid: jax.Array, n: int, low: jax.Array | int = 0) -> jax.Array:
+    """n flat indices of ``valid`` (any shape, row-major), uniform over its true entries of rank >= low."""
+    cumulative = jnp.cumsum(valid.reshape(-1).astype(jnp.int32))
+    count = cumulative[-1]
+    low = jnp.clip(jnp.asarray(low, jnp.int32), 0, jnp.maximum(count - 1, 0))
+    draws = jax.random.randint(key, (n,), low, jnp.maximum(count, 1))
+    flat = jnp.searchsorted(cumulative, draws, side="right")  # The draws-th true entry.
+    return jnp.minimum(flat, valid.size - 1)
+
+
+def sample_row_segments(
     buffer: Any, key: jax.Array, n: int, segment_length: int, episode_length: int, recent_episodes: int
 ) -> Segments:
-    """Cuts n segments uniformly (with replacement) among the valid starts of the recent window.
+    """``pool = "rows"``: n segments uniform (with replacement) among the valid starts of the recent window.
+
+    If no start is valid (too little data) the segments are arbitrary rows.
+    """
+    valid = valid_starts(buffer, segment_length, episode_length, recent_episodes)
+    rows, num_envs = valid.shape
+    flat = _draw_flat(key, valid, n)
+    start, env = flat // num_envs, flat % num_envs
+    index = _window_index(buffer, rows)
+    time = index[(start[:, None] + jnp.arange(segment_length)) % rows]  # (n, H) absolute rows.
+    return _gather(buffer, time, env[:, None])
+
+
+def episode_ends(buffer: Any, segment_length: int, episode_length: int) -> jax.Array:
+    """Which buffer cells (oldest row first) hold the last transition of an episode of >= H steps.
+
+    Returns:
+      (T, E) bool over the rows ``_window_index(buffer, T)``; only filled rows can be true.
+    """
+    capacity = buffer.episode_step.shape[0]
+    index = _window_index(buffer, capacity)
+    steps = buffer.episode_step[index]
+    flagged = (buffer.terminal[index] + buffer.truncated[index]) > 0
+    last = flagged | (steps == episode_length - 1)
+    filled = (jnp.arange(capacity) >= capacity - buffer.size)[:, None]
+    return last & filled & (steps >= segment_length - 1)
+
+
+def sample_episode_segments(
+    buffer: Any, key: jax.Array, n: int, segment_length: int, episode_length: int, recent_episodes: int
+) -> Segments:
+    """``pool = "episodes"``: B-Pref's ``get_queries``: n segments from the last complete episodes.
+
+    Each segment picks one of the ``recent_episodes`` most recently completed episodes (by the
+    row of their last transition; episodes ending on the same row rank by environment index)
+    uniformly with replacement, then a start uniform in ``[0, L - H)`` for an episode of L steps
+    (B-Pref: ``np.random.choice(len_traj - size_segment)``, so the last step is never shown).
+    Episodes shorter than H are skipped. Before any episode is complete the segments are
+    arbitrary rows; ``Config.validate`` makes the first session come after the first episodes.
+
+    Args:
+      buffer: the replay buffer (see the module docstring).
+      key: PRNG key.
+      n: number of segments (static).
+      segment_length: H (static).
+      episode_length: control steps per episode (static).
+      recent_episodes: how many complete episodes are eligible (B-Pref's ``max_size``, 100).
+
+    Returns:
+      ``Segments`` of shape (n, H, ...).
+    """
+    capacity, num_envs = buffer.episode_step.shape
+    key_episode, key_start = jax.random.split(key)
+    ends = episode_ends(buffer, segment_length, episode_length)
+    total = jnp.sum(ends.astype(jnp.int32))
+    flat = _draw_flat(key_episode, ends, n, low=total - recent_episodes)
+    end, env = flat // num_envs, flat % num_envs  # Window rows, oldest first.
+    index = _window_index(buffer, capacity)
+    length = buffer.episode_step[index[end], env] + 1
+    offset = jax.random.randint(key_start, (n,), 0, jnp.maximum(length - segment_length, 1))
+    first = end - (length - 1) + offset
+    time = index[(first[:, None] + jnp.arange(segment_length)) % capacity]
+    return _gather(buffer, time, env[:, None])
+
+
+def sample_segments(
+    buffer: Any,
+    key: jax.Array,
+    n: int,
+    segment_length: int,
+    episode_length: int,
+    recent_episodes: int,
+    pool: str = "rows",
+) -> Segments:
+    """Cuts n segments of H steps, each inside one episode, from the recent data.
 
     Args:
       buffer: the replay buffer (see the module docstring).
@@ -145,33 +245,30 @@ def sample_segments(
       segment_length: H (static).
       episode_length: control steps per episode (static).
       recent_episodes: see ``QueryConfig.recent_episodes`` (static).
+      pool: ``"episodes"`` (:func:`sample_episode_segments`) or ``"rows"`` (:func:`sample_row_segments`).
 
     Returns:
-      ``Segments`` of shape (n, H, ...). If no start is valid (too little data) the segments are
-      arbitrary rows; callers query only once ``size >= segment_length`` rows of one episode exist.
+      ``Segments`` of shape (n, H, ...).
     """
-    valid = valid_starts(buffer, segment_length, episode_length, recent_episodes)
-    rows, num_envs = valid.shape
-    cumulative = jnp.cumsum(valid.reshape(-1).astype(jnp.int32))
-    count = cumulative[-1]
-    draws = jax.random.randint(key, (n,), 0, jnp.maximum(count, 1))
-    flat = jnp.searchsorted(cumulative, draws, side="right")  # The draws-th valid start.
-    flat = jnp.minimum(flat, rows * num_envs - 1)
-    start, env = flat // num_envs, flat % num_envs
-    index = _window_index(buffer, rows)
-    time = index[(start[:, None] + jnp.arange(segment_length)) % rows]  # (n, H) absolute rows.
-    env = env[:, None]
-    return Segments(obs=buffer.obs[time, env], action=buffer.action[time, env], true_reward=buffer.reward[time, env])
+    _check(pool in ("episodes", "rows"), "query.pool", pool, "episodes, rows")
+    sampler = sample_episode_segments if pool == "episodes" else sample_row_segments
+    return sampler(buffer, key, n, segment_length, episode_length, recent_episodes)
 
 
 def sample_pairs(
-    buffer: Any, key: jax.Array, n: int, segment_length: int, episode_length: int, recent_episodes: int
+    buffer: Any,
+    key: jax.Array,
+    n: int,
+    segment_length: int,
+    episode_length: int,
+    recent_episodes: int,
+    pool: str = "rows",
 ) -> tuple[Segments, Segments]:
     """n independent uniform pairs: ``sample_segments`` of 2n, split into halves.
 
     Args and Returns: as ``sample_segments``, as a pair ``(seg_a, seg_b)``.
     """
-    both = sample_segments(buffer, key, 2 * n, segment_length, episode_length, recent_episodes)
+    both = sample_segments(buffer, key, 2 * n, segment_length, episode_length, recent_episodes, pool)
     return jax.tree.map(lambda x: x[:n], both), jax.tree.map(lambda x: x[n:], both)
 
 
@@ -234,7 +331,7 @@ def select_queries(
     References:
       Lee, Smith, Abbeel. PEBBLE, ICML 2021 (section 4.2, sampling schemes); B-Pref, 2021.
     """
-    sizes = (cfg.segment_length, episode_length, cfg.recent_episodes)
+    sizes = (cfg.segment_length, episode_length, cfg.recent_episodes, cfg.pool)
     uniform_only = cfg.sampling == "uniform" or (isinstance(first_session, bool) and first_session)
     if uniform_only:
         return sample_pairs(buffer, key, num_queries, *sizes)

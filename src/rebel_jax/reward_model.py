@@ -68,6 +68,10 @@ class RewardConfig:
     output: Literal["tanh", "sigmoid"] = "tanh"
     """Output squashing: ``tanh`` (B-Pref's, r in (-1, 1)) or ``sigmoid`` (r in (0, 1), the
     non-negative reward that REBEL's bound assumes)."""
+    init: Literal["torch", "lecun"] = "torch"
+    """Initial weights: ``torch``, PyTorch's ``nn.Linear`` default that B-Pref's ``gen_net`` gets
+    (kernel and bias uniform in +-1/sqrt(fan_in)); ``lecun``, flax's default (lecun-normal
+    kernels, zero biases; this project's earlier rule, about 9x the initial reward spread)."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "label_capacity"):
@@ -75,25 +79,50 @@ class RewardConfig:
         _check(self.lr > 0, "reward.lr", self.lr, "> 0")
         _check(0 <= self.stop_accuracy <= 1, "reward.stop_accuracy", self.stop_accuracy, "[0, 1]")
         _check(self.output in ("tanh", "sigmoid"), "reward.output", self.output, "tanh, sigmoid")
+        _check(self.init in ("torch", "lecun"), "reward.init", self.init, "torch, lecun")
+
+
+def torch_linear_init(fan_in: int) -> tuple[Callable, Callable]:
+    """PyTorch's ``nn.Linear.reset_parameters``: kernel and bias uniform in ``+-1/sqrt(fan_in)``.
+
+    (``kaiming_uniform_(a=sqrt(5))`` gives the kernel bound ``sqrt(6 / ((1 + 5) fan_in))``.)
+
+    Returns:
+      ``(kernel_init, bias_init)`` for ``flax.linen.Dense``.
+    """
+    bound = 1.0 / math.sqrt(fan_in)
+
+    def uniform(key, shape, dtype=jnp.float32):
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return uniform, uniform
 
 
 class RewardMLP(nn.Module):
     """One member: ``squash(MLP(concat(obs, action)))``, a scalar per step (B-Pref's ``gen_net``).
 
-    ``squash`` is ``tanh`` (B-Pref's ``activation='tanh'``) or ``sigmoid`` (its ``'sig'``).
+    ``squash`` is ``tanh`` (B-Pref's ``activation='tanh'``) or ``sigmoid`` (its ``'sig'``);
+    ``initializer`` is ``RewardConfig.init``.
     """
 
     hidden: int
     depth: int
     output: str = "tanh"
+    initializer: str = "torch"
+
+    def _dense(self, features: int, fan_in: int) -> nn.Dense:
+        if self.initializer == "lecun":
+            return nn.Dense(features)
+        kernel_init, bias_init = torch_linear_init(fan_in)
+        return nn.Dense(features, kernel_init=kernel_init, bias_init=bias_init)
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
         for _ in range(self.depth):
-            x = nn.leaky_relu(nn.Dense(self.hidden)(x))
+            x = nn.leaky_relu(self._dense(self.hidden, x.shape[-1])(x))
         squash = jax.nn.sigmoid if self.output == "sigmoid" else jnp.tanh
-        return squash(nn.Dense(1)(x))[..., 0]
+        return squash(self._dense(1, x.shape[-1])(x))[..., 0]
 
 
 @flax.struct.dataclass
@@ -117,12 +146,31 @@ class LabelData:
 
 
 @flax.struct.dataclass
+class UnlabelledPool:
+    """SURF's growing store of unlabelled pairs (``u_buffer_seg1/2`` of ``reward_model_semi_dataaug.py``)."""
+
+    obs_a: jax.Array
+    """(U, L, obs_size) observations of the first segments."""
+    act_a: jax.Array
+    """(U, L, act_size) their actions."""
+    obs_b: jax.Array
+    """(U, L, obs_size) observations of the second segments."""
+    act_b: jax.Array
+    """(U, L, act_size) their actions."""
+    ptr: jax.Array
+    """Next slot to write (wraps at U)."""
+    count: jax.Array
+    """Filled slots, <= U."""
+
+
+@flax.struct.dataclass
 class RewardState:
-    """The ensemble's parameters (leading member axis), its Adam state and its labels."""
+    """The ensemble's parameters (leading member axis), its Adam state, its labels and (SURF) its pool."""
 
     params: Any
     opt_state: Any
     data: LabelData
+    pool: UnlabelledPool | None = None
 
 
 @flax.struct.dataclass
@@ -140,14 +188,16 @@ class PrefBatch:
 
 
 def _network(cfg: RewardConfig) -> RewardMLP:
-    return RewardMLP(hidden=cfg.hidden, depth=cfg.depth, output=cfg.output)
+    return RewardMLP(hidden=cfg.hidden, depth=cfg.depth, output=cfg.output, initializer=cfg.init)
 
 
 def _optimizer(cfg: RewardConfig) -> optax.GradientTransformation:
     return optax.adam(cfg.lr)
 
 
-def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int) -> RewardState:
+def init(
+    cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int, pool_capacity: int = 0
+) -> RewardState:
     """A fresh ensemble (one init key per member) with an empty label store.
 
     Args:
@@ -156,6 +206,7 @@ def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segmen
       obs_size: observation size.
       act_size: action size.
       segment_length: H of the stored segments.
+      pool_capacity: unlabelled pairs SURF's pool holds; 0: no pool.
 
     Returns:
       The ``RewardState``.
@@ -172,7 +223,50 @@ def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segmen
         ptr=jnp.zeros((), jnp.int32),
         count=jnp.zeros((), jnp.int32),
     )
-    return RewardState(params=params, opt_state=_optimizer(cfg).init(params), data=data)
+    pool = None
+    if pool_capacity:
+        pool_shape = (pool_capacity, segment_length)
+        pool = UnlabelledPool(
+            obs_a=jnp.zeros(pool_shape + (obs_size,)),
+            act_a=jnp.zeros(pool_shape + (act_size,)),
+            obs_b=jnp.zeros(pool_shape + (obs_size,)),
+            act_b=jnp.zeros(pool_shape + (act_size,)),
+            ptr=jnp.zeros((), jnp.int32),
+            count=jnp.zeros((), jnp.int32),
+        )
+    return RewardState(params=params, opt_state=_optimizer(cfg).init(params), data=data, pool=pool)
+
+
+def add_unlabelled(state: RewardState, seg_a: Any, seg_b: Any, keep: jax.Array | bool = True) -> RewardState:
+    """Appends unlabelled pairs to SURF's pool (``put_unlabeled_queries``), all of them or none.
+
+    Args:
+      state: the reward state, with a pool.
+      seg_a: segments with ``obs`` and ``action`` (N, L, ...).
+      seg_b: the other segment of each pair.
+      keep: whether to add them (a seed whose session is a no-op adds none).
+
+    Returns:
+      The state with the pairs written at ``ptr`` onwards (wrapping), ``count`` updated.
+    """
+    pool = state.pool
+    capacity = pool.obs_a.shape[0]
+    num = seg_a.obs.shape[0]
+    slot = jnp.where(keep, (pool.ptr + jnp.arange(num)) % capacity, capacity)  # Out of range: dropped.
+
+    def write(store, new):
+        return store.at[slot].set(new.astype(store.dtype), mode="drop")
+
+    added = jnp.where(keep, num, 0)
+    pool = pool.replace(
+        obs_a=write(pool.obs_a, seg_a.obs),
+        act_a=write(pool.act_a, seg_a.action),
+        obs_b=write(pool.obs_b, seg_b.obs),
+        act_b=write(pool.act_b, seg_b.action),
+        ptr=(pool.ptr + added) % capacity,
+        count=jnp.minimum(pool.count + added, capacity),
+    )
+    return state.replace(pool=pool)
 
 
 def predict(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -496,6 +590,77 @@ def train(
     return end.state, metrics
 
 
+def surf_iterations(reward_update: int, count: jax.Array, batch_size: int) -> jax.Array:
+    """SURF's gradient steps per session: ``ceil(reward_update * labels / batch_size)``.
+
+    ``train_PEBBLE_semi_dataaug.py`` (alinlab/SURF 2088ee8), ``learn_reward``: ``num_iters =
+    int(np.ceil(self.cfg.reward_update * self.labeled_feedback / self.reward_model.train_batch_size))``,
+    with ``reward_update=1000`` in its walker command and ``train_batch_size = 128``.
+    """
+    return (reward_update * count + batch_size - 1) // batch_size
+
+
+def train_iterations(
+    cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm], num_iters: jax.Array
+) -> tuple[RewardState, dict[str, jax.Array]]:
+    """SURF's session (``semi_train_reward``): ``num_iters`` minibatch steps, no early stopping.
+
+    Step ``i`` takes minibatch ``i mod b`` (``b = ceil(count / batch_size)``) of per-member
+    orders drawn afresh for every pass ``i // b`` over the labels (SURF reshuffles whenever a
+    pass ends; with ``count <= batch_size`` every step sees all labels). The terms close over
+    their own data (e.g. ``pseudo_label_term`` over the pool). The accuracy counts, as SURF's,
+    each member's correct hard labels over all steps, before each step's update.
+
+    Args:
+      cfg: the reward settings.
+      state: the reward state with its labels.
+      key: PRNG key of the session.
+      terms: loss terms.
+      num_iters: () int, may be traced (see :func:`surf_iterations`).
+
+    Returns:
+      The trained state and metrics ``epochs`` (the steps run, int32), ``train_accuracy`` and
+      ``loss`` (mean over steps; 0 if none ran).
+    """
+    grad_fn = jax.grad(total_loss(tuple(terms)), has_aux=True)
+    optimizer = _optimizer(cfg)
+    data = state.data
+    capacity = data.labels.shape[0]
+    padded = -(-capacity // cfg.batch_size) * cfg.batch_size
+    num_batches = jnp.maximum((data.count + cfg.batch_size - 1) // cfg.batch_size, 1)
+    num_iters = jnp.where(data.count > 0, num_iters, 0)
+    key_order, key_loss = jax.random.split(key)
+
+    def body(carry: _EpochCarry) -> _EpochCarry:
+        order = _shuffles(
+            jax.random.fold_in(key_order, carry.batch // num_batches), cfg.ensemble_size, data.count, capacity, padded
+        )
+        batch = _minibatch(data, order, carry.batch % num_batches, cfg.batch_size)
+        logits = _member_logits(cfg, carry.params, batch)
+        correct, hard = _hard_correct(logits, batch.labels)
+        grads, metrics = grad_fn(carry.params, batch, jax.random.fold_in(key_loss, carry.batch))
+        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
+        return _EpochCarry(
+            params=optax.apply_updates(carry.params, updates),
+            opt_state=opt_state,
+            batch=carry.batch + 1,
+            correct=carry.correct + jnp.sum(correct * batch.weight) / jnp.maximum(jnp.sum(hard * batch.weight), 1.0),
+            loss=carry.loss + metrics["loss"],
+        )
+
+    start = _EpochCarry(
+        params=state.params,
+        opt_state=state.opt_state,
+        batch=jnp.zeros((), jnp.int32),
+        correct=jnp.zeros(()),
+        loss=jnp.zeros(()),
+    )
+    end = jax.lax.while_loop(lambda c: c.batch < num_iters, body, start)
+    steps = jnp.maximum(end.batch, 1)
+    metrics = {"epochs": end.batch, "train_accuracy": end.correct / steps, "loss": end.loss / steps}
+    return state.replace(params=end.params, opt_state=end.opt_state), metrics
+
+
 # REBEL: the agent-preference term.
 
 
@@ -613,8 +778,12 @@ class SURFConfig:
     ratio: int = 4
     """Unlabelled pairs per labelled pair in each minibatch (mu)."""
     pool_size: int = 1000
-    """Unlabelled pairs U sampled by the caller per feedback session (SURF's ``inv_label_ratio``
-    times the queries per session; walker: 100 x 10 = 1000)."""
+    """Unlabelled pairs added to the pool at each feedback session (SURF's ``inv_label_ratio``
+    times the queries per session; walker: 100 x 10 = 1000). The pool keeps every session's
+    pairs, as SURF's ``u_buffer``."""
+    reward_update: int = 1000
+    """SURF's ``reward_update``: a session runs ``ceil(reward_update * labels / reward.batch_size)``
+    gradient steps with no early stop (its walker command: 1000)."""
     crop: int = 5
     """Temporal crop c: segments are stored at length ``H + 2c``; each segment of a pair is
     cropped to a length uniform in ``[H - c, H + c]`` (shared by the pair) with its own uniform
@@ -624,7 +793,7 @@ class SURFConfig:
         """Checks the ranges; with ``segment_length`` (H) also that ``crop < H``."""
         _check(0 <= self.threshold <= 1, "surf.threshold", self.threshold, "[0, 1]")
         _check(self.weight >= 0, "surf.weight", self.weight, ">= 0")
-        for name in ("ratio", "pool_size"):
+        for name in ("ratio", "pool_size", "reward_update"):
             _check(getattr(self, name) >= 1, f"surf.{name}", getattr(self, name), ">= 1")
         _check(self.crop >= 0, "surf.crop", self.crop, ">= 0")
         if segment_length is not None:
@@ -732,11 +901,14 @@ def pseudo_label_term(
     pool_act_a: jax.Array,
     pool_obs_b: jax.Array,
     pool_act_b: jax.Array,
+    pool_count: jax.Array | int | None = None,
 ) -> LossTerm:
     """SURF's semi-supervised term on unlabelled pairs with confident pseudo-labels.
 
-    Each call draws, per member, ``ratio * B`` pairs of the pool uniformly with replacement
-    (B the labelled minibatch size, read from the batch's shape). Each member labels them
+    Each call draws, per member, ``ratio * B`` pairs among the first ``pool_count`` of the pool
+    uniformly with replacement (B the labelled minibatch size, read from the batch's shape;
+    SURF walks through a shuffled order of its pool instead, which differs only in that a pair
+    may repeat within a pass). Each member labels them
     itself from its sums over the central H steps, without gradient (``pseudo_labels``), and
     is trained on fresh crops of them (``crop_masks``):
     ``loss_m = mean over the drawn pairs of CE(cropped logits, label) * confident`` (the mean
@@ -751,6 +923,7 @@ def pseudo_label_term(
       pool_act_a: (U, L, act_size) their actions.
       pool_obs_b: (U, L, obs_size) second segments.
       pool_act_b: (U, L, act_size) their actions.
+      pool_count: filled pairs (may be traced); None: all U.
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``pseudo_loss`` (the term) and
@@ -768,7 +941,7 @@ def pseudo_label_term(
         members, labelled = batch.labels.shape
         shape = (members, surf.ratio * labelled)
         key_index, key_crop = jax.random.split(key)
-        index = jax.random.randint(key_index, shape, 0, pool_size)
+        index = jax.random.randint(key_index, shape, 0, pool_size if pool_count is None else jnp.maximum(pool_count, 1))
         mask_a, mask_b = crop_masks(key_crop, shape, stored_length, surf.crop)
 
         def one(member_params, member_index, member_mask_a, member_mask_b):

@@ -24,15 +24,17 @@ The session is a ``lax.cond`` on the (unbatched) round index, so rounds without 
 
 Evaluation runs inside the same batch: ``eval_episodes`` extra environments follow the
 deterministic policy (the mean action) next to the ``num_envs`` training environments,
-so evaluation costs no extra env-step latency. Their returns are those of the policy
-*as it learns during the episode*, not of one frozen snapshot; :func:`evaluate` gives
-the frozen-policy figure (used for the final evaluation).
+so evaluation costs no extra env-step latency. As B-Pref's ``evaluate``, each evaluation
+episode runs one frozen policy: the actor's parameters are copied into
+``TrainState.eval_actor`` when the episode starts. :func:`evaluate` runs separate episodes
+of a given policy (used for the final evaluation).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -90,6 +92,8 @@ class TrainState:
         (``rebel.lam`` at init; None for the other methods).
       teacher: the scripted teacher's knobs (``teachers.knobs``), traced for the same reason
         (``cfg.teacher`` at init; None for sac).
+      eval_actor: the actor parameters the evaluation environments follow, frozen at the
+        start of each episode.
     """
 
     sac: SACState
@@ -101,6 +105,7 @@ class TrainState:
     entropy_stats: pretrain.RunningStats | None = None
     lam: jax.Array | None = None
     teacher: dict[str, jax.Array] | None = None
+    eval_actor: Any = None
 
 
 class Trainer:
@@ -123,6 +128,8 @@ class Trainer:
         self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
         self.stored_length = self.horizon + 2 * self.crop
         self.pretrain_steps = cfg.feedback_start // cfg.env.num_envs if self.preference else 0  # vector steps
+        sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
+        self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
         self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
@@ -132,17 +139,21 @@ class Trainer:
         env_state = self._reset_envs(key_env)
         nan = jnp.full((), jnp.nan, jnp.float32)
         obs_size, action_size = self.env.observation_size, self.env.action_size
+        sac_state = self.sac.init(key_sac)
         ts = TrainState(
-            sac=self.sac.init(key_sac),
+            sac=sac_state,
             buffer=replay.init(self.cfg.train.capacity, self.num_train, obs_size, action_size),
             env=env_state,
             episodes=EpisodeStats(jnp.zeros(self.num_all), nan, nan),
             key=key,
+            eval_actor=sac_state.actor_params,
         )
         if not self.preference:
             return ts
         key, key_reward = jax.random.split(key)
-        reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
+        reward = reward_model.init(
+            self.reward_cfg, key_reward, obs_size, action_size, self.stored_length, self.pool_capacity
+        )
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
         return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
@@ -158,7 +169,7 @@ class Trainer:
         random = jax.random.uniform(key_random, explore.shape, minval=-1.0, maxval=1.0)
         seeding = t * self.num_train < self.cfg.train.seed_steps
         train_action = jnp.where(seeding, random, explore)
-        eval_action = self.sac.act_deterministic(ts.sac.actor_params, obs[self.num_train :])
+        eval_action = self.sac.act_deterministic(ts.eval_actor, obs[self.num_train :])
         return jnp.concatenate([train_action, eval_action])
 
     def _record(self, ts: TrainState, nxt: State, action: jax.Array) -> tuple[replay.Buffer, EpisodeStats]:
@@ -220,8 +231,12 @@ class Trainer:
         """
         key, key_reset, key_act, key_update = jax.random.split(ts.key, 4)
         new_episode = (t % self.cfg.env.episode_length == 0) & (t > 0)
-        env_state = jax.lax.cond(new_episode, lambda: self._reset_envs(key_reset), lambda: ts.env)
-        ts = ts.replace(env=env_state, key=key)
+        env_state, eval_actor = jax.lax.cond(
+            new_episode,
+            lambda: (self._reset_envs(key_reset), ts.sac.actor_params),  # Evaluation freezes this episode's policy.
+            lambda: (ts.env, ts.eval_actor),
+        )
+        ts = ts.replace(env=env_state, key=key, eval_actor=eval_actor)
         action = self._act(ts, t, key_act)
         nxt = jax.vmap(self.env.step)(ts.env, action)
         buffer, episodes = self._record(ts, nxt, action)
@@ -247,16 +262,19 @@ class Trainer:
 
     def _sample_segments(self, buffer: replay.Buffer, key: jax.Array, n: int, length: int) -> Segments:
         query = self.cfg.query
-        return queries.sample_segments(buffer, key, n, length, self.cfg.env.episode_length, query.recent_episodes)
+        episode_length = self.cfg.env.episode_length
+        return queries.sample_segments(buffer, key, n, length, episode_length, query.recent_episodes, query.pool)
 
     def select(self, ts: TrainState, key: jax.Array, first: bool | jax.Array) -> tuple[Segments, Segments]:
-        """The session's query pairs (uniform at the first session), of the stored length."""
+        """The session's query pairs (uniform at the first session), of the stored length.
+
+        Disagreement and entropy are scored on the whole stored segments, as SURF scores its
+        ``H + 2 * crop`` segments (``get_rank_probability`` on ``sa_t_1``, ``sa_t_2``).
+        """
         query = dataclasses.replace(self.cfg.query, segment_length=self.stored_length)
 
         def pref_probs(seg_a, seg_b):
-            return reward_model.pref_probs(
-                self.reward_cfg, ts.reward.params, self._central(seg_a), self._central(seg_b)
-            )
+            return reward_model.pref_probs(self.reward_cfg, ts.reward.params, seg_a, seg_b)
 
         num = self.cfg.feedback.queries
         return queries.select_queries(query, key, ts.buffer, num, self.cfg.env.episode_length, pref_probs, first)
@@ -284,16 +302,9 @@ class Trainer:
             value = reward_model.agent_value_term(rcfg, ts.lam, seg.obs, actions, cfg.rebel.gamma, cfg.rebel.estimator)
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
-            pool_a, pool_b = queries.sample_pairs(
-                ts.buffer,
-                key,
-                cfg.surf.pool_size,
-                self.stored_length,
-                cfg.env.episode_length,
-                cfg.query.recent_episodes,
-            )
+            pool = ts.reward.pool
             pseudo = reward_model.pseudo_label_term(
-                rcfg, cfg.surf, pool_a.obs, pool_a.action, pool_b.obs, pool_b.action
+                rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count
             )
             return [reward_model.cropped_bt_loss(rcfg, cfg.surf), pseudo]
         return [reward_model.bt_loss(rcfg)]
@@ -312,14 +323,29 @@ class Trainer:
 
         A seed whose answers are all masked (budget spent, or all skipped) keeps its reward model.
         """
-        key_terms, key_train, key_fresh, key_critic = jax.random.split(key, 4)
+        key_terms, key_train, key_fresh, key_critic, key_pool = jax.random.split(key, 5)
         rcfg = self.reward_cfg
         accuracy_new = reward_model.accuracy(
             rcfg, ts.reward.params, self._central(seg_a), self._central(seg_b), labels, mask
         )
-        stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
-        trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
         kept = jnp.sum(mask)
+        stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
+        if self.cfg.algo == "surf":  # SURF's session: grow the pool, then a fixed number of steps.
+            pool_a, pool_b = queries.sample_pairs(
+                ts.buffer,
+                key_pool,
+                self.cfg.surf.pool_size,
+                self.stored_length,
+                self.cfg.env.episode_length,
+                self.cfg.query.recent_episodes,
+                self.cfg.query.pool,
+            )
+            stored = reward_model.add_unlabelled(stored, pool_a, pool_b, kept > 0)
+            terms = self._loss_terms(ts.replace(reward=stored), key_terms)
+            steps = reward_model.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
+            trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
+        else:
+            trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):
@@ -328,7 +354,7 @@ class Trainer:
         buffer = replay.relabel(ts.buffer, reward_fn, chunk_rows=max(1, 16_384 // self.num_train))
         sac_state = ts.sac
         if self.cfg.pretrain.steps:
-            sac_state = jax.lax.cond(first, lambda: self.sac.reset_critic(ts.sac, key_critic), lambda: ts.sac)
+            sac_state = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic), lambda: ts.sac)
         fresh = self._sample_segments(buffer, key_fresh, 64, self.horizon)
         learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
         training = {  # NaN where no answer was kept: that training was discarded.
@@ -341,6 +367,25 @@ class Trainer:
         metrics["session_labels"] = kept
         metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
         return ts.replace(sac=sac_state, buffer=buffer, reward=reward), metrics
+
+    def _reset_critic(self, sac_state: SACState, buffer: replay.Buffer, key: jax.Array) -> SACState:
+        """A fresh critic after pre-training, then ``pretrain.reset_updates`` SAC updates on the relabelled buffer.
+
+        B-Pref's ``agent.reset_critic()`` then ``agent.update_after_reset(gradient_update=reset_update)``
+        (``train_PEBBLE.py``; ``agent/sac.py``): critic, actor and temperature steps on the learned
+        reward. The target critic moves on this project's update counter (``SAC.update``), where B-Pref
+        moves it on the even indices of these updates.
+        """
+        key_reset, key_updates = jax.random.split(key)
+        sac_state = self.sac.reset_critic(sac_state, key_reset)
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = replay.sample(buffer, key_sample, self.cfg.sac.batch_size, True)
+            return self.sac.update(state, batch, key_update)[0], None
+
+        keys = jax.random.split(key_updates, self.cfg.pretrain.reset_updates)
+        return jax.lax.scan(one, sac_state, keys)[0]
 
     def feedback_session(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, dict]:
         """select -> teach -> learn, with the session's metrics (:data:`SESSION_METRICS`)."""
