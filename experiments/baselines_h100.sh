@@ -3,7 +3,9 @@
 # walker_walk (100 labels, 5 seeds, 500k steps, 10 envs, utd 0.3) and SAC on cheetah_run on the
 # fixed reset, as three processes sharing the GPU. Each call runs for at most $1 seconds
 # (--time-limit), checkpoints, and the next call resumes; the logs go to $OUT/runs.tar.gz.
-# Usage (device tool, carrying .whl): bash experiments/baselines_h100.sh 520
+# Usage (device tool, carrying .whl): bash experiments/baselines_h100.sh 520 [set]
+#   set "shared" (default): the three runs side by side (the first GPU session: sharing slowed
+#   each walker run about 2.5x, so they did not finish); set "utd1": PEBBLE at B-Pref's utd 1 alone.
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
@@ -17,6 +19,13 @@ launch() {  # name, then the training flags
   python3 -m rebel_jax.train "$@" --run-dir "$dir" $common $resume >>"runs/$name.log" 2>&1 &
 }
 mkdir -p runs
+if [ "${2:-shared}" = utd1 ]; then
+  launch pebble_walker_100_utd1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5
+  wait
+  for f in runs/pebble_walker_100_utd1.log; do grep -v warp "$f" | tail -3; done
+  tar czf "$OUT/runs.tar.gz" --exclude=checkpoints runs
+  exit 0
+fi
 launch pebble_walker_100 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --utd 0.3
 launch surf_walker_100 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5 --utd 0.3
 launch sac_cheetah_fixed --preset paper --algo sac --task cheetah_run --seeds 5 --num-envs 40 --utd 0.25
