@@ -125,8 +125,9 @@ def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path)
     logger = RunLogger(tmp_path, 100, progress=False, tensorboard=False)
     nan, inf = math.nan, math.inf
     # Round 1: seed 1 has no session (NaN), nothing diverged. Round 2: seed 1 diverged.
-    logger.write(10, {"loss": np.array([1.0, 3.0]), "reward_loss": np.array([2.0, nan])}, {"round": 0}, [False, False])
-    logger.write(20, {"loss": np.array([1.0, inf]), "reward_loss": np.array([2.0, nan])}, {"round": 1}, [False, True])
+    for r, (loss, diverged) in enumerate([([1.0, 3.0], [0.0, 0.0]), ([1.0, inf], [0.0, 1.0])]):
+        metrics = {"loss": np.array(loss), "reward_loss": np.array([2.0, nan]), "diverged": np.array(diverged)}
+        logger.write(10 * (r + 1), metrics, {"round": r})
     logger.close()
     ok, bad = (_strict_loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines())
     assert ok["status"] == "ok" and ok["loss_mean"] == 2.0 and ok["reward_loss_mean"] == 2.0

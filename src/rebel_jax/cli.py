@@ -437,9 +437,9 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:
                 metrics.pop("eval_return")
-            diverged = np.asarray(metrics.pop("diverged"), float).reshape(-1) > 0
+            diverged = np.asarray(metrics["diverged"], float).reshape(-1) > 0
             extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.columns / seconds}
-            logger.write(env_steps, metrics, extra, diverged)
+            logger.write(env_steps, metrics, extra)
             if diverged.any():
                 which = ", ".join(names[i] for i in np.flatnonzero(diverged & ~ever_diverged))
                 ever_diverged |= diverged

@@ -146,16 +146,16 @@ class TrainConfig:
             _check(getattr(self, name) >= 1, f"train.{name}", getattr(self, name), ">= 1")
         _check(self.seed_steps >= 0, "train.seed_steps", self.seed_steps, ">= 0")
         _check(
-            self.total_steps % self.steps_per_round == 0,
-            "train.total_steps",
-            self.total_steps,
-            f"a multiple of train.steps_per_round={self.steps_per_round} (whole rounds)",
-        )
-        _check(
             self.steps_per_round % num_envs == 0,
             "train.steps_per_round",
             self.steps_per_round,
             f"a multiple of env.num_envs={num_envs}",
+        )
+        _check(
+            self.total_steps % self.steps_per_round == 0,
+            "train.total_steps",
+            self.total_steps,
+            f"a multiple of train.steps_per_round={self.steps_per_round} (whole rounds)",
         )
         _check(
             self.eval_every % self.steps_per_round == 0,

@@ -81,22 +81,17 @@ class RunLogger:
         self.names = names
         self.bar = tqdm(total=total_steps, initial=start_steps, unit="step", disable=not progress, dynamic_ncols=True)
 
-    def write(
-        self,
-        env_steps: int,
-        metrics: dict[str, np.ndarray],
-        extra: dict[str, float],
-        diverged: np.ndarray | None = None,
-    ) -> None:
+    def write(self, env_steps: int, metrics: dict[str, np.ndarray], extra: dict[str, float]) -> None:
         """Logs per-seed ``metrics`` (arrays over seeds) and scalar ``extra`` at ``env_steps``.
 
-        ``diverged`` (bool per seed) marks seeds with NaN or infinity in their losses,
-        parameters or returns: the record's ``status`` is then ``"diverged"`` and every
-        ``*_mean`` is null, as a mean over the other seeds would pass for the run's. Otherwise
-        ``*_mean`` is the mean over the seeds whose value is defined (a session metric is NaN
-        for a seed without a session, a return before the first episode ends).
+        ``metrics["diverged"]`` (per seed, non-zero: NaN or infinity in its losses, parameters
+        or returns; see ``Trainer.round``) sets the record's ``status`` to ``"diverged"`` and
+        every ``*_mean`` to null, as a mean over the other seeds would pass for the run's.
+        Otherwise ``*_mean`` is the mean over the seeds whose value is defined (a session metric
+        is NaN for a seed without a session, a return before the first episode ends).
         """
-        diverged = np.zeros(0, bool) if diverged is None else np.asarray(diverged, bool).reshape(-1)
+        metrics = dict(metrics)
+        diverged = np.asarray(metrics.pop("diverged", np.zeros(0)), float).reshape(-1) > 0
         record = {"env_steps": env_steps, **extra, "status": "diverged" if diverged.any() else "ok"}
         for k, v in metrics.items():
             record[k] = _jsonable(v)
