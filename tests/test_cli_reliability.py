@@ -119,6 +119,13 @@ def test_resume_refuses_changed_fields_naming_them(whole, tmp_path, capsys):
         assert field in line, line
     assert {name: (run_dir / name).read_bytes() for name in before} == before
 
+    # A run saved before a config field existed resumes if the field is at its default, not otherwise.
+    saved = json.loads((run_dir / "config.json").read_text())
+    del saved["sac"]["precision"], saved["sac"]["hidden"]  # tf32 is the default; the flags give hidden 16
+    (run_dir / "config.json").write_text(json.dumps(saved))
+    args = cli.parse([*MICRO, "--run-dir", str(run_dir), "--resume"])
+    assert cli.resume_changes(run_dir, args) == ["sac.hidden (saved '<absent>', now 16)"]
+
 
 # Orbax's restore of the damaged checkpoint leaves a closed event loop behind (harmless; not shown by the CLI).
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")

@@ -135,7 +135,7 @@ def _accelerator_plugins() -> list[str]:
 
 def runs_on_cpu(environ=os.environ) -> bool:
     """Whether JAX will run on the CPU: ``JAX_PLATFORMS`` names it first, or no accelerator plugin is installed."""
-    platforms = environ.get("JAX_PLATFORMS") or jax.config.jax_platforms or ""
+    platforms = environ.get("JAX_PLATFORMS") or getattr(jax.config, "jax_platforms", None) or ""
     if platforms.strip():
         return platforms.split(",")[0].strip() == "cpu"
     return not _accelerator_plugins()
@@ -197,6 +197,8 @@ def _run_fields(args: Args) -> dict:
 def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
     """The fields in which ``args`` differ from the run saved in ``run_dir``, but a larger ``train.total_steps``.
 
+    A field the saved config lacks (added to :class:`Config` since) counts as unchanged at its default.
+
     Raises:
       ConfigError: if ``config.json`` or ``meta.json`` cannot be read.
     """
@@ -209,10 +211,13 @@ def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
     old, new = _flatten(saved), _flatten(now)
     for name, value in _run_fields(args).items():
         old[name], new[name] = meta.get(name), json.loads(json.dumps(value))
+    defaults = _flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
     changes = []
     for name in sorted(old.keys() | new.keys()):
         before, after = old.get(name, "<absent>"), new.get(name, "<absent>")
         if before == after or (name == "train.total_steps" and isinstance(before, int) and after > before):
+            continue
+        if name not in old and name in defaults and after == defaults[name]:
             continue
         changes.append(f"{name} (saved {before!r}, now {after!r})")
     return changes
