@@ -121,14 +121,15 @@ def _strict_loads(text: str):
     return json.loads(text, parse_constant=refuse)
 
 
-def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path):
-    logger = RunLogger(tmp_path, 100, progress=False, tensorboard=False)
+def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path, capsys):
+    logger = RunLogger(tmp_path, 100, progress=True, tensorboard=False, names=["seed 0", "seed 1 (lambda 1)"])
     nan, inf = math.nan, math.inf
     # Round 1: seed 1 has no session (NaN), nothing diverged. Round 2: seed 1 diverged.
     for r, (loss, diverged) in enumerate([([1.0, 3.0], [0.0, 0.0]), ([1.0, inf], [0.0, 1.0])]):
         metrics = {"loss": np.array(loss), "reward_loss": np.array([2.0, nan]), "diverged": np.array(diverged)}
         logger.write(10 * (r + 1), metrics, {"round": r})
     logger.close()
+    assert "DIVERGED=seed 1 (lambda 1)" in capsys.readouterr().err  # on the progress line
     ok, bad = (_strict_loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines())
     assert ok["status"] == "ok" and ok["loss_mean"] == 2.0 and ok["reward_loss_mean"] == 2.0
     assert ok["reward_loss"] == [2.0, None] and ok["diverged"] == [False, False]
