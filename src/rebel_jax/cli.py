@@ -223,10 +223,6 @@ def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
     return changes
 
 
-def _has_checkpoint(run_dir: pathlib.Path) -> bool:
-    return any(p.name.isdigit() for p in (run_dir / "checkpoints").glob("*"))
-
-
 def prepare_run_dir(args: Args) -> pathlib.Path:
     """Checks ``args.run_dir`` for this run, then creates it; nothing is written before every check passed.
 
@@ -452,9 +448,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                     result = {**_final_result(np.full(args.columns, np.nan), ever_diverged, names), "round": r}
                     write_json(run_dir / "final.json", result)
                     last = ckpt.latest() if ckpt is not None else None
+                    kept = f"its checkpoints resume at round {last}" if last is not None else "no checkpoint"
                     print(
                         f"error: round {r}: {', '.join(result['diverged'])} diverged (NaN or inf in losses, "
-                        f"parameters or returns); the run stopped (last checkpoint: round {last}). "
+                        f"parameters or returns); the run stopped ({kept}). "
                         "--on-divergence continue runs the other seeds on.",
                         file=sys.stderr,
                     )
