@@ -36,6 +36,8 @@ def _state(run_dir: pathlib.Path) -> str:
     # Complete orbax saves only: an interrupted one is a temporary ``<step>.orbax-checkpoint-tmp-*``.
     if any(p.name.isdigit() for p in (run_dir / "checkpoints").glob("*")):
         return "resume"
+    if (run_dir / "config.json").exists():  # started, killed before its first checkpoint: --resume restarts it
+        return "resume"
     return "new"
 
 

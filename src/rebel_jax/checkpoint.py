@@ -1,12 +1,18 @@
 """Checkpoints of the full train state (networks, optimisers, buffer, env, PRNG key) with orbax.
 
 Orbax writes each checkpoint into a temporary directory and renames it only once every
-array is on disk, so a save interrupted by a kill never appears as a valid step.
+array is on disk, so a save interrupted by a kill never appears as a valid step. A step
+that is on disk but cannot be read back (a file truncated or deleted afterwards) is moved
+aside to ``<directory>_damaged/`` by :meth:`Checkpointer.restore`, which then falls back to
+the previous step.
 """
 
 from __future__ import annotations
 
 import pathlib
+import sys
+import time
+from collections.abc import Callable
 
 import jax
 import orbax.checkpoint as ocp
@@ -21,8 +27,10 @@ class Checkpointer:
     """Saves and restores a pytree under ``directory/<round>``, keeping the latest few."""
 
     def __init__(self, directory: pathlib.Path, max_to_keep: int = 2):
+        self.directory = pathlib.Path(directory).absolute()
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
-        self.manager = ocp.CheckpointManager(pathlib.Path(directory).absolute(), options=options)
+        handler = ocp.StandardCheckpointHandler()
+        self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handler)
 
     def save(self, step: int, state) -> None:
         """Saves ``state`` as ``step`` and waits until it is complete on disk."""
@@ -33,15 +41,63 @@ class Checkpointer:
         """The newest complete step, or None."""
         return self.manager.latest_step()
 
-    def restore(self, like, step: int | None = None):
-        """Restores ``step`` (default: latest) into arrays shaped, typed and sharded as ``like``."""
-        step = self.latest() if step is None else step
-        if step is None:
-            raise FileNotFoundError(f"no complete checkpoint in {self.manager.directory}")
+    def steps(self) -> list[int]:
+        """Every complete step on disk, oldest first."""
+        return sorted(self.manager.all_steps())
+
+    def stored_shapes(self, step: int) -> dict[str, tuple[int, ...]]:
+        """The shape of each saved leaf of ``step``, by flat index (as saved; zero-size leaves are not)."""
+        return {k: tuple(v.shape) for k, v in self.manager.item_metadata(step).items()}
+
+    def restore(self, like, step: int | None = None, adapt: Callable | None = None):
+        """Restores ``step`` (default: the newest readable one) into arrays shaped, typed and sharded as ``like``.
+
+        Without ``step``, an unreadable newest step is moved to ``<directory>_damaged/`` with a
+        warning on stderr, and the one before it is tried, and so on.
+
+        Args:
+          like: the tree to restore into.
+          step: the step; default the newest readable one.
+          adapt: ``adapt(like, shapes)`` gives the tree to restore a step into from its stored
+            :meth:`stored_shapes` (e.g. a smaller replay buffer, for a run that is being extended).
+
+        Returns:
+          (step, state).
+
+        Raises:
+          FileNotFoundError: if there is no complete step, or none could be read.
+        """
+        if step is not None:
+            return step, self._restore(like, step, adapt)
+        for candidate in reversed(self.steps()):
+            try:
+                return candidate, self._restore(like, candidate, adapt)
+            except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
+                reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
+                moved = self._set_aside(candidate)
+                print(
+                    f"warning: checkpoint {candidate} in {self.directory} is unreadable "
+                    f"({type(err).__name__}: {reason}); moved it to {moved} and trying the previous one",
+                    file=sys.stderr,
+                )
+        raise FileNotFoundError(f"no readable checkpoint in {self.directory}")
+
+    def _restore(self, like, step: int, adapt: Callable | None):
+        if adapt is not None:
+            like = adapt(like, self.stored_shapes(step))
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _nonempty_leaves(like))
         saved = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
         leaves, treedef = jax.tree.flatten(like)
-        return step, jax.tree.unflatten(treedef, [saved.get(str(i), x) for i, x in enumerate(leaves)])
+        return jax.tree.unflatten(treedef, [saved.get(str(i), x) for i, x in enumerate(leaves)])
+
+    def _set_aside(self, step: int) -> pathlib.Path:
+        """Moves a damaged step out of orbax's directory (so that a new save of that step is not skipped)."""
+        damaged = self.directory.with_name(self.directory.name + "_damaged")
+        damaged.mkdir(exist_ok=True)
+        target = damaged / f"{step}-{time.strftime('%Y%m%d-%H%M%S')}"
+        (self.directory / str(step)).rename(target)
+        self.manager.reload()
+        return target
 
     def close(self) -> None:
         self.manager.close()

@@ -6,6 +6,12 @@
 ``--preset`` (``paper`` or ``tiny``) picks the defaults and ``--teacher`` (a B-Pref teacher:
 oracle, noisy, mistake, skip, equal, myopic) the teacher; every other flag overrides one
 field of :class:`rebel_jax.config.Config` (``--help`` lists them with their docs).
+
+A run directory holds one run: a new run refuses a directory that holds one (``--resume``
+continues it, ``--overwrite`` replaces it). ``--resume`` refuses a configuration that differs
+from the saved one, except a larger ``--total-steps``, which extends the run. Exit status: 0
+done (or stopped by ``--time-limit``), 2 a bad flag or run directory (nothing written),
+3 a seed diverged (see ``--on-divergence``).
 """
 
 from __future__ import annotations
@@ -13,12 +19,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import importlib.metadata
+import importlib.util
 import json
+import math
+import os
 import pathlib
+import pkgutil
+import shlex
+import shutil
 import subprocess
 import sys
 import time
-from typing import Annotated
+from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
@@ -28,8 +41,16 @@ import tyro
 from rebel_jax import sweep, teachers
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
-from rebel_jax.logging import RunLogger
+from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.train import Trainer, compiled, seed_keys
+
+RUN_FILES = ("config.json", "meta.json", "metrics.jsonl", "final.json", "checkpoints", "checkpoints_damaged", "tb")
+"""What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
+EXIT_USAGE = 2
+EXIT_DIVERGED = 3
+NO_CPU_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+"""jaxlib 0.10.2's CPU runtime at times deadlocks (every thread idle in ``device_get``) unless
+this scheduler is off; the CLI sets it on CPU before the backend starts (as tests/conftest.py)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,15 +60,23 @@ class Args:
     config: Annotated[Config, tyro.conf.arg(name="")]
     seeds: int = 1
     """Seeds run together (vmapped; sharded over all devices when there are several)."""
-    run_dir: pathlib.Path | None = None
-    """The run's directory; default ``runs/<algo>_<task>_<time>``."""
+    run_dir: str | None = None
+    """The run's directory; default ``runs/<algo>_<task>_<time>``. It must not hold another run
+    (see ``--resume`` and ``--overwrite``)."""
     resume: bool = False
-    """Continue from the latest checkpoint in ``run_dir``."""
+    """Continue the run in ``run_dir`` from its latest readable checkpoint (from scratch, with a
+    notice, if it has none). The configuration must equal the saved one, except a larger
+    ``--total-steps``, which extends the run."""
+    overwrite: bool = False
+    """Replace the run in ``run_dir``: its config, logs, checkpoints and TensorBoard files are deleted first."""
     checkpoint_every: int = 1
-    """Rounds between checkpoints; 0 disables them."""
+    """Rounds between checkpoints; 0 disables them (``--resume`` still reads existing ones)."""
     time_limit: float = 0.0
     """Seconds of wall time: stop after the last round that ends within it (checkpointing that
     round) and continue later with ``--resume``. For calls with a wall-clock limit; 0: none."""
+    on_divergence: Literal["stop", "continue"] = "stop"
+    """When a seed's losses, parameters or returns become NaN or infinite: ``stop`` the run after
+    that round (exit status 3, the round is not checkpointed) or ``continue`` with the other seeds."""
     progress: bool = True
     """Show a progress bar."""
     tensorboard: bool = True
@@ -80,6 +109,58 @@ class Args:
         """Runs vmapped together: seeds x lambdas x teachers."""
         return self.seeds * len(self.lams) * len(self.teachers)
 
+    def column_names(self) -> list[str]:
+        """``seed i`` for each column, with its lambda (of a grid) and teacher (of a grid)."""
+        names = []
+        for i, (lam, teacher) in enumerate(self.grid()):
+            which = ([f"lambda {lam:g}"] if self.lam_grid else []) + ([f"teacher {teacher}"] if teacher else [])
+            names.append(f"seed {i % self.seeds}" + (f" ({', '.join(which)})" if which else ""))
+        return names
+
+
+# -- before the backend starts -------------------------------------------------------------
+def _accelerator_plugins() -> list[str]:
+    """Installed JAX accelerator plugins (as JAX discovers them), and libtpu."""
+    names = [entry.value for entry in importlib.metadata.entry_points(group="jax_plugins")]
+    try:
+        import jax_plugins
+
+        names += [module.name for module in pkgutil.iter_modules(jax_plugins.__path__)]
+    except ImportError:
+        pass
+    if importlib.util.find_spec("libtpu") is not None:
+        names.append("libtpu")
+    return names
+
+
+def runs_on_cpu(environ=os.environ) -> bool:
+    """Whether JAX will run on the CPU: ``JAX_PLATFORMS`` names it first, or no accelerator plugin is installed."""
+    platforms = environ.get("JAX_PLATFORMS") or getattr(jax.config, "jax_platforms", None) or ""
+    if platforms.strip():
+        return platforms.split(",")[0].strip() == "cpu"
+    return not _accelerator_plugins()
+
+
+def avoid_cpu_deadlock(environ=os.environ) -> None:
+    """Adds :data:`NO_CPU_DEADLOCK` to ``XLA_FLAGS`` on CPU (unless the scheduler flag is set already).
+
+    XLA reads ``XLA_FLAGS`` when the backend starts, so this must run before any computation.
+    """
+    flags = environ.get("XLA_FLAGS", "")
+    if not runs_on_cpu(environ) or "xla_cpu_enable_concurrency_optimized_scheduler" in flags:
+        return
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        print(f"warning: the JAX backend started before {NO_CPU_DEADLOCK} could be set", file=sys.stderr)
+    environ["XLA_FLAGS"] = f"{flags} {NO_CPU_DEADLOCK}".strip()
+
+
+# -- the run directory ---------------------------------------------------------------------
+def _usage_error(err: Exception) -> SystemExit:
+    print(f"error: {err}", file=sys.stderr)
+    return SystemExit(EXIT_USAGE)
+
 
 def _git_commit() -> str | None:
     try:
@@ -89,35 +170,229 @@ def _git_commit() -> str | None:
         return None
 
 
-def _write_meta(run_dir: pathlib.Path, args: Args) -> None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(args.config), indent=1))
+def command_line(argv: list[str]) -> str:
+    """The command as typed, independent of where the package lives: ``python -m rebel_jax.train ARGS``."""
+    return shlex.join(["python", "-m", "rebel_jax.train", *argv])
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def _run_fields(args: Args) -> dict:
+    """What fixes a run besides its config: the columns (as meta.json records them)."""
+    return {
+        "seeds": args.seeds,
+        "lams": [lam for lam, _ in args.grid()] if args.config.algo == "rebel" else None,
+        "teachers": [t for _, t in args.grid()] if args.teacher_grid else None,
+    }
+
+
+def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
+    """The fields in which ``args`` differ from the run saved in ``run_dir``, but a larger ``train.total_steps``.
+
+    A field the saved config lacks (added to :class:`Config` since) counts as unchanged at its default.
+
+    Raises:
+      ConfigError: if ``config.json`` or ``meta.json`` cannot be read.
+    """
+    try:
+        saved = json.loads((run_dir / "config.json").read_text())
+        meta = json.loads((run_dir / "meta.json").read_text())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"--resume: cannot read the saved run's config.json / meta.json ({err})") from err
+    now = json.loads(json.dumps(dataclasses.asdict(args.config)))  # tuples as lists, like the saved file
+    old, new = _flatten(saved), _flatten(now)
+    for name, value in _run_fields(args).items():
+        old[name], new[name] = meta.get(name), json.loads(json.dumps(value))
+    defaults = _flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
+    changes = []
+    for name in sorted(old.keys() | new.keys()):
+        before, after = old.get(name, "<absent>"), new.get(name, "<absent>")
+        if before == after or (name == "train.total_steps" and isinstance(before, int) and after > before):
+            continue
+        if name not in old and name in defaults and after == defaults[name]:
+            continue
+        changes.append(f"{name} (saved {before!r}, now {after!r})")
+    return changes
+
+
+def prepare_run_dir(args: Args) -> pathlib.Path:
+    """Checks ``args.run_dir`` for this run, then creates it; nothing is written before every check passed.
+
+    Raises:
+      ConfigError: an empty path, a path that is not a writable directory, a directory that holds
+        another run (without ``--resume`` or ``--overwrite``), or ``--resume`` with a changed configuration.
+    """
+    cfg = args.config
+    if args.run_dir is None:
+        run_dir = pathlib.Path("runs") / f"{cfg.algo}_{cfg.env.task}_{time.strftime('%Y%m%d-%H%M%S')}"
+    elif not args.run_dir.strip():
+        raise ConfigError(
+            f"run_dir={args.run_dir!r} is invalid: allowed a directory path"
+            " (leave --run-dir out for runs/<algo>_<task>_<time>)"
+        )
+    else:
+        run_dir = pathlib.Path(args.run_dir)
+    if args.resume and args.overwrite:
+        raise ConfigError("overwrite=True is invalid with --resume: allowed one of --resume (continue) or --overwrite")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: allowed a directory (it is an existing file)")
+    existing = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if existing and not (args.resume or args.overwrite):
+        raise ConfigError(
+            f"run_dir={str(run_dir)!r} is invalid: it holds a run ({', '.join(existing)}); "
+            "allowed --resume to continue it, --overwrite to replace it, or a new --run-dir"
+        )
+    if args.resume and (run_dir / "config.json").exists():
+        changes = resume_changes(run_dir, args)
+        if changes:
+            raise ConfigError(
+                f"--resume: the flags differ from the saved run in {'; '.join(changes)}. "
+                "Allowed: the saved values, except a larger --total-steps to extend the run "
+                "(or start a new run with another --run-dir)"
+            )
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with open(run_dir / ".write-test", "w"):
+            pass
+        (run_dir / ".write-test").unlink()
+    except OSError as err:
+        raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: allowed a writable directory ({err})") from err
+    if args.overwrite and existing:
+        for name in existing:
+            path = run_dir / name
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        print(f"--overwrite: deleted the previous run's {', '.join(existing)} in {run_dir}", file=sys.stderr)
+    return run_dir
+
+
+def _write_config(run_dir: pathlib.Path, args: Args) -> None:
+    write_json(run_dir / "config.json", dataclasses.asdict(args.config), strict_json=False)  # keeps beta = inf
+
+
+def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
     meta = {
         "jax": jax.__version__,
         "devices": [d.device_kind for d in jax.devices()],
         "backend": jax.default_backend(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "git_commit": _git_commit(),
-        "command": " ".join(sys.argv),
-        "seeds": args.seeds,
+        "command": command,
+        **_run_fields(args),
         "columns": args.columns,
-        "lams": [lam for lam, _ in args.grid()] if args.config.algo == "rebel" else None,
-        "teachers": [t for _, t in args.grid()] if args.teacher_grid else None,
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
     }
-    (run_dir / "meta.json").write_text(json.dumps(meta, indent=1))
+    write_json(run_dir / "meta.json", meta)
+    _write_config(run_dir, args)  # last: a run counts as saved (for --resume) once config.json exists
 
 
-def _drop_rounds_after(metrics: pathlib.Path, rounds: int) -> None:
-    """Keeps the first ``rounds`` rounds of a resumed run's log: later ones are run (and logged) again."""
-    if metrics.exists():
-        lines = metrics.read_text().splitlines(keepends=True)
-        metrics.write_text("".join(line for line in lines if json.loads(line)["round"] < rounds))
+def _record_resume(run_dir: pathlib.Path, args: Args, command: str, start: int) -> None:
+    """Appends this call to meta.json's ``resumed`` list; saves the config (a larger total_steps)."""
+    meta = json.loads((run_dir / "meta.json").read_text())
+    resumed = {"command": command, "started": datetime.datetime.now().isoformat(timespec="seconds")}
+    meta["resumed"] = [*meta.get("resumed", []), {**resumed, "from_round": start}]
+    write_json(run_dir / "meta.json", meta)
+    _write_config(run_dir, args)
 
 
-def run(args: Args) -> dict:
-    """Trains ``args.config`` on ``args.seeds`` seeds; returns the final per-seed evaluation."""
+def keep_rounds_before(metrics: pathlib.Path, rounds: int) -> None:
+    """Keeps the first ``rounds`` rounds of a resumed run's log: later ones are run (and logged) again.
+
+    A last line cut mid-write (the process was killed while writing it) is dropped with a notice;
+    an unreadable line before the last is an error, as the log would otherwise lose a round.
+    """
+    if not metrics.exists():
+        return
+    lines = metrics.read_text().splitlines()
+    kept = []
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError as err:
+            if i == len(lines) - 1:
+                print(f"note: {metrics}: dropped its last line, cut mid-write ({len(line)} chars)", file=sys.stderr)
+                continue
+            raise RuntimeError(f"{metrics}: line {i + 1} is not JSON ({err}); repair or remove it") from err
+        if record["round"] < rounds:
+            kept.append(line + "\n")
+    tmp = metrics.with_name(metrics.name + ".tmp")
+    tmp.write_text("".join(kept))
+    os.replace(tmp, metrics)
+
+
+def _grow_buffer(state, rows: int):
+    """``state`` with its replay buffer (leading seed axis) padded to ``rows`` rows.
+
+    Only for a run extended with a larger ``--total-steps`` whose capacity is its length: such a
+    buffer never wrapped, so its ``size`` rows are the first ones and writing continues at ``size``.
+    """
+    buffer = state.buffer
+
+    def pad(x):
+        return jnp.concatenate([x, jnp.zeros((x.shape[0], rows - x.shape[1], *x.shape[2:]), x.dtype)], axis=1)
+
+    data = [f.name for f in dataclasses.fields(buffer) if getattr(buffer, f.name).ndim >= 3]  # not ptr, size
+    grown = {name: pad(getattr(buffer, name)) for name in data}
+    return state.replace(buffer=buffer.replace(**grown, ptr=jnp.array(buffer.size, copy=True)))  # not donated twice
+
+
+def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
+    """(first round to run, state) from the newest readable checkpoint; (0, ``state``) if there is none.
+
+    A checkpoint of a run now extended by a larger ``--total-steps`` holds a smaller replay buffer:
+    it is restored as saved (its size read from the checkpoint) and then grown.
+    """
+    rows = state.buffer.reward.shape[1]  # (seeds, rows, envs)
+    reward_leaf = str(next(i for i, x in enumerate(jax.tree.leaves(state)) if x is state.buffer.reward))
+
+    def adapt(like, shapes):
+        saved_rows = shapes[reward_leaf][1]
+        if saved_rows == rows:
+            return like
+        return like.replace(buffer=jax.tree.map(lambda x: x[:, :saved_rows] if x.ndim >= 3 else x, like.buffer))
+
+    if ckpt.latest() is None:
+        print(f"note: --resume: no checkpoint in {run_dir} yet; starting the run from scratch", file=sys.stderr)
+        return 0, state
+    try:
+        start, restored = ckpt.restore(state, adapt=adapt)
+    except FileNotFoundError as err:
+        print(f"note: --resume: {err}; starting the run from scratch", file=sys.stderr)
+        return 0, state
+    if restored.buffer.reward.shape[1] != rows:
+        restored = sweep.shard_seeds(_grow_buffer(restored, rows), sharding)
+    return start, restored
+
+
+def _final_result(final: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
+    return {
+        "status": "diverged" if ever_diverged.any() else "completed",
+        "diverged": [names[i] for i in np.flatnonzero(ever_diverged)],
+        "final_eval_return": final,
+        "mean": float(final.mean()),  # NaN (written as null) if any seed's is: no silent nanmean
+        "std": float(final.std()),
+    }
+
+
+def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
+    """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
+
+    Returns:
+      ``final.json``'s content, or ``{"stopped_at_round": r}`` after ``--time-limit``.
+
+    Raises:
+      SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
+    """
     cfg = args.config
-    run_dir = args.run_dir or pathlib.Path("runs") / f"{cfg.algo}_{cfg.env.task}_{time.strftime('%Y%m%d-%H%M%S')}"
     trainer = Trainer(cfg)
     init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
@@ -131,18 +406,23 @@ def run(args: Args) -> dict:
         knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
         state = state.replace(teacher=jax.tree.map(lambda *xs: jnp.stack(xs), *knobs))
     state = sweep.shard_seeds(state, sharding)
-    ckpt = Checkpointer(run_dir / "checkpoints") if args.checkpoint_every else None
+    use_ckpt = args.checkpoint_every or args.resume or args.time_limit
+    ckpt = Checkpointer(run_dir / "checkpoints") if use_ckpt else None
     start = 0
-    if args.resume:
-        if ckpt is None or ckpt.latest() is None:
-            raise FileNotFoundError(f"--resume: no checkpoint under {run_dir / 'checkpoints'}")
-        start, state = ckpt.restore(state)
-        _drop_rounds_after(run_dir / "metrics.jsonl", start)
+    if args.resume and (run_dir / "config.json").exists():
+        start, state = _restore(run_dir, ckpt, state, sharding)
+        keep_rounds_before(run_dir / "metrics.jsonl", start)
+        _record_resume(run_dir, args, command, start)
     else:
-        _write_meta(run_dir, args)
+        if args.resume:
+            print(f"note: --resume: no run in {run_dir} yet; starting the run from scratch", file=sys.stderr)
+        keep_rounds_before(run_dir / "metrics.jsonl", 0)
+        _write_meta(run_dir, args, command)
+    names = args.column_names()
     per_round = cfg.train.steps_per_round
-    logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard)
+    logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
     started, slowest = time.perf_counter(), 0.0
+    ever_diverged = np.zeros(args.columns, bool)
     try:
         for r in range(start, cfg.train.num_rounds):
             if args.time_limit and r > start and time.perf_counter() - started + 1.2 * slowest > args.time_limit:
@@ -158,13 +438,31 @@ def run(args: Args) -> dict:
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:
                 metrics.pop("eval_return")
+            diverged = np.asarray(metrics["diverged"], float).reshape(-1) > 0
             extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.columns / seconds}
             logger.write(env_steps, metrics, extra)
-            if ckpt is not None and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
+            if diverged.any():
+                which = ", ".join(names[i] for i in np.flatnonzero(diverged & ~ever_diverged))
+                ever_diverged |= diverged
+                if args.on_divergence == "stop":
+                    result = {**_final_result(np.full(args.columns, np.nan), ever_diverged, names), "round": r}
+                    write_json(run_dir / "final.json", result)
+                    last = ckpt.latest() if ckpt is not None else None
+                    kept = f"its checkpoints resume at round {last}" if last is not None else "no checkpoint"
+                    print(
+                        f"error: round {r}: {', '.join(result['diverged'])} diverged (NaN or inf in losses, "
+                        f"parameters or returns); the run stopped ({kept}). "
+                        "--on-divergence continue runs the other seeds on.",
+                        file=sys.stderr,
+                    )
+                    raise SystemExit(EXIT_DIVERGED)
+                if which:
+                    print(f"warning: round {r}: {which} diverged; going on (--on-divergence continue)", file=sys.stderr)
+            if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
                 ckpt.save(r + 1, state)
         final = np.asarray(evaluate(state.sac.actor_params, keys))
-        result = {"final_eval_return": final.tolist(), "mean": float(final.mean()), "std": float(final.std())}
-        (run_dir / "final.json").write_text(json.dumps(result, indent=1))
+        result = _final_result(final, ever_diverged, names)
+        write_json(run_dir / "final.json", result)
     finally:
         logger.close()
         if ckpt is not None:
@@ -175,8 +473,70 @@ def run(args: Args) -> dict:
         which = ([f"lambda {lam:g}"] if cfg.algo == "rebel" else []) + ([f"teacher {teacher}"] if teacher else [])
         which = f" ({', '.join(which)})" if which else ""
         print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f} +- {part.std():.1f}")
+    if ever_diverged.any():
+        print(f"warning: diverged during the run: {', '.join(result['diverged'])}", file=sys.stderr)
     print(f"run directory: {run_dir}")
     return result
+
+
+# -- the command line ------------------------------------------------------------------------
+def feedback_sessions(cfg: Config) -> int:
+    """Feedback sessions in a run (rounds that start on the schedule, as ``Trainer.session_due``)."""
+    steps = (r * cfg.train.steps_per_round for r in range(cfg.train.num_rounds))
+    start, interval = cfg.feedback_start, cfg.feedback.interval
+    return sum(1 for s in steps if s >= start and (s - start) % interval == 0)
+
+
+def _check_args(args: Args, preset: Config) -> None:
+    """The CLI's own fields, and the config's fields that the CLI combines (raises ConfigError)."""
+    cfg = args.config
+    if args.seeds < 1:
+        raise ConfigError(f"seeds={args.seeds!r} is invalid: allowed >= 1")
+    if args.checkpoint_every < 0:
+        raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
+    if not (math.isfinite(args.time_limit) and args.time_limit >= 0):
+        raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed a finite number >= 0")
+    if args.lam_grid and cfg.algo != "rebel":
+        raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
+    if not all(math.isfinite(lam) for lam in args.lam_grid):
+        raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed finite numbers")
+    if args.teacher_grid and not cfg.preference:
+        raise ConfigError(f"teacher_grid={args.teacher_grid!r} is invalid: allowed only with a preference algo")
+    unknown = [t for t in args.teacher_grid if t not in teachers.PRESETS]
+    if unknown:
+        raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
+    capacity = cfg.reward.label_capacity
+    if cfg.preference and capacity != preset.reward.label_capacity and capacity < cfg.feedback.labels:
+        raise ConfigError(
+            f"reward.label_capacity={capacity!r} is invalid: allowed >= feedback.labels={cfg.feedback.labels}"
+            " (the label store holds the whole budget)"
+        )
+
+
+def _warn_about(args: Args) -> None:
+    cfg = args.config
+    if cfg.preference:
+        sessions = feedback_sessions(cfg)
+        most = sessions * cfg.feedback.queries
+        if cfg.feedback.labels > most:
+            print(
+                f"warning: feedback.labels={cfg.feedback.labels} is more than this run can ask: {sessions} "
+                f"session(s) x {cfg.feedback.queries} pairs = {most} (raise --total-steps or --per-session)",
+                file=sys.stderr,
+            )
+
+
+def check_devices(args: Args, devices: int) -> None:
+    """The columns (seeds x lambdas x teachers) must split evenly over the devices (raises ConfigError)."""
+    if args.columns % devices:
+        grids = ""
+        if args.columns != args.seeds:
+            sizes = [f"{len(args.lam_grid)} lambdas"] if args.lam_grid else []
+            sizes += [f"{len(args.teacher_grid)} teachers"] if args.teacher_grid else []
+            grids = f" x {' x '.join(sizes)} = {args.columns} columns"
+        raise ConfigError(
+            f"seeds={args.seeds}{grids} is invalid: allowed a multiple of the {devices} devices to shard over, in all"
+        )
 
 
 def parse(argv: list[str] | None = None) -> Args:
@@ -193,27 +553,23 @@ def parse(argv: list[str] | None = None) -> Args:
     args = tyro.cli(Args, default=Args(config=config), args=rest, description=description)
     try:
         args.config.validate()
-        if args.seeds < 1:
-            raise ConfigError(f"seeds={args.seeds!r} is invalid: allowed >= 1")
-        if args.checkpoint_every < 0:
-            raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
-        if args.time_limit < 0:
-            raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed >= 0")
-        if args.lam_grid and args.config.algo != "rebel":
-            raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
-        if args.teacher_grid and not args.config.preference:
-            raise ConfigError(f"teacher_grid={args.teacher_grid!r} is invalid: allowed only with a preference algo")
-        unknown = [t for t in args.teacher_grid if t not in teachers.PRESETS]
-        if unknown:
-            raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
+        _check_args(args, PRESETS[known.preset])
     except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+        raise _usage_error(err) from err
+    _warn_about(args)
     return args
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """The command line: parse and check everything, then prepare the run directory, then train."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    avoid_cpu_deadlock()
     args = parse(argv)
     if args.distributed:
         jax.distributed.initialize()
-    return run(args)
+    try:
+        check_devices(args, jax.device_count())
+        run_dir = prepare_run_dir(args)
+    except ConfigError as err:
+        raise _usage_error(err) from err
+    return run(args, run_dir, command_line(argv))

@@ -31,6 +31,25 @@ def _check(cond: bool, field: str, value, allowed: str) -> None:
         raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
 
 
+MAX_UTD = 100.0
+"""The largest ``sac.utd`` accepted: 100 updates per transition is far beyond any published setting
+(B-Pref 1, REDQ 20), and a larger value makes a round run for hours with no output."""
+
+INFINITE_ALLOWED = ("teacher.beta",)
+"""Float fields that may be infinite (``teacher.beta = inf`` is the rational teacher)."""
+
+
+def _check_finite(cfg, prefix: str = "") -> None:
+    """Rejects NaN in every float field of ``cfg`` (recursively) and infinity outside :data:`INFINITE_ALLOWED`."""
+    for field in dataclasses.fields(cfg):
+        value, name = getattr(cfg, field.name), prefix + field.name
+        if dataclasses.is_dataclass(value):
+            _check_finite(value, name + ".")
+        elif isinstance(value, float):
+            ok = math.isfinite(value) or (name in INFINITE_ALLOWED and value == math.inf)
+            _check(ok, name, value, "a finite number" + (" or inf" if name in INFINITE_ALLOWED else ""))
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """The task and how many copies of it each seed runs."""
@@ -100,7 +119,7 @@ class SACConfig:
         _check(0 <= self.gamma < 1, "sac.gamma", self.gamma, "[0, 1)")
         _check(0 < self.tau <= 1, "sac.tau", self.tau, "(0, 1]")
         _check(self.log_std_min < self.log_std_max, "sac.log_std_min", self.log_std_min, "< log_std_max")
-        _check(self.utd > 0, "sac.utd", self.utd, "> 0")
+        _check(0 < self.utd <= MAX_UTD, "sac.utd", self.utd, f"(0, {MAX_UTD:g}] updates per transition")
         _check(self.precision in ("tf32", "highest", "bf16"), "sac.precision", self.precision, "tf32, highest, bf16")
 
 
@@ -132,6 +151,12 @@ class TrainConfig:
             "train.steps_per_round",
             self.steps_per_round,
             f"a multiple of env.num_envs={num_envs}",
+        )
+        _check(
+            self.total_steps % self.steps_per_round == 0,
+            "train.total_steps",
+            self.total_steps,
+            f"a multiple of train.steps_per_round={self.steps_per_round} (whole rounds)",
         )
         _check(
             self.eval_every % self.steps_per_round == 0,
@@ -212,6 +237,7 @@ class Config:
 
     def validate(self) -> Config:
         _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
+        _check_finite(self)
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)

@@ -420,9 +420,11 @@ class Trainer:
 
         Returns:
           The new state and the round's metrics: SAC metrics averaged over the round's
-          learning steps, and the last finished training and evaluation returns.
+          learning steps, the last finished training and evaluation returns, and
+          ``diverged`` (1.0 if a loss, parameter, observation or return is NaN or infinite).
         """
         self.trace_count += 1  # Python side effect: counts traces, not calls.
+        episodes_before = ts.episodes
         session = {}
         if self.preference:
             due, first = self.session_due(round_index)
@@ -440,6 +442,7 @@ class Trainer:
         summary = {k: jnp.sum(v * weight) for k, v in metrics.items()}
         summary["train_return"] = ts.episodes.train_return
         summary["eval_return"] = ts.episodes.eval_return
+        summary["diverged"] = _diverged(ts, summary, episodes_before)
         return ts, {**summary, **session}
 
     # -- frozen-policy evaluation ----------------------------------------------------------
@@ -454,6 +457,29 @@ class Trainer:
 
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), length=self.env.episode_length)
         return total.mean()
+
+
+def _all_finite(tree) -> jax.Array:
+    """Whether every floating-point value in ``tree`` is finite."""
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+
+
+def _diverged(ts: TrainState, summary: dict, episodes_before: EpisodeStats) -> jax.Array:
+    """1.0 if the round left a NaN or infinity in the seed's SAC losses, parameters, reward model,
+    observations or returns, else 0.0. A return may stay NaN (no episode finished yet) but not become NaN.
+    """
+    losses = {k: summary[k] for k in ("critic_loss", "actor_loss", "alpha_loss", "alpha", "q", "entropy")}
+    returns_ok = [
+        jnp.isfinite(new) | (jnp.isnan(new) & jnp.isnan(old))
+        for new, old in (
+            (ts.episodes.train_return, episodes_before.train_return),
+            (ts.episodes.eval_return, episodes_before.eval_return),
+        )
+    ]
+    reward_params = ts.reward.params if ts.reward is not None else ()
+    finite = _all_finite((losses, ts.sac, reward_params, ts.env.obs, ts.episodes.running))
+    return 1.0 - (finite & returns_ok[0] & returns_ok[1]).astype(jnp.float32)
 
 
 def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:

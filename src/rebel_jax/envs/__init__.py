@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
 from rebel_jax.envs import dmc
 from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver
 from rebel_jax.envs.probe import PointProbe

@@ -1,0 +1,163 @@
+"""Bad command lines get one line naming the field and what is allowed, exit status 2, and no run directory.
+
+Everything here fails before compiling anything, so it runs ``cli.main`` in this process. Also:
+the CPU-deadlock flag, the label-budget warning, and strict JSON records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+
+from rebel_jax import cli
+from rebel_jax.config import PRESETS
+from rebel_jax.logging import RunLogger
+from rebel_jax.train import Trainer
+
+TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tensorboard"]
+
+
+def _refused(argv: list[str], capsys) -> str:
+    """Runs the CLI, asserts exit status 2 and a one-line error; returns that line."""
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([*TINY, *argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+BAD = {
+    "utd-inf": (["--utd", "inf"], ["sac.utd=inf", "allowed"]),
+    "utd-absurd": (["--utd", "1000000"], ["sac.utd=1000000.0", "(0, 100]"]),
+    "init-temperature-inf": (["--init-temperature", "inf"], ["sac.init_temperature=inf", "finite"]),
+    "lam-grid-nan": (["--algo", "rebel", "--lam-grid", "0", "nan"], ["lam_grid=(0.0, nan)", "finite"]),
+    "label-capacity": (
+        ["--algo", "pebble", "--labels", "60", "--reward.label-capacity", "10"],
+        ["reward.label_capacity=10", ">= feedback.labels=60"],
+    ),
+    "total-steps": (["--total-steps", "3000"], ["train.total_steps=3000", "multiple of train.steps_per_round=2000"]),
+    "run-dir-empty": (["--run-dir", ""], ["run_dir=''", "allowed a directory path"]),
+    "run-dir-proc": (["--run-dir", "/proc/rebel_jax_test/run"], ["run_dir='/proc/rebel_jax_test/run'", "writable"]),
+    "resume-and-overwrite": (["--run-dir", "r", "--resume", "--overwrite"], ["overwrite", "--resume"]),
+}
+
+
+@pytest.mark.parametrize("argv,expected", BAD.values(), ids=BAD.keys())
+def test_a_bad_flag_is_one_line_naming_it_and_creates_nothing(tmp_path, monkeypatch, capsys, argv, expected):
+    monkeypatch.chdir(tmp_path)
+    line = _refused(argv, capsys)
+    for part in expected:
+        assert part in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_run_dir_that_is_a_file_is_refused(tmp_path, capsys):
+    path = tmp_path / "file"
+    path.write_text("not a directory")
+    line = _refused(["--run-dir", str(path)], capsys)
+    assert f"run_dir='{path}'" in line and "existing file" in line
+    assert path.read_text() == "not a directory"
+
+
+def test_a_run_dir_holding_a_run_is_refused_without_resume_or_overwrite(tmp_path, capsys):
+    (tmp_path / "metrics.jsonl").write_text('{"round": 0}\n')
+    line = _refused(["--run-dir", str(tmp_path)], capsys)
+    assert "metrics.jsonl" in line and "--resume" in line and "--overwrite" in line
+    assert (tmp_path / "metrics.jsonl").read_text() == '{"round": 0}\n'
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--seeds", "3"], "seeds=3 is invalid"),
+        (["--algo", "rebel", "--seeds", "1", "--lam-grid", "0", "-0.01", "-0.1"], "seeds=1 x 3 lambdas = 3 columns"),
+    ],
+    ids=["seeds", "lam-grid-columns"],
+)
+def test_columns_that_do_not_split_over_the_devices_are_refused(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.setattr(jax, "device_count", lambda: 2)
+    line = _refused([*argv, "--run-dir", str(tmp_path / "run")], capsys)
+    assert message in line and "multiple of the 2 devices" in line, line
+    assert not (tmp_path / "run").exists()
+
+
+def test_more_labels_than_the_run_can_ask_are_warned_about(capsys):
+    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "1000"])
+    sessions = sum(bool(Trainer(args.config).session_due(r)[0]) for r in range(args.config.train.num_rounds))
+    most = sessions * args.config.feedback.queries
+    assert cli.feedback_sessions(args.config) == sessions and 0 < most < 1000
+    err = capsys.readouterr().err
+    assert "feedback.labels=1000" in err and f"= {most}" in err, err
+    cli.parse([*TINY, "--algo", "pebble", "--labels", str(most)])
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    "environ,expected",
+    [
+        ({"JAX_PLATFORMS": "cpu"}, cli.NO_CPU_DEADLOCK),
+        ({"JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_dump_to=/tmp/x"}, f"--xla_dump_to=/tmp/x {cli.NO_CPU_DEADLOCK}"),
+        ({"JAX_PLATFORMS": "cuda"}, None),
+        ({"JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_cpu_enable_concurrency_optimized_scheduler=true"}, "unchanged"),
+    ],
+    ids=["cpu", "cpu-other-flags", "gpu", "user-choice"],
+)
+def test_the_cli_turns_off_the_deadlocking_cpu_scheduler_on_cpu_only(environ, expected):
+    before = environ.get("XLA_FLAGS")
+    cli.avoid_cpu_deadlock(environ)
+    assert environ.get("XLA_FLAGS") == (before if expected == "unchanged" else expected)
+
+
+def _strict_loads(text: str):
+    def refuse(constant):
+        raise ValueError(f"not strict JSON: {constant}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path, capsys):
+    logger = RunLogger(tmp_path, 100, progress=True, tensorboard=False, names=["seed 0", "seed 1 (lambda 1)"])
+    nan, inf = math.nan, math.inf
+    # Round 1: seed 1 has no session (NaN), nothing diverged. Round 2: seed 1 diverged.
+    for r, (loss, diverged) in enumerate([([1.0, 3.0], [0.0, 0.0]), ([1.0, inf], [0.0, 1.0])]):
+        metrics = {"loss": np.array(loss), "reward_loss": np.array([2.0, nan]), "diverged": np.array(diverged)}
+        logger.write(10 * (r + 1), metrics, {"round": r})
+    logger.close()
+    assert "DIVERGED=seed 1 (lambda 1)" in capsys.readouterr().err  # on the progress line
+    ok, bad = (_strict_loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines())
+    assert ok["status"] == "ok" and ok["loss_mean"] == 2.0 and ok["reward_loss_mean"] == 2.0
+    assert ok["reward_loss"] == [2.0, None] and ok["diverged"] == [False, False]
+    assert bad["status"] == "diverged" and bad["diverged"] == [False, True]
+    assert bad["loss"] == [1.0, None] and bad["loss_mean"] is None and bad["reward_loss_mean"] is None
+
+
+def test_the_preset_label_capacity_is_not_a_user_choice():
+    # The preset's default capacity is below a large budget: not an error (the store holds the budget).
+    assert PRESETS["tiny"].reward.label_capacity < 2000
+    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "2000", "--total-steps", "100000"])
+    assert args.config.feedback.labels == 2000
+
+
+def _commands(tree):
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            yield from ([v] if k == "command" and isinstance(v, str) else _commands(v))
+    elif isinstance(tree, list):
+        for v in tree:
+            yield from _commands(v)
+
+
+def test_recorded_commands_are_portable():
+    root = pathlib.Path(__file__).parents[1]
+    records = [*(root / "results").rglob("*.json"), *(root / "benchmarks" / "results").rglob("*.json")]
+    commands = [c for path in records for c in _commands(json.loads(path.read_text()))]
+    assert len(commands) > 10
+    for command in commands:
+        assert command.startswith("python "), command  # as typed, not the absolute path of a file
+    assert cli.command_line(["--run-dir", "a b"]) == "python -m rebel_jax.train --run-dir 'a b'"
