@@ -329,11 +329,13 @@ class Camera:
 
 
 def _box_filter(tex: np.ndarray, res: int) -> np.ndarray:
-    """Area-average an (h, w, 3) texture down to (res, res, 3)."""
+    """Area-average an (h, w, 3) texture to (res, res, 3) (a smaller texture is first repeated up)."""
     h, w = tex.shape[:2]
-    out = np.zeros((res, res, 3))
+    tex = np.repeat(np.repeat(tex, -(-res // h), axis=0), -(-res // w), axis=1)
+    h, w = tex.shape[:2]
     rows = np.minimum(np.arange(h) * res // h, res - 1)
     cols = np.minimum(np.arange(w) * res // w, res - 1)
+    out = np.zeros((res, res, 3))
     np.add.at(out, (rows[:, None], cols[None, :]), tex)
     count = np.zeros((res, res))
     np.add.at(count, (rows[:, None], cols[None, :]), 1.0)

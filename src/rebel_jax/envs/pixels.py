@@ -99,10 +99,15 @@ class PixelEnv:
     def step(self, state: State, action: jax.Array) -> State:
         """Repeats ``action`` for ``action_repeat`` frames; the reward is their sum."""
         inner = self._unwrap(state)
-        reward, done = jnp.zeros_like(inner.reward), jnp.zeros_like(inner.done)
-        for _ in range(self.action_repeat):
+
+        def frame_step(carry, _):
+            inner, reward, done = carry
             inner = self.env.step(inner, action)
-            reward, done = reward + inner.reward, jnp.maximum(done, inner.done)
+            return (inner, reward + inner.reward, jnp.maximum(done, inner.done)), None
+
+        # A scan, not a Python loop, so that the physics step is compiled once.
+        zero = jnp.zeros_like(inner.reward)
+        (inner, reward, done), _ = jax.lax.scan(frame_step, (inner, zero, zero), length=self.action_repeat)
         frame = self.camera.render(inner.pipeline_state)
         obs = jnp.concatenate([state.obs[..., 3:], frame], axis=-1)
         return self._wrap(inner.replace(reward=reward, done=done), obs)
