@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import functools
 import json
 import pathlib
 import subprocess
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import tyro
 
-from rebel_jax import sweep, teachers
+from rebel_jax import sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.logging import RunLogger
@@ -58,6 +59,10 @@ class Args:
     """``--algo rebel`` only: run every seed with each of these lambdas in one vmapped program
     (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
     for every lambda). Empty: ``rebel.lam`` only."""
+
+    video_steps: int = 250
+    """Agent steps of the evaluation clip written at the end of the run (``eval.gif``: the first
+    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks."""
 
     teacher_grid: tuple[str, ...] = ()
     """Preference methods only: run every seed (and lambda) with each of these B-Pref teachers
@@ -165,6 +170,11 @@ def run(args: Args) -> dict:
         final = np.asarray(evaluate(state.sac.actor_params, keys))
         result = {"final_eval_return": final.tolist(), "mean": float(final.mean()), "std": float(final.std())}
         (run_dir / "final.json").write_text(json.dumps(result, indent=1))
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
+            params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
+            clip = run_dir / "eval.gif"
+            policy = functools.partial(trainer.sac.act_deterministic, params)
+            video.policy_video(trainer.env, policy, jax.random.PRNGKey(cfg.train.seed), clip, args.video_steps, 120)
     finally:
         logger.close()
         if ckpt is not None:
