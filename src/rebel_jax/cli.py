@@ -62,7 +62,8 @@ class Args:
 
     video_steps: int = 250
     """Agent steps of the evaluation clip written at the end of the run (``eval.gif``: the first
-    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks."""
+    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks, and not
+    under ``--time-limit`` (``python -m rebel_jax.video RUN_DIR`` renders one later)."""
 
     teacher_grid: tuple[str, ...] = ()
     """Preference methods only: run every seed (and lambda) with each of these B-Pref teachers
@@ -119,6 +120,23 @@ def _drop_rounds_after(metrics: pathlib.Path, rounds: int) -> None:
         metrics.write_text("".join(line for line in lines if json.loads(line)["round"] < rounds))
 
 
+def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> None:
+    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy."""
+    if args.time_limit:
+        # Runs split over time-limited calls have no time budgeted for compiling the clip.
+        print(f"eval.gif skipped under --time-limit; render it with: python -m rebel_jax.video {run_dir}")
+        return
+    try:
+        import imageio  # noqa: F401
+    except ImportError:
+        print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
+        return
+    params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
+    policy = functools.partial(trainer.sac.act_deterministic, params)
+    key = jax.random.PRNGKey(args.config.train.seed)
+    video.policy_video(trainer.env, policy, key, run_dir / "eval.gif", args.video_steps, 120)
+
+
 def run(args: Args) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds; returns the final per-seed evaluation."""
     cfg = args.config
@@ -171,10 +189,7 @@ def run(args: Args) -> dict:
         result = {"final_eval_return": final.tolist(), "mean": float(final.mean()), "std": float(final.std())}
         (run_dir / "final.json").write_text(json.dumps(result, indent=1))
         if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
-            params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
-            clip = run_dir / "eval.gif"
-            policy = functools.partial(trainer.sac.act_deterministic, params)
-            video.policy_video(trainer.env, policy, jax.random.PRNGKey(cfg.train.seed), clip, args.video_steps, 120)
+            _eval_clip(args, trainer, state, run_dir)
     finally:
         logger.close()
         if ckpt is not None:
