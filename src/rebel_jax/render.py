@@ -65,6 +65,47 @@ def _row_times(vec: jax.Array, mat: jax.Array) -> jax.Array:
     return vec[..., 0:1] * mat[..., 0, :] + vec[..., 1:2] * mat[..., 1, :] + vec[..., 2:3] * mat[..., 2, :]
 
 
+def _hit_planes(o: jax.Array, v: jax.Array, size: np.ndarray, gtype: np.ndarray) -> jax.Array:
+    """Distance along rays ``o + t v`` (local frames, (P, G, 3)) to the front of planes (inf: none).
+
+    A plane of size (x, y) > 0 is a rectangle, as MuJoCo renders it; it is seen from the front only.
+    """
+    del gtype  # Unused.
+    front = v[..., 2] < -1e-9
+    t = -o[..., 2] / jnp.where(front, v[..., 2], -1.0)
+    p = o[..., :2] + t[..., None] * v[..., :2]
+    inside = np.all(size[:, :2] <= 0, axis=-1) | jnp.all((size[:, :2] <= 0) | (jnp.abs(p) <= size[:, :2]), axis=-1)
+    return jnp.where(front & (t > _EPS) & inside, t, jnp.inf)
+
+
+def _hit_rounds(o: jax.Array, v: jax.Array, size: np.ndarray, gtype: np.ndarray) -> jax.Array:
+    """Distance along rays ``o + t v`` (local frames, (P, G, 3)) to spheres and capsules (inf: none).
+
+    The entry point of a convex capsule is the nearest of its cylinder side and its two outer
+    half-spheres (a sphere is a capsule of half-length 0). Rays that start inside miss.
+    """
+    r = size[:, 0]
+    capsule = gtype == _CAPSULE
+    half = np.where(capsule, size[:, 1], 0.0)
+    # Cylinder side: |o_xy + t v_xy| = r, between the end caps.
+    a = jnp.sum(v[..., :2] ** 2, -1)
+    b = jnp.sum(o[..., :2] * v[..., :2], -1)
+    c = jnp.sum(o[..., :2] ** 2, -1) - r**2
+    disc = b * b - a * c
+    side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(a > 1e-12, a, 1.0)
+    ok = capsule & (a > 1e-12) & (disc > 0) & (side > _EPS) & (jnp.abs(o[..., 2] + side * v[..., 2]) <= half)
+    t = jnp.where(ok, side, jnp.inf)
+    # End spheres: |o - (0, 0, s h) + t v| = r, on the outer half (s z >= h).
+    for sign in (1.0, -1.0):
+        oz = o[..., 2] - sign * half
+        b = jnp.sum(o[..., :2] * v[..., :2], -1) + oz * v[..., 2]
+        disc = b * b - (jnp.sum(o[..., :2] ** 2, -1) + oz**2 - r**2)
+        cap = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+        ok = (disc > 0) & (cap > _EPS) & (sign * (o[..., 2] + cap * v[..., 2]) >= half)
+        t = jnp.minimum(t, jnp.where(ok, cap, jnp.inf))
+    return t
+
+
 def _geom_type_name(t: int) -> str:
     return mujoco.mjtGeom(t).name.removeprefix("mjGEOM_").lower()
 
@@ -150,45 +191,27 @@ class Camera:
         return jnp.stack(pos), direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
 
     def _intersect(self, gpos, gmat, origin, dirs, skip: int = -1):
-        """Nearest hit of rays ``origin`` (P, 3) or (3,) + t * ``dirs`` (P, 3): (t, rendered geom index)."""
+        """Nearest hit of rays ``origin`` (P, 3) or (3,) + t * ``dirs`` (P, 3): (t, rendered geom index).
+
+        ``t`` is ``inf`` where nothing is hit. Geom ``skip`` (an index into the rendered geoms) is ignored.
+        """
         origin = jnp.broadcast_to(origin, dirs.shape)
-        # Rays in each geom's frame: (P, G, 3).
-        o = _row_times(origin[:, None, :] - gpos[None], gmat[None])
-        v = _row_times(dirs[:, None, :], gmat[None])
-        t = jnp.full(o.shape[:2], jnp.inf)
-        size = jnp.asarray(self.geom_size)
-        gtype = self.geom_type
-        if (gtype == _PLANE).any():
-            hit_t = -o[..., 2] / jnp.where(v[..., 2] < -1e-9, v[..., 2], -1.0)
-            p = o[..., :2] + hit_t[..., None] * v[..., :2]
-            inside = jnp.all((size[:, :2] <= 0) | (jnp.abs(p) <= size[:, :2]), axis=-1)
-            ok = (v[..., 2] < -1e-9) & (hit_t > _EPS) & inside & (gtype == _PLANE)
-            t = jnp.where(ok, hit_t, t)
-        if (gtype == _SPHERE).any() or (gtype == _CAPSULE).any():
-            r = size[:, 0]
-            half = jnp.where(gtype == _CAPSULE, size[:, 1], 0.0)
-            round_geom = (gtype == _SPHERE) | (gtype == _CAPSULE)
-            # Cylinder side (capsules): |o_xy + t v_xy| = r.
-            a = jnp.sum(v[..., :2] ** 2, -1)
-            b = jnp.sum(o[..., :2] * v[..., :2], -1)
-            c = jnp.sum(o[..., :2] ** 2, -1) - r**2
-            disc = b * b - a * c
-            tc = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(a > 1e-12, a, 1.0)
-            ok = (gtype == _CAPSULE) & (a > 1e-12) & (disc > 0) & (tc > _EPS)
-            ok &= jnp.abs(o[..., 2] + tc * v[..., 2]) <= half
-            t = jnp.minimum(t, jnp.where(ok, tc, jnp.inf))
-            # End spheres (a sphere is a capsule of half-length 0): |o - (0, 0, s h) + t v| = r.
-            for sign in (1.0, -1.0):
-                oc = o - jnp.stack([jnp.zeros_like(half), jnp.zeros_like(half), sign * half], -1)
-                b = jnp.sum(oc * v, -1)
-                disc = b * b - (jnp.sum(oc * oc, -1) - r**2)
-                ts = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
-                ok = round_geom & (disc > 0) & (ts > _EPS) & (sign * (o[..., 2] + ts * v[..., 2]) >= half)
-                t = jnp.minimum(t, jnp.where(ok, ts, jnp.inf))
-        if skip >= 0:
-            t = t.at[:, skip].set(jnp.inf)
-        idx = jnp.argmin(t, axis=-1)
-        return jnp.take_along_axis(t, idx[:, None], -1)[:, 0], idx
+        keep = np.arange(len(self.geom_type)) != skip
+        planes = np.flatnonzero(keep & (self.geom_type == _PLANE))
+        rounds = np.flatnonzero(keep & ((self.geom_type == _SPHERE) | (self.geom_type == _CAPSULE)))
+        ts = []
+        for ids, hit in ((planes, _hit_planes), (rounds, _hit_rounds)):
+            if ids.size:
+                # Rays in each geom's frame: (P, G, 3).
+                o = _row_times(origin[:, None, :] - gpos[ids][None], gmat[ids][None])
+                v = _row_times(dirs[:, None, :], gmat[ids][None])
+                ts.append(hit(o, v, self.geom_size[ids], self.geom_type[ids]))
+        if not ts:
+            return jnp.full(dirs.shape[:1], jnp.inf), jnp.zeros(dirs.shape[:1], jnp.int32)
+        t = jnp.concatenate(ts, axis=-1)
+        k = jnp.argmin(t, axis=-1)
+        order = jnp.asarray(np.concatenate([planes, rounds]).astype(np.int32))
+        return jnp.take_along_axis(t, k[:, None], -1)[:, 0], order[k]
 
     def _normal_and_local(self, gpos, gmat, idx, points):
         """World normal at ``points`` on geoms ``idx``, and the points in the geoms' frames."""
