@@ -7,7 +7,12 @@ PY := $(VENV)/bin/python
 ARGS ?=
 PYTEST_ARGS ?=
 
-.PHONY: train test lint clean
+.PHONY: train test lint gl clean
+
+# MuJoCo's own renderer, for the fidelity test of the pure-JAX camera (tests/test_render.py),
+# through Mesa's software EGL (MUJOCO_GL=egl). Installed with apt-get when missing; where that
+# is impossible (not root, not Debian) the test is skipped and says why.
+GL_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,7 +31,12 @@ lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-test: lint
+gl:
+	@dpkg -s $(GL_PACKAGES) >/dev/null 2>&1 || \
+	  { apt-get update -qq && apt-get install -y -qq --no-install-recommends $(GL_PACKAGES); } || \
+	  echo "make gl: could not install $(GL_PACKAGES); tests/test_render.py skips its MuJoCo-renderer comparison"
+
+test: lint gl
 	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
 
 clean:

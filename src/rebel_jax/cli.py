@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import functools
 import importlib.metadata
 import importlib.util
 import json
@@ -38,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import tyro
 
-from rebel_jax import sweep, teachers
+from rebel_jax import sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.logging import RunLogger, write_json
@@ -87,6 +88,11 @@ class Args:
     """``--algo rebel`` only: run every seed with each of these lambdas in one vmapped program
     (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
     for every lambda). Empty: ``rebel.lam`` only."""
+
+    video_steps: int = 250
+    """Agent steps of the evaluation clip written at the end of the run (``eval.gif``: the first
+    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks, and not
+    under ``--time-limit`` (``python -m rebel_jax.video RUN_DIR`` renders one later)."""
 
     teacher_grid: tuple[str, ...] = ()
     """Preference methods only: run every seed (and lambda) with each of these B-Pref teachers
@@ -383,6 +389,23 @@ def _final_result(final: np.ndarray, ever_diverged: np.ndarray, names: list[str]
     }
 
 
+def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> None:
+    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy."""
+    if args.time_limit:
+        # Runs split over time-limited calls have no time budgeted for compiling the clip.
+        print(f"eval.gif skipped under --time-limit; render it with: python -m rebel_jax.video {run_dir}")
+        return
+    try:
+        import imageio  # noqa: F401
+    except ImportError:
+        print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
+        return
+    params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
+    policy = functools.partial(trainer.sac.act_deterministic, params)
+    key = jax.random.PRNGKey(args.config.train.seed)
+    video.policy_video(trainer.env, policy, key, run_dir / "eval.gif", args.video_steps, 120)
+
+
 def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
 
@@ -463,6 +486,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
         final = np.asarray(evaluate(state.sac.actor_params, keys))
         result = _final_result(final, ever_diverged, names)
         write_json(run_dir / "final.json", result)
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
+            _eval_clip(args, trainer, state, run_dir)
     finally:
         logger.close()
         if ckpt is not None:

@@ -3,37 +3,48 @@
 from __future__ import annotations
 
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
-from rebel_jax.envs import dmc
+from rebel_jax.envs import dmc, pixels
 from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver
+from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
 from rebel_jax.envs.wrappers import AutoResetWrapper
 
 PROBES = {"probe_point": PointProbe}
 """Pure-JAX tasks that compile in seconds, for tests of the training loop (not dm_control tasks)."""
 
+PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t in TASKS)
+"""Each state task seen through camera 0 (:class:`PixelEnv`): ``walker_walk_pixels``, ..."""
+
 
 def make_env(
     name: str, solver: str | Solver = "default", episode_length: int = 1000, unroll_substeps: bool = False
-) -> DMCEnv | PointProbe:
-    """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`) or :data:`PROBES`.
+) -> DMCEnv | PixelEnv | PointProbe:
+    """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
+    or :data:`PROBES`.
 
     A probe has no physics engine: ``solver`` is checked but unused, and so is ``unroll_substeps``.
+    A pixel task's ``episode_length`` counts environment frames, as its state task's does.
     """
+    if name in PIXEL_TASKS:
+        return PixelEnv(dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps))
     if name in PROBES:
         parse_solver(solver)
         del unroll_substeps  # Unused.
         return PROBES[name](episode_length)
     if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}, probes: {', '.join(PROBES)}")
+        valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
+        raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
     return dmc.make_env(name, solver, episode_length, unroll_substeps)
 
 
 __all__ = [
+    "PIXEL_TASKS",
     "PROBES",
     "SOLVERS",
     "TASKS",
     "AutoResetWrapper",
     "DMCEnv",
+    "PixelEnv",
     "PointProbe",
     "Solver",
     "State",

@@ -12,9 +12,18 @@ from __future__ import annotations
 import mujoco
 
 _MATERIALS = """
+  <visual>
+    <headlight ambient=".4 .4 .4" diffuse=".8 .8 .8" specular="0.1 0.1 0.1"/>
+    <map znear=".01"/>
+    <quality shadowsize="2048"/>
+  </visual>
   <asset>
+    <texture name="skybox" type="skybox" builtin="gradient" rgb1=".4 .6 .8" rgb2="0 0 0"
+             width="800" height="800" mark="random" markrgb="1 1 1"/>
+    <texture name="grid" type="2d" builtin="checker" rgb1=".1 .2 .3" rgb2=".2 .3 .4" width="300" height="300"
+             mark="edge" markrgb=".2 .3 .4"/>
+    <material name="grid" texture="grid" texrepeat="1 1" texuniform="true" reflectance=".2"/>
     <material name="self" rgba=".7 .5 .3 1"/>
-    <material name="grid" rgba=".1 .2 .3 1"/>
   </asset>
 """
 
@@ -36,6 +45,7 @@ WALKER_XML = f"""
     <geom name="floor" type="plane" conaffinity="1" pos="248 0 0" size="250 .8 .2"
           material="grid" zaxis="0 0 1"/>
     <body name="torso" pos="0 0 1.3" childclass="walker">
+      <light name="light" pos="0 0 2" mode="trackcom"/>
       <camera name="side" pos="0 -2 .7" euler="60 0 0" mode="trackcom"/>
       <joint name="rootz" axis="0 0 1" type="slide" limited="false" armature="0" damping="0"/>
       <joint name="rootx" axis="1 0 0" type="slide" limited="false" armature="0" damping="0"/>
@@ -113,6 +123,7 @@ CHEETAH_XML = f"""
   <worldbody>
     <geom name="ground" type="plane" conaffinity="1" pos="98 0 0" size="100 .8 .5" material="grid"/>
     <body name="torso" pos="0 0 .7" childclass="cheetah">
+      <light name="light" pos="0 0 2" mode="trackcom"/>
       <camera name="side" pos="0 -3 0" quat="0.707 0.707 0 0" mode="trackcom"/>
       <joint name="rootx" type="slide" axis="1 0 0" class="free"/>
       <joint name="rootz" type="slide" axis="0 0 1" class="free"/>

@@ -1,0 +1,135 @@
+"""Videos of policy episodes, rendered with the pure-JAX camera (:mod:`rebel_jax.render`).
+
+    python -m rebel_jax.video RUN_DIR [--out FILE.gif|FILE.mp4] [--column 0] [--steps 500] [--size 240]
+
+renders a deterministic episode of a saved run's latest checkpoint. GIFs are written with
+imageio's Pillow plugin; MP4 needs imageio's ffmpeg plugin (``pip install imageio-ffmpeg``).
+``rebel_jax.cli`` writes ``eval.gif`` at the end of each run of a MuJoCo task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import typing
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rebel_jax import render
+
+
+def write(path: str | pathlib.Path, frames: np.ndarray, fps: float) -> pathlib.Path:
+    """Writes uint8 frames ``(T, H, W, 3)`` as a GIF or MP4 (by the file's suffix)."""
+    import imageio.v3 as iio
+
+    path = pathlib.Path(path)
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
+        raise ValueError(f"frames must be uint8 (T >= 1, H, W, 3); got {frames.dtype} {frames.shape}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        # Pillow stores GIF frame durations in milliseconds; loop forever.
+        iio.imwrite(path, frames, extension=".gif", duration=1000.0 / fps, loop=0)
+    elif path.suffix.lower() == ".mp4":
+        iio.imwrite(path, frames, extension=".mp4", fps=fps, codec="libx264", macro_block_size=1)
+    else:
+        raise ValueError(f"unknown video format {path.suffix!r}; use .gif or .mp4")
+    return path
+
+
+def episode_frames(
+    env, policy: Callable[[jax.Array], jax.Array], key: jax.Array, steps: int, camera: render.Camera
+) -> tuple[jax.Array, jax.Array]:
+    """Frames ``(steps + 1, H, W, 3)`` and the total reward of one episode of ``policy(obs) -> action``.
+
+    Jittable (``env``, ``policy``, ``steps`` and ``camera`` static). The first frame is the reset state.
+    """
+    state = env.reset(key)
+
+    def body(state, _):
+        state = env.step(state, policy(state.obs))
+        return state, (camera.render(state.pipeline_state), state.reward)
+
+    _, (frames, rewards) = jax.lax.scan(body, state, length=steps)
+    return jnp.concatenate([camera.render(state.pipeline_state)[None], frames]), rewards.sum()
+
+
+def policy_video(
+    env, policy, key: jax.Array, path: str | pathlib.Path, steps: int, size: int = 240, camera: int | str = 0
+) -> float:
+    """Renders one episode of ``policy`` on ``env`` (a MuJoCo task) to ``path``; returns its return."""
+    cam = render.make_camera(env.mj_model, camera, size, size)
+    fn = jax.jit(lambda k: episode_frames(env, policy, k, steps, cam))
+    frames, total = fn(key)
+    write(path, np.asarray(frames), fps=1.0 / env.dt)
+    return float(total)
+
+
+def _from_dict(cls, data: dict):
+    """A (nested, frozen) config dataclass from ``dataclasses.asdict`` output read back from JSON."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for field in dataclasses.fields(cls):
+        if field.name not in data:
+            continue
+        value, hint = data[field.name], hints[field.name]
+        if dataclasses.is_dataclass(hint):
+            value = _from_dict(hint, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[field.name] = value
+    return cls(**kwargs)
+
+
+def load_policy(run_dir: pathlib.Path, column: int = 0):
+    """The trainer and the deterministic policy of one column of a run's latest checkpoint."""
+    from rebel_jax.checkpoint import Checkpointer
+    from rebel_jax.config import Config
+    from rebel_jax.train import Trainer, seed_keys
+
+    cfg = _from_dict(Config, json.loads((run_dir / "config.json").read_text()))
+    meta = json.loads((run_dir / "meta.json").read_text())
+    columns = int(meta["columns"])
+    if not 0 <= column < columns:
+        raise ValueError(f"column {column} out of range: the run has {columns} columns")
+    trainer = Trainer(cfg)
+    keys = seed_keys(cfg.train.seed, columns)
+    like = jax.eval_shape(jax.vmap(trainer.init), keys)
+    ckpt = Checkpointer(run_dir / "checkpoints")
+    try:
+        step, state = ckpt.restore(like)
+    finally:
+        ckpt.close()
+    params = jax.tree.map(lambda x: jnp.asarray(x[column]), state.sac.actor_params)
+    return trainer, step, lambda obs: trainer.sac.act_deterministic(params, obs)
+
+
+def main(argv: list[str] | None = None) -> pathlib.Path:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=pathlib.Path)
+    parser.add_argument("--out", type=pathlib.Path, default=None, help="GIF or MP4; default RUN_DIR/policy.gif")
+    parser.add_argument("--column", type=int, default=0, help="which vmapped seed column")
+    parser.add_argument("--steps", type=int, default=None, help="agent steps (default: one episode)")
+    parser.add_argument("--size", type=int, default=240, help="frame height and width")
+    parser.add_argument("--camera", default="0", help="camera id or name")
+    parser.add_argument("--seed", type=int, default=0, help="reset key")
+    args = parser.parse_args(argv)
+    trainer, step, policy = load_policy(args.run_dir, args.column)
+    env = trainer.env
+    if not hasattr(env, "mj_model"):
+        raise ValueError(f"task {trainer.cfg.env.task!r} has no MuJoCo model to render")
+    camera = int(args.camera) if args.camera.isdigit() else args.camera
+    out = args.out or args.run_dir / "policy.gif"
+    steps = args.steps or env.episode_length
+    total = policy_video(env, policy, jax.random.PRNGKey(args.seed), out, steps, args.size, camera)
+    print(f"{out}: checkpoint {step}, column {args.column}, {steps} steps, return {total:.1f}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
