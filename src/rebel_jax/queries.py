@@ -83,6 +83,11 @@ class Segments:
     """(N, H, act_size) actions taken in them."""
     true_reward: jax.Array
     """(N, H) true task rewards (seen only by the teacher and diagnostics)."""
+    row: jax.Array | None = None
+    """(N, H) int32 buffer rows of the steps (where a segment came from: the human teacher's clips and
+    label file read it; unused otherwise, so compiled away)."""
+    env: jax.Array | None = None
+    """(N, H) int32 buffer environment of the steps (the same along H)."""
 
 
 def window_rows(buffer: Any, segment_length: int, episode_length: int, recent_episodes: int) -> int:
@@ -161,7 +166,13 @@ def sample_segments(
     index = _window_index(buffer, rows)
     time = index[(start[:, None] + jnp.arange(segment_length)) % rows]  # (n, H) absolute rows.
     env = env[:, None]
-    return Segments(obs=buffer.obs[time, env], action=buffer.action[time, env], true_reward=buffer.reward[time, env])
+    return Segments(
+        obs=buffer.obs[time, env],
+        action=buffer.action[time, env],
+        true_reward=buffer.reward[time, env],
+        row=time.astype(jnp.int32),
+        env=jnp.broadcast_to(env, time.shape).astype(jnp.int32),
+    )
 
 
 def sample_pairs(

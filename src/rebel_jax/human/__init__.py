@@ -1,0 +1,14 @@
+"""A person in the loop: the labelling page, its label file and the clips it shows.
+
+``--teacher human`` serves a page (:mod:`~rebel_jax.human.server`) where a person answers each
+feedback session's queries between jitted rounds; the answers go to ``RUN_DIR/labels.jsonl``
+(:mod:`~rebel_jax.human.labels`) and into ``Trainer.session_learn`` as data
+(:mod:`~rebel_jax.human.session`). ``--teacher replay`` re-runs those answers from the file.
+"""
+
+from rebel_jax.human.session import HostTeacher, HumanOptions
+
+HOST_TEACHERS = ("human", "replay")
+"""Teachers whose sessions the host runs between rounds."""
+
+__all__ = ["HOST_TEACHERS", "HostTeacher", "HumanOptions"]
