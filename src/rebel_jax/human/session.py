@@ -16,6 +16,7 @@ One run, one column: the person labels one seed's queries.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import getpass
 import pathlib
 import random
@@ -47,6 +48,15 @@ class HumanOptions:
     """Width and height of the clips, in pixels."""
 
 
+@functools.cache
+def _compiled(trainer):
+    """Jitted, column-vmapped ``session_queries``, ``teach`` and ``session_learn`` (once per trainer)."""
+    queries = jax.jit(jax.vmap(trainer.session_queries, in_axes=(0, None)))
+    teach = jax.jit(jax.vmap(trainer.teach))
+    learn = jax.jit(jax.vmap(trainer.session_learn, in_axes=(0, 0, 0, 0, None, 0)))
+    return queries, teach, learn
+
+
 def describe(seg, index: int) -> dict:
     """A segment's place in the buffer (column 0): env and first row, and its stored length."""
     rows = np.asarray(seg.row[0, index])
@@ -71,9 +81,7 @@ class HostTeacher:
         cfg = trainer.cfg
         self.seed = cfg.train.seed
         self.crop, self.horizon = trainer.crop, trainer.horizon
-        self._queries = jax.jit(jax.vmap(trainer.session_queries, in_axes=(0, None)))
-        self._teach = jax.jit(jax.vmap(trainer.teach))
-        self._learn = jax.jit(jax.vmap(trainer.session_learn, in_axes=(0, 0, 0, 0, None, 0)))
+        self._queries, self._teach, self._learn = _compiled(trainer)
         self.server = self.labelling = self.renderer = None
         if mode == "replay":
             if options.labels is None:

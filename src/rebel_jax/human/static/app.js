@@ -9,7 +9,8 @@ const answerButtons = Array.from(document.querySelectorAll(".answer"));
 let server = null; // the last /api/state
 let current = null; // {id, images: {left, right}, shownAt}
 let loading = null; // id of the query whose clips are loading
-let busy = false; // a request is in flight
+let busy = false; // an answer, undo or finish is in flight
+let actions = 0; // actions sent so far: a poll that started before the latest one is stale
 const clock = { elapsed: 0, last: null, playing: true, speed: 1, played: false };
 
 function say(text, error = false) {
@@ -17,18 +18,24 @@ function say(text, error = false) {
   $("message").className = error ? "error" : "";
 }
 
+async function request(path, body) {
+  const response = await fetch(path, {
+    method: body === undefined ? "GET" : "POST",
+    headers: { "Content-Type": "application/json" },
+    body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  const data = await response.json();
+  if (!response.ok) throw new Error(data.error || response.statusText);
+  return data;
+}
+
 async function call(path, body) {
+  // An action: answers are disabled until the server has it, and polls started before it are dropped.
   busy = true;
+  actions += 1;
   updateButtons();
   try {
-    const response = await fetch(path, {
-      method: body === undefined ? "GET" : "POST",
-      headers: { "Content-Type": "application/json" },
-      body: body === undefined ? undefined : JSON.stringify(body),
-    });
-    const data = await response.json();
-    if (!response.ok) throw new Error(data.error || response.statusText);
-    return data;
+    return await request(path, body);
   } finally {
     busy = false;
   }
@@ -105,6 +112,7 @@ function updateButtons() {
   $("finish-button").disabled = busy;
   $("gate").textContent = current && !clock.played ? "Watch both clips to the end once, then answer." : "";
   document.body.dataset.played = clock.played ? "1" : "0";
+  document.body.dataset.busy = busy ? "1" : "0";
 }
 
 function load(query) {
@@ -214,14 +222,17 @@ async function finish() {
 }
 
 async function poll() {
-  if (!busy) {
-    try {
-      server = await call("/api/state");
-    } catch (err) {
-      say(`the trainer does not answer (${err.message}); retrying…`, true);
+  const before = actions;
+  try {
+    const state = await request("/api/state");
+    if (!busy && before === actions) {
+      server = state;
+      if ($("message").className === "error" && /does not answer/.test($("message").textContent)) say("");
     }
-    render();
+  } catch (err) {
+    say(`the trainer does not answer (${err.message}); retrying…`, true);
   }
+  render();
   setTimeout(poll, 500);
 }
 
