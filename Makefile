@@ -1,13 +1,20 @@
 # The two commands of the README:
 #   make train   set up .venv and train on the small default (CPU, a few minutes)
 #   make test    set up .venv with the test extras and run ruff + the test suite
+#                (first installing Debian's chromium, chromium-driver and Mesa's EGL where they
+#                are missing and apt-get can run as root: the labelling page's browser test and
+#                MuJoCo's clips need them)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 ARGS ?=
 PYTEST_ARGS ?=
 
-.PHONY: train test lint clean
+# Debian packages of the browser test (Playwright drives /usr/bin/chromium; it cannot download its
+# own browser here) and of MuJoCo's renderer for the clips (EGL, software rendering by Mesa).
+SYSTEM_PACKAGES ?= chromium chromium-driver libegl1 libgl1-mesa-dri
+
+.PHONY: train test lint clean system-deps
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,7 +33,20 @@ lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-test: lint
+system-deps:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing$$missing (apt-get)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else \
+	    echo "note: missing Debian packages:$$missing (sudo apt-get install$$missing); the tests that need them are skipped"; \
+	  fi; \
+	fi
+
+test: lint system-deps
 	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
 
 clean:
