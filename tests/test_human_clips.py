@@ -23,14 +23,15 @@ ROOT = pathlib.Path(__file__).parents[1]
 
 def test_probe_clip_draws_the_point_where_it_is():
     renderer = clips.ProbeRenderer(size=128)
-    positions = np.array([[-1.0, 1.0], [0.0, 0.0], [0.75, -0.5]], np.float32)
+    positions = np.array([[-1.5, 1.5], [0.0, 0.0], [0.75, -0.5]], np.float32)  # A corner of the box first.
     frames = renderer.frames(positions)
     assert frames.shape == (3, 128, 128, 3) and frames.dtype == np.uint8
     for frame, (x, y) in zip(frames, positions, strict=True):
         dot = np.all(frame == (30, 70, 200), axis=-1)  # The current point's colour.
         rows, cols = np.nonzero(dot)
-        centre_x = (cols.mean() + 0.5) / 128 * 3.0 - 1.5
-        centre_y = 1.5 - (rows.mean() + 0.5) / 128 * 3.0
+        half = renderer.bound  # The plot spans [-half, half] on both axes.
+        centre_x = (cols.mean() + 0.5) / 128 * 2 * half - half
+        centre_y = half - (rows.mean() + 0.5) / 128 * 2 * half
         assert abs(centre_x - x) < 0.05 and abs(centre_y - y) < 0.05
     trail = np.all(frames[2] == (150, 170, 220), axis=-1)
     assert trail.any() and not np.all(frames[0] == (150, 170, 220), axis=-1).any()  # The trail grows.

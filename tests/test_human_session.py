@@ -268,7 +268,8 @@ EXPECTED_JOURNAL = [
 ]
 
 
-def _label_session(page, steps, finish: tuple[str, str]) -> None:
+def _label_session(page, round_index: int, steps, finish: tuple[str, str]) -> None:
+    page.wait_for_function(f"document.body.dataset.session === '{round_index}'", timeout=120_000)
     for query, actions in steps:
         page.wait_for_function(f"document.body.dataset.query === {json.dumps(query)}", timeout=60_000)
         page.wait_for_selector("#answer-left:enabled", timeout=30_000)
@@ -286,7 +287,7 @@ def _label_session(page, steps, finish: tuple[str, str]) -> None:
     page.wait_for_selector("#finish-button:visible", timeout=30_000)
     how, what = finish
     page.keyboard.press(what) if how == "key" else page.click(what)
-    page.wait_for_function("document.body.dataset.status !== 'labelling'", timeout=60_000)
+    page.wait_for_function(f"document.body.dataset.session !== '{round_index}'", timeout=60_000)
 
 
 @pytest.mark.browser
@@ -339,8 +340,8 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
             page.screenshot(path=str(screenshot))
             if os.environ.get("REBEL_JAX_SCREENSHOT"):
                 shutil.copy(screenshot, os.environ["REBEL_JAX_SCREENSHOT"])
-            _label_session(page, SESSION_ROUND_2, ("key", "Enter"))
-            _label_session(page, SESSION_ROUND_3, ("click", "#finish-button"))
+            _label_session(page, 2, SESSION_ROUND_2, ("key", "Enter"))
+            _label_session(page, 3, SESSION_ROUND_3, ("click", "#finish-button"))
             gate = page.evaluate("window.__gate")
             context.close()
         assert proc.wait(timeout=300) == 0, (tmp_path / "train.log").read_text()[-3000:]

@@ -63,14 +63,15 @@ def sheet(frames: np.ndarray, image_format: str = "JPEG") -> bytes:
 
 
 class ProbeRenderer:
-    """``probe_point``'s clip: the point, its trail so far and the goal, in the box [-BOUND, BOUND]^2."""
+    """``probe_point``'s clip: the point, its trail so far and the goal; the box [-BOUND, BOUND]^2 and a margin."""
 
     image_format = "PNG"
 
     def __init__(self, size: int = 256, dt: float = 0.1):
         from rebel_jax.envs import probe
 
-        self.size, self.fps, self.bound = size, 1.0 / dt, probe.BOUND
+        self.size, self.fps = size, 1.0 / dt
+        self.bound = 1.1 * probe.BOUND  # A margin: the point often rests on the box's wall.
         coords = (np.arange(size) + 0.5) / size * 2 * self.bound - self.bound
         x, y = np.meshgrid(coords, -coords)  # y grows upwards
         shade = np.asarray(probe.reward_of(np.stack([x, y], -1)))  # 1 at the goal

@@ -59,9 +59,12 @@ function render() {
   if (server) $("budget").textContent = `labels used: ${server.used} of ${server.budget}`;
   if (!server) {
     training.textContent = "connecting…";
-  } else if (server.status === "labelling") {
+  } else if (server.status === "labelling" && !(s && s.closed)) {
     training.textContent = "training paused: waiting for your answers";
     training.className = "pill paused";
+  } else if (server.status === "labelling") {
+    training.textContent = "training resumes: learning from your answers";
+    training.className = "pill running";
   } else if (server.status === "done") {
     training.textContent = "training finished";
     training.className = "pill";
@@ -95,10 +98,13 @@ function render() {
       server && server.status === "done"
         ? "Training has finished. Thank you!"
         : "Training is running; the next feedback session will appear here.";
+  } else if (s.closed) {
+    $("waiting-text").textContent = "Answers sent: training goes on. The next session will appear here.";
   } else if (next) {
     $("waiting-text").textContent = "Rendering the clips…";
   }
   document.body.dataset.status = server ? server.status : "";
+  document.body.dataset.session = s && !s.closed ? String(s.round) : "";
   document.body.dataset.query = current ? current.id : "";
   updateButtons();
 }
