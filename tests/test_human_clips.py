@@ -97,3 +97,14 @@ def test_walker_clip_with_mujocos_renderer():
     assert result["shape"] == [3, 256, 256, 3] and result["fps"] == 40.0  # dm_control's walker: 25 ms per step
     assert result["body_pixels"] > 500 and 96 < result["body_centre"] < 160  # centred by the tracking camera
     assert result["floor_moved"] > 1.0 and result["leg_moved"] > 0.5
+
+
+def test_cli_without_opengl_stops_at_once_naming_the_fix(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
+    env["PYTHONPATH"] = str(ROOT / "src")
+    cmd = [sys.executable, "-m", "rebel_jax.train", "--preset", "tiny", "--algo", "pebble", "--task", "walker_walk"]
+    cmd += ["--teacher", "human", "--human.port", "0", "--run-dir", str(tmp_path / "run"), "--no-progress"]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2, out.stderr[-3000:]
+    assert "MUJOCO_GL=egl" in out.stderr and "MUJOCO_GL=osmesa" in out.stderr
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()  # Before any training.

@@ -30,7 +30,7 @@ import tyro
 from rebel_jax import sweep, teachers
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
-from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanOptions
+from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger
 from rebel_jax.train import Trainer, compiled, seed_keys
 
@@ -126,6 +126,8 @@ def run(args: Args) -> dict:
     cfg = args.config
     run_dir = args.run_dir or pathlib.Path("runs") / f"{cfg.algo}_{cfg.env.task}_{time.strftime('%Y%m%d-%H%M%S')}"
     trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
+    # The human teacher's page and renderer start first: a machine that cannot render fails now.
+    host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
     keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
@@ -150,7 +152,6 @@ def run(args: Args) -> dict:
     per_round = cfg.train.steps_per_round
     logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard)
     started, slowest = time.perf_counter(), 0.0
-    host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     try:
         for r in range(start, cfg.train.num_rounds):
             if args.time_limit and r > start and time.perf_counter() - started + 1.2 * slowest > args.time_limit:
@@ -255,4 +256,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse(argv)
     if args.distributed:
         jax.distributed.initialize()
-    return run(args)
+    try:
+        return run(args)
+    except HumanError as err:  # No OpenGL for the clips, a label file of another run, ...
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err

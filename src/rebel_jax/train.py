@@ -396,7 +396,9 @@ class Trainer:
         first: jax.Array,
         info: dict[str, jax.Array],
     ) -> tuple[TrainState, dict]:
-        """The second half: ``learn`` from the answers (masked to the budget), and the session's metrics.
+        """The second half: ``learn`` from the answers and the session's metrics.
+
+        The caller masks the answers to the seed's remaining budget (``teach`` does it for the scripted teachers).
 
         Args:
           info: the teacher's ``num_skipped`` and ``num_equal`` counts.

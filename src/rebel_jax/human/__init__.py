@@ -6,9 +6,14 @@ feedback session's queries between jitted rounds; the answers go to ``RUN_DIR/la
 (:mod:`~rebel_jax.human.session`). ``--teacher replay`` re-runs those answers from the file.
 """
 
+from rebel_jax.human.clips import ClipError
+from rebel_jax.human.labels import LabelError
 from rebel_jax.human.session import HostTeacher, HumanOptions
 
 HOST_TEACHERS = ("human", "replay")
 """Teachers whose sessions the host runs between rounds."""
 
-__all__ = ["HOST_TEACHERS", "HostTeacher", "HumanOptions"]
+HumanError = (ClipError, LabelError)
+"""What a human or replay run stops on, with a message for the person."""
+
+__all__ = ["HOST_TEACHERS", "ClipError", "HostTeacher", "HumanError", "HumanOptions", "LabelError"]
