@@ -207,6 +207,31 @@ def test_crashed_session_resumes_asking_only_the_rest(human_run, tmp_path):
     _assert_same_run(resumed, resumed_metrics, state, metrics[2:], exact=True)
 
 
+def test_unanswered_sessions_time_out_and_replay(tmp_path):
+    """No one answers: each session closes after --human.timeout, training goes on without labels."""
+    options = HumanOptions(port=0, timeout=0.3)
+    trainer, (init, round_fn, _) = _host_trainer()
+    host = HostTeacher(trainer, "human", tmp_path, options, resume=False)
+    state, metrics = init(KEYS), []
+    try:
+        for r in range(ROUNDS):
+            state, session = host.before_round(state, r)
+            state, m = round_fn(state, jnp.int32(r))
+            metrics.append({**jax.device_get(m), **session})
+    finally:
+        host.close()
+    records = [json.loads(line) for line in (tmp_path / "labels.jsonl").read_text().splitlines()]
+    assert [(r["kind"], r["round"], r["reason"]) for r in records] == [("close", r, "timeout") for r in SESSIONS]
+    assert int(state.reward.data.count[0]) == 0
+    for r in SESSIONS:
+        assert metrics[r]["session_labels"][0] == 0 and metrics[r]["session_unanswered"][0] == 4
+        assert np.isnan(metrics[r]["reward_accuracy_all"][0])  # Nothing kept: the reward model was not trained.
+    replayed, replayed_metrics, _ = _host_run(
+        tmp_path / "replay", "replay", options=HumanOptions(labels=tmp_path / "labels.jsonl")
+    )
+    _assert_same_run(replayed, replayed_metrics, state, metrics, exact=True)
+
+
 # -- a person's browser: the CLI run with --teacher human, labelled in headless Chromium --------------
 
 ROOT = pathlib.Path(__file__).parents[1]
