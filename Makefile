@@ -1,18 +1,22 @@
 # The two commands of the README:
 #   make train   set up .venv and train on the small default (CPU, a few minutes)
 #   make test    set up .venv with the test extras and run ruff + the test suite
+#                (first installing Debian's chromium, chromium-driver and Mesa's EGL where they
+#                are missing and apt-get can run as root: the labelling page's browser test and
+#                MuJoCo's clips need them)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 ARGS ?=
 PYTEST_ARGS ?=
 
-.PHONY: train test lint gl clean
+# Debian packages the tests need and `make test` installs when missing (as root, with apt-get): Chromium
+# for the labelling page's browser test (Playwright drives /usr/bin/chromium; it cannot download its own
+# browser here) and Mesa's software EGL for MuJoCo's renderer (the human teacher's clips and the
+# fidelity test of the pure-JAX camera, MUJOCO_GL=egl). Where that is impossible those tests skip and say why.
+SYSTEM_PACKAGES ?= chromium chromium-driver libegl1 libegl-mesa0 libgl1-mesa-dri
 
-# MuJoCo's own renderer, for the fidelity test of the pure-JAX camera (tests/test_render.py),
-# through Mesa's software EGL (MUJOCO_GL=egl). Installed with apt-get when missing; where that
-# is impossible (not root, not Debian) the test is skipped and says why.
-GL_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+.PHONY: train test lint clean system-deps
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,12 +35,20 @@ lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-gl:
-	@dpkg -s $(GL_PACKAGES) >/dev/null 2>&1 || \
-	  { apt-get update -qq && apt-get install -y -qq --no-install-recommends $(GL_PACKAGES); } || \
-	  echo "make gl: could not install $(GL_PACKAGES); tests/test_render.py skips its MuJoCo-renderer comparison"
+system-deps:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing$$missing (apt-get)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else \
+	    echo "note: missing Debian packages:$$missing (sudo apt-get install$$missing); the tests that need them are skipped"; \
+	  fi; \
+	fi
 
-test: lint gl
+test: lint system-deps
 	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
 
 clean:

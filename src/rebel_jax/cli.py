@@ -12,6 +12,9 @@ continues it, ``--overwrite`` replaces it). ``--resume`` refuses a configuration
 from the saved one, except a larger ``--total-steps``, which extends the run. Exit status: 0
 done (or stopped by ``--time-limit``), 2 a bad flag or run directory (nothing written),
 3 a seed diverged (see ``--on-divergence``).
+
+``--teacher human`` asks a person on a web page between rounds, ``--teacher replay`` takes a
+human run's answers from its ``labels.jsonl`` (:mod:`rebel_jax.human`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ import tyro
 from rebel_jax import sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
+from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.train import Trainer, compiled, seed_keys
 
@@ -97,6 +101,10 @@ class Args:
     teacher_grid: tuple[str, ...] = ()
     """Preference methods only: run every seed (and lambda) with each of these B-Pref teachers
     in one vmapped program (columns: lambda, then teacher, then seed). Empty: ``--teacher``."""
+    human: HumanOptions = HumanOptions()
+    """``--teacher human`` (the labelling page) and ``--teacher replay`` (its saved answers)."""
+    host_teacher: tyro.conf.Suppress[str] = ""
+    """``human`` or ``replay`` (set from ``--teacher``), or empty for a scripted teacher."""
 
     @property
     def lams(self) -> tuple[float, ...]:
@@ -416,7 +424,9 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
       SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
     """
     cfg = args.config
-    trainer = Trainer(cfg)
+    trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
+    # The human teacher's page and renderer start first: a machine that cannot render fails now.
+    host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
     keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
@@ -453,9 +463,12 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                     ckpt.save(r, state)
                 print(f"--time-limit {args.time_limit:g} s: stopped after round {r - 1}; continue with --resume")
                 return {"stopped_at_round": r}
+            session = {}
+            if host is not None:  # The human or replay teacher's session, between rounds.
+                state, session = host.before_round(state, r)
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
-            metrics = jax.device_get(metrics)
+            metrics = {**jax.device_get(metrics), **session}
             seconds = time.perf_counter() - t0
             slowest = max(slowest, seconds) if r > start else 0.0
             env_steps = (r + 1) * per_round
@@ -489,6 +502,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
         if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
             _eval_clip(args, trainer, state, run_dir)
     finally:
+        if host is not None:
+            host.close()
         logger.close()
         if ckpt is not None:
             ckpt.close()
@@ -568,21 +583,47 @@ def parse(argv: list[str] | None = None) -> Args:
     """Reads ``--preset`` and ``--teacher`` first, then every other flag as an override of them."""
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default="paper")
-    pre.add_argument("--teacher", choices=list(teachers.PRESETS), default="oracle")
+    pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
     known, rest = pre.parse_known_args(argv)
+    host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
+    scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
     description = (
         f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper)."
-        f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it."
+        f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it;"
+        " --teacher human asks a person on a web page (--human.*), --teacher replay --human.labels FILE"
+        " re-runs a human run's answers."
     )
-    config = dataclasses.replace(PRESETS[known.preset], teacher=teachers.PRESETS[known.teacher])
+    config = dataclasses.replace(PRESETS[known.preset], teacher=teachers.PRESETS[scripted])
     args = tyro.cli(Args, default=Args(config=config), args=rest, description=description)
+    args = dataclasses.replace(args, host_teacher=host_teacher)
     try:
         args.config.validate()
         _check_args(args, PRESETS[known.preset])
+        if host_teacher:
+            _check_host_teacher(args)
     except ConfigError as err:
         raise _usage_error(err) from err
     _warn_about(args)
     return args
+
+
+def _check_host_teacher(args: Args) -> None:
+    """``--teacher human|replay``: one column of a preference method; ``--human.*`` in range."""
+    teacher = f"--teacher {args.host_teacher}"
+    if not args.config.preference:
+        raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference algo")
+    if args.columns != 1:
+        raise ConfigError(f"{teacher} labels one run: seeds={args.seeds}, lam_grid and teacher_grid must give 1 column")
+    if not 0 <= args.human.port < 65536:
+        raise ConfigError(f"human.port={args.human.port!r} is invalid: allowed 0 to 65535 (0: any free port)")
+    if args.human.timeout < 0:
+        raise ConfigError(f"human.timeout={args.human.timeout!r} is invalid: allowed >= 0 (0: no limit)")
+    if args.human.clip_size < 16:
+        raise ConfigError(f"human.clip_size={args.human.clip_size!r} is invalid: allowed >= 16")
+    if args.host_teacher == "replay" and (args.human.labels is None or not args.human.labels.is_file()):
+        raise ConfigError(f"human.labels={args.human.labels!r} is invalid: --teacher replay needs an existing file")
+    if args.host_teacher == "human" and args.human.labels is not None:
+        raise ConfigError("human.labels is only for --teacher replay (a human run writes RUN_DIR/labels.jsonl)")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -597,4 +638,8 @@ def main(argv: list[str] | None = None) -> dict:
         run_dir = prepare_run_dir(args)
     except ConfigError as err:
         raise _usage_error(err) from err
-    return run(args, run_dir, command_line(argv))
+    try:
+        return run(args, run_dir, command_line(argv))
+    except HumanError as err:  # No OpenGL for the clips, a label file of another run, ...
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err

@@ -94,6 +94,11 @@ class Segments:
     """(N, H, act_size) actions taken in them."""
     true_reward: jax.Array
     """(N, H) true task rewards (seen only by the teacher and diagnostics)."""
+    row: jax.Array | None = None
+    """(N, H) int32 buffer rows of the steps (where a segment came from: the human teacher's clips and
+    label file read it; unused otherwise, so compiled away)."""
+    env: jax.Array | None = None
+    """(N, H) int32 buffer environment of the steps (the same along H)."""
 
 
 def window_rows(buffer: Any, segment_length: int, episode_length: int, recent_episodes: int) -> int:
@@ -146,7 +151,13 @@ def valid_starts(buffer: Any, segment_length: int, episode_length: int, recent_e
 
 def _gather(buffer: Any, time: jax.Array, env: jax.Array) -> Segments:
     """Segments at absolute rows ``time`` (n, H) of environments ``env`` (n, 1)."""
-    return Segments(obs=buffer.obs[time, env], action=buffer.action[time, env], true_reward=buffer.reward[time, env])
+    return Segments(
+        obs=buffer.obs[time, env],
+        action=buffer.action[time, env],
+        true_reward=buffer.reward[time, env],
+        row=time.astype(jnp.int32),
+        env=jnp.broadcast_to(env, time.shape).astype(jnp.int32),
+    )
 
 
 def _draw_flat(key: jax.Array, valid: jax.Array, n: int, low: jax.Array | int = 0) -> jax.Array:

@@ -51,6 +51,7 @@ class Step:
         truncated: (E,) 1.0 where the episode was cut by the time limit at ``next_obs``.
         episode_step: (E,) int32 step index of ``obs`` within its episode.
         learned_reward: (E,) learned reward, or None to store zeros (relabel later).
+        qpos: (E, nq) physics positions at ``obs``, or None (stored only by a buffer made with ``qpos_size``).
     """
 
     obs: jax.Array
@@ -61,6 +62,7 @@ class Step:
     truncated: jax.Array
     episode_step: jax.Array
     learned_reward: jax.Array | None = None
+    qpos: jax.Array | None = None
 
 
 @flax.struct.dataclass
@@ -76,6 +78,8 @@ class Buffer:
         episode_step: (T, E) int32 step index of ``obs`` within its episode.
         ptr: () int32 next row to write.
         size: () int32 rows filled (at most T).
+        qpos: (T, E, nq) physics positions at ``obs`` (what clips for a human are rendered from), or None
+            when not stored (the default: only the human teacher needs them).
     """
 
     obs: jax.Array
@@ -88,6 +92,7 @@ class Buffer:
     episode_step: jax.Array
     ptr: jax.Array
     size: jax.Array
+    qpos: jax.Array | None = None
 
     @property
     def rows(self) -> int:
@@ -100,13 +105,14 @@ class Buffer:
         return self.reward.shape[1]
 
 
-def init(capacity: int, num_envs: int, obs_size: int, action_size: int) -> Buffer:
+def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_size: int = 0) -> Buffer:
     """An empty buffer of ``capacity // num_envs`` rows.
 
     Args:
         capacity: transitions to hold (rounded down to a multiple of ``num_envs``).
         num_envs: environments per row.
         obs_size, action_size: problem sizes.
+        qpos_size: physics positions stored per transition; 0 stores none (``qpos`` is None).
 
     Returns:
         A zero-filled :class:`Buffer` with ``ptr = size = 0``.
@@ -129,6 +135,7 @@ def init(capacity: int, num_envs: int, obs_size: int, action_size: int) -> Buffe
         episode_step=zeros(dtype=jnp.int32),
         ptr=jnp.zeros((), jnp.int32),
         size=jnp.zeros((), jnp.int32),
+        qpos=zeros(qpos_size) if qpos_size else None,
     )
 
 
@@ -153,6 +160,10 @@ def add(buffer: Buffer, step: Step) -> Buffer:
         truncated=step.truncated,
         episode_step=step.episode_step,
     )
+    if (buffer.qpos is None) != (step.qpos is None):
+        raise ValueError("a buffer stores qpos exactly when its steps carry them (replay.init's qpos_size)")
+    if buffer.qpos is not None:
+        values["qpos"] = step.qpos
 
     def write(name: str, value: jax.Array) -> jax.Array:
         field = getattr(buffer, name)

@@ -21,6 +21,10 @@ labels them with the scripted teacher (the only place that reads the true reward
 loss terms, relabels the whole buffer and, at the first session, re-initialises the critic.
 The three are separate pure functions, so a human can answer the queries between rounds.
 The session is a ``lax.cond`` on the (unbatched) round index, so rounds without one skip it.
+A trainer built with ``host_teacher=True`` (the human and replay teachers, :mod:`rebel_jax.human`)
+leaves the session out of the round: the host runs :meth:`Trainer.session_queries`, gets the
+answers, and runs :meth:`Trainer.session_learn` before the round; its buffer also stores each
+transition's physics positions, from which the clips are rendered.
 
 Evaluation runs inside the same batch: ``eval_episodes`` extra environments follow the
 deterministic policy (the mean action) next to the ``num_envs`` training environments,
@@ -45,6 +49,17 @@ from rebel_jax.config import Config
 from rebel_jax.envs import DMCEnv, PointProbe, State, make_env
 from rebel_jax.queries import Segments
 from rebel_jax.sac import SAC, SACState
+
+
+@struct.dataclass
+class SessionQueries:
+    """A feedback session's query pairs and the keys of its teacher and of its ``learn``."""
+
+    seg_a: Segments
+    seg_b: Segments
+    key_teach: jax.Array
+    key_learn: jax.Array
+
 
 SESSION_METRICS = (
     "session",
@@ -111,8 +126,17 @@ class TrainState:
 class Trainer:
     """Builds the pure functions of one seed's run from a :class:`Config`."""
 
-    def __init__(self, cfg: Config):
+    def __init__(self, cfg: Config, host_teacher: bool = False):
+        """
+        Args:
+          cfg: the run's configuration.
+          host_teacher: the feedback sessions run on the host between rounds (the human and replay
+            teachers): the round leaves them out and the buffer stores physics positions for clips.
+        """
         self.cfg = cfg.validate()
+        if host_teacher and not cfg.preference:
+            raise ValueError(f"host_teacher needs a preference algo, not {cfg.algo!r}")
+        self.host_teacher = host_teacher
         self.env: DMCEnv | PointProbe = make_env(
             cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length
         )
@@ -142,7 +166,7 @@ class Trainer:
         sac_state = self.sac.init(key_sac)
         ts = TrainState(
             sac=sac_state,
-            buffer=replay.init(self.cfg.train.capacity, self.num_train, obs_size, action_size),
+            buffer=replay.init(self.cfg.train.capacity, self.num_train, obs_size, action_size, self._qpos_size()),
             env=env_state,
             episodes=EpisodeStats(jnp.zeros(self.num_all), nan, nan),
             key=key,
@@ -157,6 +181,13 @@ class Trainer:
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
         return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
+
+    def _qpos_size(self) -> int:
+        """Physics positions stored per transition: the task's qpos for the host teacher, else none."""
+        if not self.host_teacher:
+            return 0
+        state = jax.eval_shape(self.env.reset, jax.random.PRNGKey(0))
+        return physics_positions(state.pipeline_state).shape[-1]
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -184,6 +215,7 @@ class Trainer:
             truncated=truncated[:n],
             episode_step=ts.env.info["steps"][:n],
             learned_reward=self._learned_reward(ts, ts.env.obs[:n], action[:n]) if self.preference else None,
+            qpos=physics_positions(ts.env.pipeline_state)[:n] if self.host_teacher else None,
         )
         running = ts.episodes.running + nxt.reward
         done = nxt.done > 0
@@ -389,11 +421,34 @@ class Trainer:
 
     def feedback_session(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, dict]:
         """select -> teach -> learn, with the session's metrics (:data:`SESSION_METRICS`)."""
+        ts, asked = self.session_queries(ts, first)
+        labels, mask, info = self.teach(ts, asked.key_teach, asked.seg_a, asked.seg_b)
+        return self.session_learn(ts, asked, labels, mask, first, info)
+
+    def session_queries(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, SessionQueries]:
+        """The first half of a session: its keys and query pairs (``select``)."""
         key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
         seg_a, seg_b = self.select(ts, key_select, first)
-        labels, mask, info = self.teach(ts, key_teach, seg_a, seg_b)
-        ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first)
+        return ts, SessionQueries(seg_a, seg_b, key_teach, key_learn)
+
+    def session_learn(
+        self,
+        ts: TrainState,
+        asked: SessionQueries,
+        labels: jax.Array,
+        mask: jax.Array,
+        first: jax.Array,
+        info: dict[str, jax.Array],
+    ) -> tuple[TrainState, dict]:
+        """The second half: ``learn`` from the answers and the session's metrics.
+
+        The caller masks the answers to the seed's remaining budget (``teach`` does it for the scripted teachers).
+
+        Args:
+          info: the teacher's ``num_skipped`` and ``num_equal`` counts.
+        """
+        ts, metrics = self.learn(ts, asked.key_learn, asked.seg_a, asked.seg_b, labels, mask, first)
         metrics = dict(metrics, session=1.0, session_skipped=info["num_skipped"], session_equal=info["num_equal"])
         return ts, self._session_summary(ts, metrics)
 
@@ -426,7 +481,9 @@ class Trainer:
         self.trace_count += 1  # Python side effect: counts traces, not calls.
         episodes_before = ts.episodes
         session = {}
-        if self.preference:
+        if self.host_teacher:  # The host ran this round's session, if any, before the round.
+            session = self._session_summary(ts, {})
+        elif self.preference:
             due, first = self.session_due(round_index)
             ts, session = jax.lax.cond(
                 due,
@@ -480,6 +537,12 @@ def _diverged(ts: TrainState, summary: dict, episodes_before: EpisodeStats) -> j
     reward_params = ts.reward.params if ts.reward is not None else ()
     finite = _all_finite((losses, ts.sac, reward_params, ts.env.obs, ts.episodes.running))
     return 1.0 - (finite & returns_ok[0] & returns_ok[1]).astype(jnp.float32)
+
+
+def physics_positions(pipeline_state) -> jax.Array:
+    """The positions a clip is drawn from: MJX's ``qpos``, or the probe's ``pos``."""
+    qpos = getattr(pipeline_state, "qpos", None)
+    return pipeline_state.pos if qpos is None else qpos
 
 
 def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:

@@ -1,0 +1,181 @@
+"""Clips of query segments for a person, drawn from the physics positions the buffer stored.
+
+- The MJX tasks: MuJoCo's own renderer (``mujoco.Renderer``) with dm_control's ``side``
+  camera (it tracks the centre of mass), on a copy of the task's model with dm_control's
+  visual assets added back (skybox, checker floor, light), which the physics model leaves out.
+  Only visual elements are added, so the positions mean the same. MuJoCo needs an OpenGL
+  context: ``MUJOCO_GL=egl`` (a GPU, or Mesa's software EGL) or ``MUJOCO_GL=osmesa``.
+- ``probe_point``: it has no MuJoCo model; a clip is a 2-D plot of the point (NumPy), its
+  trail and the goal at the centre, shaded by the reward.
+
+A clip goes to the page as one image, a *sheet* of its frames in rows of ``COLUMNS``, which the
+page draws frame by frame on a canvas: both clips of a query run off one clock, so they stay in step.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+from typing import Protocol
+
+import numpy as np
+from PIL import Image
+
+COLUMNS = 10
+"""Frames per row of a clip's sheet."""
+
+INSTRUCTIONS = {
+    "probe_point": "Which dot gets closer to the target in the centre, and stays there?",
+    "walker_stand": "Which walker stands up taller and more upright?",
+    "walker_walk": "Which walker walks forward (to the right) better, while staying upright?",
+    "walker_run": "Which walker runs forward (to the right) faster, while staying upright?",
+    "cheetah_run": "Which cheetah runs forward (to the right) faster?",
+}
+"""The question the page asks for each task."""
+
+
+class ClipError(RuntimeError):
+    """Clips cannot be rendered here (no OpenGL context, most often)."""
+
+
+class Renderer(Protocol):
+    fps: float
+
+    def frames(self, positions: np.ndarray) -> np.ndarray:
+        """(H, nq) positions -> (H, S, S, 3) uint8 frames."""
+        ...
+
+
+def sheet(frames: np.ndarray, image_format: str = "JPEG") -> bytes:
+    """One image of ``frames`` (H, S, S, 3), row-major in rows of ``COLUMNS`` frames."""
+    count, height, width, _ = frames.shape
+    columns = min(COLUMNS, count)
+    rows = -(-count // columns)
+    canvas = np.zeros((rows * height, columns * width, 3), np.uint8)
+    for i, frame in enumerate(frames):
+        r, c = divmod(i, columns)
+        canvas[r * height : (r + 1) * height, c * width : (c + 1) * width] = frame
+    out = io.BytesIO()
+    options = {"quality": 90} if image_format == "JPEG" else {}
+    Image.fromarray(canvas).save(out, format=image_format, **options)
+    return out.getvalue()
+
+
+class ProbeRenderer:
+    """``probe_point``'s clip: the point, its trail so far and the goal; the box [-BOUND, BOUND]^2 and a margin."""
+
+    image_format = "PNG"
+
+    def __init__(self, size: int = 256, dt: float = 0.1):
+        from rebel_jax.envs import probe
+
+        self.size, self.fps = size, 1.0 / dt
+        self.bound = 1.1 * probe.BOUND  # A margin: the point often rests on the box's wall.
+        coords = (np.arange(size) + 0.5) / size * 2 * self.bound - self.bound
+        x, y = np.meshgrid(coords, -coords)  # y grows upwards
+        shade = np.asarray(probe.reward_of(np.stack([x, y], -1)))  # 1 at the goal
+        base = np.array([250, 250, 245], np.float32)
+        goal = np.array([150, 215, 150], np.float32)
+        self.background = (base + shade[..., None] * (goal - base)).astype(np.uint8)
+        pixel = 2 * self.bound / size
+        axis = (np.abs(x) < pixel) | (np.abs(y) < pixel)
+        self.background[axis] = (200, 200, 200)
+        self.x, self.y = x, y
+
+    def _disc(self, image: np.ndarray, pos: np.ndarray, radius_px: float, colour) -> None:
+        radius = radius_px * 2 * self.bound / self.size
+        image[(self.x - pos[0]) ** 2 + (self.y - pos[1]) ** 2 <= radius**2] = colour
+
+    def frames(self, positions: np.ndarray) -> np.ndarray:
+        positions = np.asarray(positions, np.float32)
+        out = np.empty((len(positions), self.size, self.size, 3), np.uint8)
+        for t, pos in enumerate(positions):
+            image = self.background.copy()
+            for past in positions[:t]:
+                self._disc(image, past, 2.5, (150, 170, 220))
+            self._disc(image, pos, 9, (30, 70, 200))
+            out[t] = image
+        return out
+
+
+_VISUAL = """
+  <visual>
+    <headlight ambient=".4 .4 .4" diffuse=".8 .8 .8" specular=".1 .1 .1"/>
+    <map znear=".01"/>
+    <quality shadowsize="2048"/>
+  </visual>
+  <asset>
+    <texture name="skybox" type="skybox" builtin="gradient" rgb1=".4 .6 .8" rgb2="0 0 0"
+             width="800" height="800" mark="random" markrgb="1 1 1"/>
+    <texture name="grid" type="2d" builtin="checker" rgb1=".1 .2 .3" rgb2=".2 .3 .4"
+             width="300" height="300" mark="edge" markrgb=".2 .3 .4"/>
+    <material name="grid" texture="grid" texrepeat="1 1" texuniform="true" reflectance=".2"/>
+    <material name="self" rgba=".7 .5 .3 1"/>
+  </asset>
+"""
+
+
+def render_xml(task: str) -> str:
+    """The task's MJCF with dm_control's visual assets (``common/skybox.xml``, ``visual.xml``,
+    ``materials.xml``) and a light: looks only, the same bodies and joints."""
+    from rebel_jax.envs.dmc import TASKS
+
+    xml = TASKS[task].xml()
+    xml, count = re.subn(r"<asset>.*?</asset>", _VISUAL, xml, count=1, flags=re.S)
+    if count != 1:
+        raise ClipError(f"{task}: no <asset> block to add the visual assets to")
+    light = '<light name="light" pos="0 0 4" dir="0 0 -1" directional="true"/>\n    '
+    return xml.replace('<body name="torso"', light + '<body name="torso"', 1)
+
+
+class MujocoRenderer:
+    """An MJX task's clip: MuJoCo's renderer, dm_control's ``side`` camera."""
+
+    image_format = "JPEG"
+
+    def __init__(self, task: str, size: int = 256):
+        import mujoco
+
+        from rebel_jax.envs.dmc import TASKS, mj_model
+
+        physics = mj_model(task)
+        self.model = mujoco.MjModel.from_xml_string(render_xml(task))
+        if (self.model.nq, self.model.nbody) != (physics.nq, physics.nbody):
+            raise ClipError(f"{task}: the render model's bodies differ from the physics model's")
+        self.data = mujoco.MjData(self.model)
+        self.fps = 1.0 / (float(physics.opt.timestep) * TASKS[task].n_substeps)
+        self.size = size
+        self._mujoco = mujoco
+        try:
+            self.renderer = mujoco.Renderer(self.model, size, size)
+        except Exception as err:  # glfw without a display, EGL or OSMesa libraries missing, ...
+            backend = os.environ.get("MUJOCO_GL") or "unset (glfw, which needs a display)"
+            raise ClipError(
+                f"MuJoCo could not open an OpenGL context to render clips (MUJOCO_GL is {backend}): {err}. "
+                "Set MUJOCO_GL=egl (a GPU, or Mesa's EGL: apt-get install libegl1 libgl1-mesa-dri) or "
+                "MUJOCO_GL=osmesa (apt-get install libosmesa6) before starting."
+            ) from err
+
+    def frames(self, positions: np.ndarray) -> np.ndarray:
+        mujoco = self._mujoco
+        out = np.empty((len(positions), self.size, self.size, 3), np.uint8)
+        for t, qpos in enumerate(np.asarray(positions, np.float64)):
+            self.data.qpos[:] = qpos
+            self.data.qvel[:] = 0.0
+            mujoco.mj_forward(self.model, self.data)
+            self.renderer.update_scene(self.data, camera="side")
+            out[t] = self.renderer.render()
+        return out
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def make_renderer(task: str, size: int = 256) -> ProbeRenderer | MujocoRenderer:
+    """The clip renderer of ``task`` (raises :class:`ClipError` where it cannot render)."""
+    if size < 16:
+        raise ClipError(f"clip size {size} is too small: allowed >= 16")
+    if task == "probe_point":
+        return ProbeRenderer(size)
+    return MujocoRenderer(task, size)
