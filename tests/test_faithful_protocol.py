@@ -149,8 +149,8 @@ def test_surf_session_runs_ceil_reward_update_times_labels_over_batch_steps(coun
     train = jax.jit(lambda state, key, steps: rm.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
     trained, metrics = train(state, jax.random.key(1), steps)
     assert int(metrics["epochs"]) == math.ceil(7 * count / 128)
-    before = jax.tree.leaves(state.params)
-    assert any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(before, jax.tree.leaves(trained.params)))
+    pairs = zip(jax.tree.leaves(state.params), jax.tree.leaves(trained.params), strict=True)
+    assert any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs)
 
 
 def test_surf_pool_grows_by_each_session_and_keeps_the_older_pairs():
