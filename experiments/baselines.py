@@ -1,0 +1,113 @@
+"""The faithful-baseline table (issue 9) from the runs' logs: ``results/baselines.json``.
+
+Usage:
+  python experiments/baselines.py            # writes results/baselines.json and prints a Markdown table
+
+Every setting in a row is read from that run's ``config.json`` and ``meta.json``; returns are read
+from its ``metrics.jsonl`` (per seed, the evaluation return logged at a step) or ``final.json``.
+A run that stopped before its ``total_steps`` (the device budget ran out) says so in ``complete``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import numpy as np
+from analysis import _per_seed, _records, bootstrap_ci, iqm
+
+ROOT = pathlib.Path(__file__).parents[1]
+RESULTS = ROOT / "results"
+STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 500_000)
+"""Steps at which every run's return is reported (where the run got that far)."""
+
+# (log directory under results/runs, the columns of a grid run that are this method, published
+# mean at the run's total steps, rung name). Published: PEBBLE and SURF at 500k (walker) from the
+# SURF paper's table (REFERENCE.md section 2).
+RUNS = [
+    ("paper/rebel_walker_100_neg", "lam=0", 453, "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)"),
+    ("baselines/pebble_walker_100", None, 453, "3: + disagreement, torch init, complete-episode pool (10 envs), reset update"),
+    ("baselines/pebble_walker_100_utd1", None, 453, "4: + utd 1 (B-Pref's)"),
+    ("baselines/surf_walker_100", None, 661, "SURF on rung 3"),
+    ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
+]
+
+
+def _columns(meta: dict, select: str | None) -> list[int]:
+    if select is None:
+        return list(range(meta["columns"]))
+    lam = float(select.split("=")[1])
+    return [i for i, value in enumerate(meta["lams"]) if value == lam]
+
+
+def _at_steps(run: pathlib.Path, columns: list[int]) -> dict[int, list[float]]:
+    """Per seed, the evaluation return logged at each step of ``STEPS`` the run reached."""
+    out = {}
+    for record in _records(run):
+        if record["env_steps"] in STEPS and record.get("eval_return") is not None:
+            values = _per_seed(record["eval_return"])
+            out[record["env_steps"]] = [values[i] for i in columns]
+    return out
+
+
+def row(log: str, select: str | None, published: float | None, rung: str) -> dict:
+    run = RESULTS / "runs" / log
+    cfg = json.loads((run / "config.json").read_text())
+    meta = json.loads((run / "meta.json").read_text())
+    records = _records(run)
+    columns = _columns(meta, select)
+    last = records[-1]["env_steps"]
+    final = run / "final.json"
+    if final.exists():
+        values = json.loads(final.read_text())["final_eval_return"]
+        returns, source = [values[i] for i in columns], "final.json (frozen policy, 10 episodes)"
+    else:
+        values = _per_seed(next(r["eval_return"] for r in reversed(records) if r.get("eval_return") is not None))
+        returns, source = [values[i] for i in columns], "last in-batch evaluation in metrics.jsonl"
+    x = np.asarray(returns, float)
+    ci = bootstrap_ci(x)
+    return {
+        "rung": rung,
+        "task": cfg["env"]["task"],
+        "algo": cfg["algo"] if select is None else f"pebble (rebel {select})",
+        "labels": cfg["feedback"]["labels"] if cfg["algo"] != "sac" else None,
+        "teacher": "oracle" if cfg["algo"] != "sac" else None,
+        "sampling": cfg["query"]["sampling"] if cfg["algo"] != "sac" else None,
+        "pool": cfg["query"].get("pool", "rows") if cfg["algo"] != "sac" else None,
+        "reward_init": cfg["reward"].get("init", "lecun") if cfg["algo"] != "sac" else None,
+        "reset_updates": cfg["pretrain"].get("reset_updates", 0) if cfg["algo"] != "sac" else None,
+        "num_envs": cfg["env"]["num_envs"],
+        "utd": cfg["sac"]["utd"],
+        "seeds": len(columns),
+        "env_steps": last,
+        "total_steps": cfg["train"]["total_steps"],
+        "complete": last >= cfg["train"]["total_steps"],
+        "returns_source": source,
+        "final_returns": [round(v, 2) for v in returns],
+        "mean": round(float(x.mean()), 2),
+        "std": round(float(x.std()), 2),
+        "iqm": round(float(iqm(x)), 2),
+        "iqm_ci": [round(v, 2) if math.isfinite(v) else None for v in ci],
+        "returns_at": {str(s): round(float(np.mean(v)), 1) for s, v in _at_steps(run, columns).items()},
+        "published": published,
+        "device": ", ".join(meta["devices"]),
+        "date": meta["started"][:10],
+        "jax": meta["jax"],
+        "command": meta["command"],
+        "log": f"results/runs/{log}",
+    }
+
+
+def main() -> None:
+    rows = [row(*spec) for spec in RUNS]
+    (RESULTS / "baselines.json").write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+    print("| rung | env steps run | " + " | ".join(f"{s // 1000}k" for s in STEPS) + " | last eval, mean +- std |")
+    print("|---|---:|" + "---:|" * len(STEPS) + "---:|")
+    for r in rows:
+        at = " | ".join(str(r["returns_at"].get(str(s), "")) for s in STEPS)
+        print(f"| {r['rung']} | {r['env_steps'] // 1000}k | {at} | {r['mean']:.1f} +- {r['std']:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
