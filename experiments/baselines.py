@@ -26,8 +26,18 @@ STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 500_000)
 # mean at the run's total steps, rung name). Published: PEBBLE and SURF at 500k (walker) from the
 # SURF paper's table (REFERENCE.md section 2).
 RUNS = [
-    ("paper/rebel_walker_100_neg", "lam=0", 453, "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)"),
-    ("baselines/pebble_walker_100", None, 453, "3: + disagreement, torch init, complete-episode pool (10 envs), reset update"),
+    (
+        "paper/rebel_walker_100_neg",
+        "lam=0",
+        453,
+        "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)",
+    ),
+    (
+        "baselines/pebble_walker_100",
+        None,
+        453,
+        "3: + disagreement, torch init, complete-episode pool (10 envs), reset update",
+    ),
     ("baselines/pebble_walker_100_utd1", None, 453, "4: + utd 1 (B-Pref's)"),
     ("baselines/surf_walker_100", None, 661, "SURF on rung 3"),
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),

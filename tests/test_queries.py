@@ -139,7 +139,7 @@ def _brute_force_top(probs, sampling, k):
 @pytest.mark.parametrize("sampling", ["disagreement", "entropy"])
 def test_active_selection_keeps_exactly_the_top_scored_candidates(sampling):
     buffer, _ = _fill(150)
-    cfg = queries.QueryConfig(segment_length=H, recent_episodes=8, sampling=sampling, candidate_factor=10)
+    cfg = queries.QueryConfig(segment_length=H, recent_episodes=8, sampling=sampling, candidate_factor=10, pool="rows")
     key, k = jax.random.key(5), 7
     seg_a, seg_b = _select(cfg, key, buffer, k, EPISODE_LENGTH, _pref_prob_fn, False)
     cand_a, cand_b = _sample_pairs(buffer, key, 10 * k, H, EPISODE_LENGTH, 8)
@@ -152,7 +152,9 @@ def test_active_selection_keeps_exactly_the_top_scored_candidates(sampling):
 
 def test_first_session_is_uniform_static_or_traced():
     buffer, _ = _fill(150)
-    cfg = queries.QueryConfig(segment_length=H, recent_episodes=8, sampling="disagreement", candidate_factor=4)
+    cfg = queries.QueryConfig(
+        segment_length=H, recent_episodes=8, sampling="disagreement", candidate_factor=4, pool="rows"
+    )
     key, k = jax.random.key(6), 5
     select_static = jax.jit(queries.select_queries, static_argnums=(0, 3, 4, 5, 6))
     static = select_static(cfg, key, buffer, k, EPISODE_LENGTH, _pref_prob_fn, True)

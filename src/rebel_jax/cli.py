@@ -354,7 +354,8 @@ def _grow_buffer(state, rows: int):
     def pad(x):
         return jnp.concatenate([x, jnp.zeros((x.shape[0], rows - x.shape[1], *x.shape[2:]), x.dtype)], axis=1)
 
-    data = [f.name for f in dataclasses.fields(buffer) if getattr(buffer, f.name).ndim >= 3]  # not ptr, size
+    fields = [f.name for f in dataclasses.fields(buffer) if getattr(buffer, f.name) is not None]  # qpos may be None
+    data = [name for name in fields if getattr(buffer, name).ndim >= 3]  # not ptr, size
     grown = {name: pad(getattr(buffer, name)) for name in data}
     return state.replace(buffer=buffer.replace(**grown, ptr=jnp.array(buffer.size, copy=True)))  # not donated twice
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import io
 import os
-import re
 from typing import Protocol
 
 import numpy as np
@@ -99,34 +98,13 @@ class ProbeRenderer:
         return out
 
 
-_VISUAL = """
-  <visual>
-    <headlight ambient=".4 .4 .4" diffuse=".8 .8 .8" specular=".1 .1 .1"/>
-    <map znear=".01"/>
-    <quality shadowsize="2048"/>
-  </visual>
-  <asset>
-    <texture name="skybox" type="skybox" builtin="gradient" rgb1=".4 .6 .8" rgb2="0 0 0"
-             width="800" height="800" mark="random" markrgb="1 1 1"/>
-    <texture name="grid" type="2d" builtin="checker" rgb1=".1 .2 .3" rgb2=".2 .3 .4"
-             width="300" height="300" mark="edge" markrgb=".2 .3 .4"/>
-    <material name="grid" texture="grid" texrepeat="1 1" texuniform="true" reflectance=".2"/>
-    <material name="self" rgba=".7 .5 .3 1"/>
-  </asset>
-"""
-
-
 def render_xml(task: str) -> str:
-    """The task's MJCF with dm_control's visual assets (``common/skybox.xml``, ``visual.xml``,
-    ``materials.xml``) and a light: looks only, the same bodies and joints."""
+    """The task's MJCF for MuJoCo's renderer. ``envs/models.py`` writes dm_control's visual assets
+    (``common/skybox.xml``, ``visual.xml``, ``materials.xml``) and the torso's tracking light into
+    the physics model itself, so the clips render the physics model as it is."""
     from rebel_jax.envs.dmc import TASKS
 
-    xml = TASKS[task].xml()
-    xml, count = re.subn(r"<asset>.*?</asset>", _VISUAL, xml, count=1, flags=re.S)
-    if count != 1:
-        raise ClipError(f"{task}: no <asset> block to add the visual assets to")
-    light = '<light name="light" pos="0 0 4" dir="0 0 -1" directional="true"/>\n    '
-    return xml.replace('<body name="torso"', light + '<body name="torso"', 1)
+    return TASKS[task].xml()
 
 
 class MujocoRenderer:
