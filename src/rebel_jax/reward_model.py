@@ -486,6 +486,20 @@ def _minibatch(data: LabelData, order: jax.Array, index: jax.Array, batch_size: 
     )
 
 
+def _adam_step(cfg: RewardConfig, grad_fn, optimizer, carry: _EpochCarry, batch: PrefBatch, key: jax.Array):
+    """One Adam step on a minibatch: (params, opt_state, correct, counted, loss).
+
+    ``correct`` and ``counted`` (M, B) are the members' right and counted hard labels *before* the
+    step (B-Pref's and SURF's accuracy), weighted by the minibatch's padding mask.
+    """
+    logits = _member_logits(cfg, carry.params, batch)
+    correct, hard = _hard_correct(logits, batch.labels)
+    grads, metrics = grad_fn(carry.params, batch, key)
+    updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
+    params = optax.apply_updates(carry.params, updates)
+    return params, opt_state, correct * batch.weight, hard * batch.weight, metrics["loss"]
+
+
 def train_epoch(
     cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm] | None = None
 ) -> tuple[RewardState, dict[str, jax.Array]]:
@@ -515,17 +529,10 @@ def train_epoch(
 
     def body(carry: _EpochCarry) -> _EpochCarry:
         batch = _minibatch(data, order, carry.batch, cfg.batch_size)
-        logits = _member_logits(cfg, carry.params, batch)
-        correct, _ = _hard_correct(logits, batch.labels)
-        grads, metrics = grad_fn(carry.params, batch, jax.random.fold_in(key_loss, carry.batch))
-        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
-        return _EpochCarry(
-            params=optax.apply_updates(carry.params, updates),
-            opt_state=opt_state,
-            batch=carry.batch + 1,
-            correct=carry.correct + jnp.sum(correct * batch.weight, axis=1),
-            loss=carry.loss + metrics["loss"],
-        )
+        key_step = jax.random.fold_in(key_loss, carry.batch)
+        params, opt_state, correct, _, loss = _adam_step(cfg, grad_fn, optimizer, carry, batch, key_step)
+        correct = carry.correct + jnp.sum(correct, axis=1)
+        return _EpochCarry(params, opt_state, carry.batch + 1, correct, carry.loss + loss)
 
     start = _EpochCarry(
         params=state.params,
@@ -636,17 +643,10 @@ def train_iterations(
             jax.random.fold_in(key_order, carry.batch // num_batches), cfg.ensemble_size, data.count, capacity, padded
         )
         batch = _minibatch(data, order, carry.batch % num_batches, cfg.batch_size)
-        logits = _member_logits(cfg, carry.params, batch)
-        correct, hard = _hard_correct(logits, batch.labels)
-        grads, metrics = grad_fn(carry.params, batch, jax.random.fold_in(key_loss, carry.batch))
-        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
-        return _EpochCarry(
-            params=optax.apply_updates(carry.params, updates),
-            opt_state=opt_state,
-            batch=carry.batch + 1,
-            correct=carry.correct + jnp.sum(correct * batch.weight) / jnp.maximum(jnp.sum(hard * batch.weight), 1.0),
-            loss=carry.loss + metrics["loss"],
-        )
+        key_step = jax.random.fold_in(key_loss, carry.batch)
+        params, opt_state, correct, hard, loss = _adam_step(cfg, grad_fn, optimizer, carry, batch, key_step)
+        accuracy = jnp.sum(correct) / jnp.maximum(jnp.sum(hard), 1.0)
+        return _EpochCarry(params, opt_state, carry.batch + 1, carry.correct + accuracy, carry.loss + loss)
 
     start = _EpochCarry(
         params=state.params,
