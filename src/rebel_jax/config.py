@@ -13,6 +13,8 @@ from typing import Annotated, Literal
 
 import tyro
 
+from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
+from rebel_jax.errors import check as _check
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
@@ -20,15 +22,6 @@ from rebel_jax.teachers import TeacherConfig
 
 Algo = Literal["sac", "pebble", "surf", "rebel"]
 Precision = Literal["tf32", "highest", "bf16"]
-
-
-class ConfigError(ValueError):
-    """A configuration value is out of its allowed range."""
-
-
-def _check(cond: bool, field: str, value, allowed: str) -> None:
-    if not cond:
-        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
 
 
 MAX_UTD = 100.0

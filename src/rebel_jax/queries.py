@@ -37,14 +37,9 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from rebel_jax.errors import check as _check
+
 Sampling = Literal["uniform", "disagreement", "entropy"]
-
-
-def _check(cond: bool, field: str, value, allowed: str) -> None:
-    if not cond:
-        from rebel_jax.config import ConfigError  # Lazy: config imports this module.
-
-        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,14 +35,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from rebel_jax.errors import check as _check
+
 LossTerm = Callable[[Any, "PrefBatch", jax.Array], tuple[jax.Array, dict[str, jax.Array]]]
-
-
-def _check(cond: bool, field: str, value, allowed: str) -> None:
-    if not cond:
-        from rebel_jax.config import ConfigError  # Lazy: config imports this module.
-
-        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -36,12 +36,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-
-def _check(cond: bool, field: str, value, allowed: str) -> None:
-    if not cond:
-        from rebel_jax.config import ConfigError  # Lazy: config imports this module.
-
-        raise ConfigError(f"{field}={value!r} is invalid: allowed {allowed}")
+from rebel_jax.errors import check as _check
 
 
 @dataclasses.dataclass(frozen=True)
