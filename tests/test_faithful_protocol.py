@@ -18,7 +18,7 @@ from rebel_jax import reward_model as rm
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import RewardConfig
+from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig
 from rebel_jax.train import Trainer
 
 # -- the reward network's initial weights -------------------------------------------------------
@@ -220,3 +220,41 @@ def test_evaluation_envs_follow_the_actor_frozen_at_the_episode_start(micro):
     np.testing.assert_array_equal(
         np.asarray(jax.tree.leaves(boundary.eval_actor)[0]), np.asarray(jax.tree.leaves(changed)[0])
     )
+
+
+# -- REBEL's on-policy V (issue 10) ---------------------------------------------------------------
+
+
+def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode():
+    cfg = dataclasses.replace(MICRO, algo="rebel", rebel=AgentPreferenceConfig(lam=-0.1, gamma=0.9))
+    trainer = Trainer(cfg)
+    ts = jax.jit(trainer.init)(jax.random.key(4))
+    step, length, n = jax.jit(trainer.vector_step), cfg.env.episode_length, trainer.num_train
+    after = []  # The evaluation environments' observation after each step of the second episode.
+    for t in range(2 * length):
+        if t == length:
+            frozen = ts.sac.actor_params  # The second episode's evaluation policy.
+        ts, _ = step(ts, jnp.int32(t))
+        if t >= length:
+            after.append(np.asarray(ts.env.obs[n:]))
+    obs, actions = trainer.value_trajectories(ts, jax.random.key(0))
+    assert obs.shape[:2] == (cfg.train.eval_episodes, length)
+    # A trajectory of the environment: each observation is the one the previous step led to...
+    np.testing.assert_array_equal(np.swapaxes(np.asarray(obs), 0, 1)[1:], np.stack(after)[:-1])
+    # ...under the policy frozen at the episode's start (its mean action).
+    expected = trainer.sac.act_deterministic(frozen, obs)
+    np.testing.assert_allclose(np.asarray(actions), np.asarray(expected), rtol=1e-5, atol=1e-6)
+    # V: the paper's discounted sum over the whole episode, as a plain loop over steps.
+    params = ts.reward.params
+    values = np.zeros(cfg.reward.ensemble_size)
+    for h in range(length):
+        values += 0.9**h * np.asarray(rm.predict(cfg.reward, params, obs[:, h], actions[:, h])).mean(axis=1)
+    got = rm.agent_value(cfg.reward, params, obs, actions, 0.9, "discounted")
+    np.testing.assert_allclose(np.asarray(got), values, rtol=1e-5)
+
+
+def test_onpolicy_value_needs_a_complete_evaluation_episode_by_the_first_session():
+    cfg = Config(algo="rebel", env=EnvConfig(num_envs=20), query=QueryConfig(pool="rows"))
+    with pytest.raises(ConfigError, match="with rebel.source='onpolicy'"):
+        cfg.validate()
+    dataclasses.replace(cfg, rebel=AgentPreferenceConfig(source="replay")).validate()

@@ -243,7 +243,17 @@ class Config:
             if self.algo == "rebel":
                 self.rebel.validate()
                 length = self.rebel.segment_length
-                _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
+                if self.rebel.source == "replay":
+                    _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
+                else:
+                    most = self.feedback_start // self.env.episode_length
+                    _check(
+                        self.env.num_envs <= most,
+                        "env.num_envs",
+                        self.env.num_envs,
+                        f"<= {most} with rebel.source='onpolicy': V needs a complete evaluation episode by the "
+                        f"first session (env step {self.feedback_start}) (or use --rebel.source replay)",
+                    )
             if self.query.pool == "episodes":
                 most = self.feedback_start // self.env.episode_length
                 _check(

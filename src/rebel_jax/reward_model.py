@@ -672,17 +672,26 @@ class AgentPreferenceConfig:
     ``sum_h gamma^h r(s_h, a_h)`` over a segment, averaged over segments; ``mean`` is the
     per-step mean reward over all their steps times the horizon ``1 / (1 - gamma)``, a
     stationary estimate of the infinite-horizon value."""
+    source: Literal["onpolicy", "replay"] = "onpolicy"
+    """Where V's trajectories come from. ``onpolicy``, the paper's ``V = E[sum_h gamma^h
+    r(s_h, a_h) | s_0, a_h ~ pi]`` (eq. "mle_new"): the last complete episodes of the in-batch
+    evaluation environments, which start at the task's reset and follow the current policy
+    (its mean action, frozen at the episode start), over their whole length, at no extra env
+    cost. ``replay``, this project's earlier estimate: ``num_segments`` segments of
+    ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
+    with actions redrawn from the current policy."""
     num_segments: int = 64
-    """Segments N of recent agent experience, drawn by the caller once per feedback session,
+    """``source='replay'``: segments N of recent agent experience, drawn once per feedback session,
     over which V is averaged (their actions redrawn from the current policy)."""
     segment_length: int = 50
-    """Steps H per segment."""
+    """``source='replay'``: steps H per segment."""
     gamma: float = 0.99
     """Discount of V; in [0, 1] for ``discounted``, in [0, 1) for ``mean``."""
 
     def validate(self) -> None:
         _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
         _check(self.estimator in ("discounted", "mean"), "rebel.estimator", self.estimator, "discounted, mean")
+        _check(self.source in ("onpolicy", "replay"), "rebel.source", self.source, "onpolicy, replay")
         for name in ("num_segments", "segment_length"):
             _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
         if self.estimator == "mean":

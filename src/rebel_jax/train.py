@@ -109,6 +109,10 @@ class TrainState:
         (``cfg.teacher`` at init; None for sac).
       eval_actor: the actor parameters the evaluation environments follow, frozen at the
         start of each episode.
+      eval_trajectory: REBEL's on-policy V (``rebel.source='onpolicy'``; else None): the
+        evaluation environments' observations and actions, ``current`` being written and
+        ``last`` the last complete episode, each ``{"obs": (L, eval_episodes, obs_size),
+        "action": (L, eval_episodes, act_size)}``.
     """
 
     sac: SACState
@@ -121,6 +125,7 @@ class TrainState:
     lam: jax.Array | None = None
     teacher: dict[str, jax.Array] | None = None
     eval_actor: Any = None
+    eval_trajectory: dict | None = None
 
 
 class Trainer:
@@ -154,6 +159,7 @@ class Trainer:
         self.pretrain_steps = cfg.feedback_start // cfg.env.num_envs if self.preference else 0  # vector steps
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
+        self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
         self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
@@ -180,7 +186,15 @@ class Trainer:
         )
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
-        return ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
+        ts = ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
+        if self.onpolicy_value:
+            length, num_eval = self.cfg.env.episode_length, self.cfg.train.eval_episodes
+            episode = {
+                "obs": jnp.zeros((length, num_eval, obs_size)),
+                "action": jnp.zeros((length, num_eval, action_size)),
+            }
+            ts = ts.replace(eval_trajectory={"current": episode, "last": episode})
+        return ts
 
     def _qpos_size(self) -> int:
         """Physics positions stored per transition: the task's qpos for the host teacher, else none."""
@@ -284,8 +298,21 @@ class Trainer:
             phase = jnp.where(learning & (t < self.pretrain_steps), 2, phase)  # 2: unsupervised pre-training
         (sac_state, stats), metrics = jax.lax.switch(phase, branches)
         ts = ts.replace(sac=sac_state, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
+        if self.onpolicy_value:
+            ts = ts.replace(eval_trajectory=self._record_evaluation(ts.eval_trajectory, env_state, action, t))
         metrics = dict(metrics, learning=learning.astype(jnp.float32))
         return ts, metrics
+
+    def _record_evaluation(self, trajectory: dict, state: State, action: jax.Array, t: jax.Array) -> dict:
+        """Writes the evaluation environments' step ``t`` (the state acted in, the action); keeps a done episode."""
+        length, n = self.cfg.env.episode_length, self.num_train
+        step = t % length
+        current = {
+            "obs": trajectory["current"]["obs"].at[step].set(state.obs[n:]),
+            "action": trajectory["current"]["action"].at[step].set(action[n:]),
+        }
+        last = jax.lax.cond(step == length - 1, lambda: current, lambda: trajectory["last"])
+        return {"current": current, "last": last}
 
     # -- feedback session (preference methods) ---------------------------------------------
     def _central(self, seg: Segments) -> Segments:
@@ -325,13 +352,26 @@ class Trainer:
         within = jnp.cumsum(mask) <= remaining  # Skipped pairs do not count against the budget.
         return labels, mask * within, info
 
+    def value_trajectories(self, ts: TrainState, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """REBEL's V trajectories (``rebel.source``): ``(obs (N, H, obs_size), actions (N, H, act_size))``.
+
+        ``onpolicy``: the evaluation environments' last complete episodes, N = ``eval_episodes``
+        and H = ``episode_length``. ``replay``: ``num_segments`` replay segments, actions redrawn
+        from the current policy (``a_h ~ pi_theta``, held fixed).
+        """
+        if self.onpolicy_value:
+            last = ts.eval_trajectory["last"]
+            return jnp.swapaxes(last["obs"], 0, 1), jnp.swapaxes(last["action"], 0, 1)
+        rebel = self.cfg.rebel
+        key_segments, key_actions = jax.random.split(key)
+        seg = self._sample_segments(ts.buffer, key_segments, rebel.num_segments, rebel.segment_length)
+        return seg.obs, self.sac.act(ts.sac.actor_params, seg.obs, key_actions)
+
     def _loss_terms(self, ts: TrainState, key: jax.Array) -> list[reward_model.LossTerm]:
         cfg, rcfg = self.cfg, self.reward_cfg
         if cfg.algo == "rebel":
-            key_segments, key_actions = jax.random.split(key)
-            seg = self._sample_segments(ts.buffer, key_segments, cfg.rebel.num_segments, cfg.rebel.segment_length)
-            actions = self.sac.act(ts.sac.actor_params, seg.obs, key_actions)  # a_h ~ pi_theta, held fixed
-            value = reward_model.agent_value_term(rcfg, ts.lam, seg.obs, actions, cfg.rebel.gamma, cfg.rebel.estimator)
+            obs, actions = self.value_trajectories(ts, key)
+            value = reward_model.agent_value_term(rcfg, ts.lam, obs, actions, cfg.rebel.gamma, cfg.rebel.estimator)
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
             pool = ts.reward.pool
