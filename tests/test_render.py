@@ -2,7 +2,7 @@
 
 The geometry tests need no OpenGL. The fidelity test renders with MuJoCo's own renderer in a
 subprocess with ``MUJOCO_GL=egl`` (Mesa's software EGL on a CPU machine: ``libegl1``,
-``libegl-mesa0``, ``libgl1-mesa-dri``, installed by ``make gl``); it is skipped, saying why,
+``libegl-mesa0``, ``libgl1-mesa-dri``, installed by ``make system-deps``); it is skipped, saying why,
 where no EGL display can be created.
 """
 
@@ -210,7 +210,7 @@ def test_frames_match_mujoco_renderer(task, tmp_path):
     qpos = _random_states(task, 4, seed=1)
     ref = mujoco_frames(task, qpos, 84, tmp_path)
     if isinstance(ref, str):
-        pytest.skip(f"MuJoCo's renderer is unavailable (MUJOCO_GL=egl; `make gl` installs it): {ref}")
+        pytest.skip(f"MuJoCo's renderer is unavailable (MUJOCO_GL=egl; `make system-deps` installs it): {ref}")
     ref_rgb, ref_seg = ref
     m = mj_model(task)
     cam = render.make_camera(m, 0, 84, 84)

@@ -228,6 +228,17 @@ class Config:
         """Env step of the first feedback session (= end of pre-training)."""
         return self.train.seed_steps + self.pretrain.steps
 
+    def _check_complete_episode(self, setting: str, what: str, alternative: str) -> None:
+        """``setting`` draws ``what`` from complete episodes: the first session must find one."""
+        most = self.feedback_start // self.env.episode_length
+        _check(
+            self.env.num_envs <= most,
+            "env.num_envs",
+            self.env.num_envs,
+            f"<= {most} with {setting}: {what} come from complete episodes, and the first session "
+            f"(env step {self.feedback_start}) must find one (or use {alternative})",
+        )
+
     def validate(self) -> Config:
         _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
         _check_finite(self)
@@ -246,23 +257,9 @@ class Config:
                 if self.rebel.source == "replay":
                     _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
                 else:
-                    most = self.feedback_start // self.env.episode_length
-                    _check(
-                        self.env.num_envs <= most,
-                        "env.num_envs",
-                        self.env.num_envs,
-                        f"<= {most} with rebel.source='onpolicy': V needs a complete evaluation episode by the "
-                        f"first session (env step {self.feedback_start}) (or use --rebel.source replay)",
-                    )
+                    self._check_complete_episode("rebel.source='onpolicy'", "V's episodes", "--rebel.source replay")
             if self.query.pool == "episodes":
-                most = self.feedback_start // self.env.episode_length
-                _check(
-                    self.env.num_envs <= most,
-                    "env.num_envs",
-                    self.env.num_envs,
-                    f"<= {most} with query.pool='episodes': queries come from complete episodes, and the first "
-                    f"session (env step {self.feedback_start}) must find one (or use --query.pool rows)",
-                )
+                self._check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)
             _check_round_multiple(self.feedback.interval, "feedback.interval", steps)
