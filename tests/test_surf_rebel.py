@@ -362,3 +362,46 @@ def test_surf_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match="surf.crop"):
         rm.SURFConfig(crop=5).validate(segment_length=5)
     rm.SURFConfig().validate(segment_length=50)
+
+
+def test_scale_free_value_term_matches_a_numpy_reference():
+    params = _init(TINY, jax.random.key(21), OBS, ACT, H).params
+    seg = _segments(22, 4)
+    batch = _surf_batch(23, 2, 5, H)  # The last pair is padding: excluded from the spread.
+    lam, gamma = -0.3, 0.95
+    term = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
+    loss, _ = jax.jit(term)(params, batch, jax.random.key(0))
+    rewards = _numpy_rewards(params, seg.obs, seg.action)  # (M, N, H)
+    values = (rewards * gamma ** np.arange(H)).sum(-1).mean(-1)
+    expected = 0.0
+    for m in range(2):
+        w = np.asarray(batch.weight[m]) > 0
+        labelled = np.concatenate(
+            [
+                _numpy_rewards(params, np.asarray(batch.obs_a[m])[w], np.asarray(batch.act_a[m])[w])[m],
+                _numpy_rewards(params, np.asarray(batch.obs_b[m])[w], np.asarray(batch.act_b[m])[w])[m],
+            ]
+        )
+        expected += lam * values[m] / labelled.std()
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-4)
+    # Scale-free: scaling the reward network's output layer scales V and its spread alike (before tanh
+    # saturates), so the term barely moves, where the literal term scales with it.
+    small = jax.tree.map(lambda x: x, params)
+    small["params"]["Dense_1"] = jax.tree.map(lambda x: 0.01 * x, params["params"]["Dense_1"])
+    literal = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
+    ratio_free = float(term(small, batch, None)[0]) / float(term(params, batch, None)[0])
+    ratio_literal = float(literal(small, batch, None)[0]) / float(literal(params, batch, None)[0])
+    assert abs(ratio_literal) < 0.2 and abs(ratio_free - 1.0) < abs(ratio_literal - 1.0)
+
+
+def test_value_term_gradient_reaches_only_the_reward_parameters():
+    params = _init(TINY, jax.random.key(24), OBS, ACT, H).params
+    seg = _segments(25, 3)
+
+    def loss_of_inputs(obs, action):
+        return rm.agent_value_term(TINY, 0.7, obs, action, 0.9)(params, None, None)[0]
+
+    grad_obs, grad_action = jax.grad(loss_of_inputs, argnums=(0, 1))(jnp.asarray(seg.obs), jnp.asarray(seg.action))
+    assert not np.any(np.asarray(grad_obs)) and not np.any(np.asarray(grad_action))
+    grads = jax.grad(lambda p: rm.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0])(params)
+    assert any(np.any(np.asarray(g)) for g in jax.tree.leaves(grads))

@@ -687,6 +687,10 @@ class AgentPreferenceConfig:
     """``source='replay'``: steps H per segment."""
     gamma: float = 0.99
     """Discount of V; in [0, 1] for ``discounted``, in [0, 1) for ``mean``."""
+    normalize: bool = False
+    """The scale-free form: V divided by each member's spread (std) of the per-step reward on
+    the labelled segments of the minibatch, so that one lambda means the same on walker and
+    cheetah (see ``agent_value_term``). Off: the paper's literal ``lambda * V``."""
 
     def validate(self) -> None:
         _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
@@ -725,6 +729,20 @@ def agent_value(
     return jnp.mean(jnp.sum(rewards * discounts, axis=-1), axis=1)
 
 
+def _labelled_spread(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
+    """(M,) each member's std of the per-step reward over its minibatch's labelled steps (>= 1e-6)."""
+
+    def one(member_params, obs_a, act_a, obs_b, act_b, weight):
+        apply = _network(cfg).apply
+        rewards = jnp.concatenate([apply(member_params, obs_a, act_a), apply(member_params, obs_b, act_b)], axis=0)
+        w = jnp.broadcast_to(jnp.concatenate([weight, weight])[:, None], rewards.shape)
+        mean = jnp.sum(rewards * w) / jnp.maximum(jnp.sum(w), 1.0)
+        var = jnp.sum(w * (rewards - mean) ** 2) / jnp.maximum(jnp.sum(w), 1.0)
+        return jnp.maximum(jnp.sqrt(var), 1e-6)
+
+    return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, batch.weight)
+
+
 def agent_value_term(
     cfg: RewardConfig,
     lam: float | jax.Array,
@@ -732,6 +750,7 @@ def agent_value_term(
     action: jax.Array,
     gamma: float | jax.Array,
     estimator: str = "discounted",
+    normalize: bool = False,
 ) -> LossTerm:
     """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
 
@@ -749,6 +768,11 @@ def agent_value_term(
       action: (N, H, act_size) actions from the current policy.
       gamma: discount of V.
       estimator: ``"discounted"`` or ``"mean"``, see ``agent_value``.
+      normalize: the scale-free form ``lambda * sum_m V_m / s_m`` (``rebel.normalize``): ``s_m``
+        is member m's standard deviation of the per-step reward over the steps of the batch's
+        labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
+        BT loss fixes the reward's scale only up to what the labels demand, so with it one
+        lambda weighs V alike on tasks whose learned rewards spread differently.
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
@@ -760,8 +784,10 @@ def agent_value_term(
     _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        del batch, key  # Unused.
+        del key  # Unused.
         values = agent_value(cfg, params, jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action), gamma, estimator)
+        if normalize:
+            values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
         loss = lam * jnp.sum(values)
         return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
 

@@ -371,7 +371,10 @@ class Trainer:
         cfg, rcfg = self.cfg, self.reward_cfg
         if cfg.algo == "rebel":
             obs, actions = self.value_trajectories(ts, key)
-            value = reward_model.agent_value_term(rcfg, ts.lam, obs, actions, cfg.rebel.gamma, cfg.rebel.estimator)
+            rebel = cfg.rebel
+            value = reward_model.agent_value_term(
+                rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
+            )
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
             pool = ts.reward.pool
