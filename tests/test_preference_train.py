@@ -135,3 +135,31 @@ def test_surf_with_disagreement_queries_and_a_skipping_teacher():
     for seed in range(accuracy.shape[1]):
         assert accuracy[kept[:, seed] > 0, seed][-1] >= 0.7, accuracy
     assert np.all(np.isfinite(metrics[-1]["critic_loss"]))
+
+
+def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_segments(pebble_run):
+    trainer, state, _ = pebble_run
+    ts = jax.tree.map(lambda x: x[0], state)
+    key, key_select = jax.random.key(31), jax.random.key(32)
+    seg_a, seg_b = jax.jit(trainer.select, static_argnums=2)(ts, key_select, False)
+    labels = (seg_b.true_reward.sum(-1) > seg_a.true_reward.sum(-1)).astype(jnp.float32)
+    mask = jnp.zeros_like(labels)  # Nothing kept: the reward model stays as it is.
+    new, metrics = jax.jit(trainer.learn, static_argnums=6)(ts, key, seg_a, seg_b, labels, mask, False)
+    # The fresh segments are drawn with learn's own key split, as documented in Trainer.learn.
+    key_fresh = jax.random.split(key, 5)[2]
+    fresh = trainer._sample_segments(new.buffer, key_fresh, 64, trainer.horizon)
+    learned = np.asarray(reward_model.mean_reward(trainer.reward_cfg, ts.reward.params, fresh.obs, fresh.action))
+    true = np.asarray(fresh.true_reward)
+    np.testing.assert_allclose(
+        metrics["reward_correlation"], np.corrcoef(learned.ravel(), true.ravel())[0, 1], rtol=1e-4
+    )
+    np.testing.assert_allclose(
+        metrics["reward_correlation_return"], np.corrcoef(learned.sum(-1), true.sum(-1))[0, 1], rtol=1e-4
+    )
+    both_obs = np.concatenate([seg_a.obs, seg_b.obs])
+    both_action = np.concatenate([seg_a.action, seg_b.action])
+    queried = np.asarray(reward_model.mean_reward(trainer.reward_cfg, ts.reward.params, both_obs, both_action))
+    true_queried = np.concatenate([seg_a.true_reward, seg_b.true_reward])
+    np.testing.assert_allclose(
+        metrics["reward_correlation_queries"], np.corrcoef(queried.ravel(), true_queried.ravel())[0, 1], rtol=1e-4
+    )

@@ -72,8 +72,18 @@ SESSION_METRICS = (
     "reward_epochs",
     "reward_loss",
     "reward_correlation",
+    "reward_correlation_return",
+    "reward_correlation_queries",
 )
-"""Per-round metrics of the feedback session (NaN in rounds without one, except ``labels_used``)."""
+"""Per-round metrics of the feedback session (NaN in rounds without one, except ``labels_used``).
+
+The three correlations of the learned (ensemble-mean) reward with the true one tell apart why
+``reward_correlation`` (per step, on 64 fresh segments of the query pool) can be low or negative:
+``reward_correlation_return`` is over those segments' sums, which is all the Bradley-Terry loss
+constrains (a model can order segments right and still spread reward over their steps wrongly);
+``reward_correlation_queries`` is per step on this session's queried segments, the data the
+labels came from (high there but low on fresh segments points to a shift between the two).
+"""
 
 
 @struct.dataclass
@@ -441,6 +451,10 @@ class Trainer:
         metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
         metrics["session_labels"] = kept
         metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
+        metrics["reward_correlation_return"] = _pearson(learned.sum(-1), fresh.true_reward.sum(-1))
+        queried = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
+        learned_queried = reward_model.mean_reward(rcfg, reward.params, queried.obs, queried.action)
+        metrics["reward_correlation_queries"] = _pearson(learned_queried.reshape(-1), queried.true_reward.reshape(-1))
         return ts.replace(sac=sac_state, buffer=buffer, reward=reward), metrics
 
     def _reset_critic(self, sac_state: SACState, buffer: replay.Buffer, key: jax.Array) -> SACState:
