@@ -24,7 +24,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-from timing import median_seconds
+from timing import random_steps_seconds
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
 
@@ -42,18 +42,8 @@ def _device() -> str:
 
 def time_rollout(env, batch: int, repeats: int = 5) -> float:
     """Median seconds per control step of ``batch`` environments."""
-
-    def body(state, key):
-        action = jax.random.uniform(key, (batch, env.action_size), minval=-1, maxval=1)
-        return jax.vmap(env.step)(state, action), ()
-
-    @jax.jit
-    def run(state, key):
-        state, _ = jax.lax.scan(body, state, jax.random.split(key, STEPS_PER_CALL))
-        return state
-
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch))
-    return median_seconds(run, state, STEPS_PER_CALL, repeats)
+    return random_steps_seconds(env, state, STEPS_PER_CALL, repeats)
 
 
 def throughput(args):

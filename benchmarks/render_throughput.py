@@ -29,7 +29,7 @@ import time
 
 import jax
 import jax.numpy as jnp
-from timing import median_seconds
+from timing import random_steps_seconds
 
 from rebel_jax.envs import make_env
 
@@ -66,18 +66,7 @@ def time_render(env, states, repeats: int = 10) -> float:
 
 def time_steps(env, states, repeats: int = 5) -> float:
     """Median seconds per batched agent step of ``env`` (a scan of ``STEPS_PER_CALL`` steps)."""
-    batch = states.reward.shape[0]
-
-    def body(state, key):
-        action = jax.random.uniform(key, (batch, env.action_size), minval=-1, maxval=1)
-        return jax.vmap(env.step)(state, action), ()
-
-    @jax.jit
-    def run(state, key):
-        state, _ = jax.lax.scan(body, state, jax.random.split(key, STEPS_PER_CALL))
-        return state
-
-    return median_seconds(run, states, STEPS_PER_CALL, repeats)
+    return random_steps_seconds(env, states, STEPS_PER_CALL, repeats)
 
 
 class _Physics:

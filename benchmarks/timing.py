@@ -24,3 +24,26 @@ def median_seconds(run, state, per_call: int, repeats: int = 5) -> float:
         state = jax.block_until_ready(run(state, jax.random.PRNGKey(2 + i)))
         times.append((time.perf_counter() - t0) / per_call)
     return statistics.median(times)
+
+
+def random_steps_seconds(env, states, per_call: int, repeats: int = 5) -> float:
+    """Median seconds per batched step of ``env`` from ``states`` under uniformly random actions.
+
+    Args:
+      env: an environment with ``step`` and ``action_size``.
+      states: a batch of its states (leading axis).
+      per_call: steps per jitted call (one ``lax.scan``).
+      repeats: timed calls.
+    """
+    batch = states.reward.shape[0]
+
+    def body(state, key):
+        action = jax.random.uniform(key, (batch, env.action_size), minval=-1, maxval=1)
+        return jax.vmap(env.step)(state, action), ()
+
+    @jax.jit
+    def run(state, key):
+        state, _ = jax.lax.scan(body, state, jax.random.split(key, per_call))
+        return state
+
+    return median_seconds(run, states, per_call, repeats)

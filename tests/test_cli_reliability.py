@@ -19,18 +19,12 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import pytest
+from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
+from test_cli_runs import ROUNDS, TIMING
 
 from rebel_jax import cli
 
 ROOT = pathlib.Path(__file__).parents[1]
-# test_cli_runs.MICRO_FLAGS (= test_train.MICRO, two seeds): the same compiled round.
-MICRO = (
-    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --hidden 16 --batch-size 16"
-    " --utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
-    " --seeds 2 --seed 7 --no-tensorboard --no-progress"
-).split()
-ROUNDS = 3
-TIMING = ("seconds", "env_steps_per_s")  # the only fields of metrics.jsonl that may differ between runs
 
 # ``python -m rebel_jax.train`` that SIGKILLs itself at KILL_AT: ``log:<env steps>`` right after
 # logging that round, or ``save:<step>`` while orbax writes that checkpoint in the background.
