@@ -1,15 +1,19 @@
 #!/usr/bin/env bash
-# The faithful-baseline runs of issue 9 on one lent H100 (2026-11-24): PEBBLE and PEBBLE+SURF on
-# walker_walk (100 labels, 5 seeds, 500k steps, 10 envs, utd 0.3) and SAC on cheetah_run on the
-# fixed reset, as three processes sharing the GPU. Each call runs for at most $1 seconds
-# (--time-limit), checkpoints, and the next call resumes; the logs go to $OUT/runs.tar.gz.
-# Usage (device tool, carrying .whl): bash experiments/baselines_h100.sh 520 [set]
-#   set "shared" (default): the three runs side by side (the first GPU session: sharing slowed
-#   each walker run about 2.5x, so they did not finish); set "utd1": PEBBLE at B-Pref's utd 1 alone.
+# The faithful-baseline runs of issue 9 on one lent H100. Each call runs for at most $1 seconds
+# (--time-limit), checkpoints, and the next call (on the same warm machine) resumes; the logs (no
+# checkpoints) go to $OUT/runs.tar.gz. A persistent compilation cache under runs/ spares the resumed
+# calls the ~90 s compile.
+# Usage (device tool, carrying .whl): REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT SET
+#   SET "shared" (2026-11-24, first session): PEBBLE and SURF at utd 0.3 and SAC cheetah side by side
+#       (sharing the GPU slowed each walker run about 2.5x, so they did not finish);
+#   SET "utd1" (2026-11-24, first session): PEBBLE at B-Pref's utd 1 alone (stopped at 270k);
+#   SET "pebble500" (second session): the same PEBBLE job, run to 500k over several calls;
+#   SET "surf500": PEBBLE+SURF at utd 1, likewise.
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
-export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_MEM_FRACTION=0.3
+export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
+export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
 launch() {  # name, then the training flags
   local name=$1; shift
@@ -18,18 +22,22 @@ launch() {  # name, then the training flags
   [ -f "$dir/final.json" ] && { echo "$name: done"; return; }
   python3 -m rebel_jax.train "$@" --run-dir "$dir" $common $resume >>"runs/$name.log" 2>&1 &
 }
+finish() {  # print the tails and ship the logs
+  for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
+  for d in runs/*/; do echo "$d rounds=$(wc -l <"$d/metrics.jsonl" 2>/dev/null)"; done
+  tar czf "$OUT/runs.tar.gz" --exclude=checkpoints --exclude=.jax_cache runs
+}
 mkdir -p runs
-if [ "${2:-shared}" = utd1 ]; then
-  launch pebble_walker_100_utd1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5
-  wait
-  for f in runs/pebble_walker_100_utd1.log; do grep -v warp "$f" | tail -3; done
-  tar czf "$OUT/runs.tar.gz" --exclude=checkpoints runs
-  exit 0
-fi
+case "${2:-shared}" in
+  utd1|pebble500)
+    launch pebble_walker_100_utd1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5
+    wait; finish; exit 0 ;;
+  surf500)
+    launch surf_walker_100_utd1 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5
+    wait; finish; exit 0 ;;
+esac
+export XLA_PYTHON_CLIENT_MEM_FRACTION=0.3
 launch pebble_walker_100 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --utd 0.3
 launch surf_walker_100 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5 --utd 0.3
 launch sac_cheetah_fixed --preset paper --algo sac --task cheetah_run --seeds 5 --num-envs 40 --utd 0.25
-wait
-for f in runs/*.log; do echo "== $f"; grep -v "warp" "$f" | tail -4; done
-for d in runs/*/; do n=$(wc -l <"$d/metrics.jsonl" 2>/dev/null); echo "$d rounds=$n"; done
-tar czf "$OUT/runs.tar.gz" --exclude=checkpoints runs
+wait; finish

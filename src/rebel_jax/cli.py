@@ -177,6 +177,9 @@ def _usage_error(err: Exception) -> SystemExit:
 
 
 def _git_commit() -> str | None:
+    """The checkout's commit; ``REBEL_JAX_GIT_COMMIT`` names it where the tree was copied without its history."""
+    if os.environ.get("REBEL_JAX_GIT_COMMIT"):
+        return os.environ["REBEL_JAX_GIT_COMMIT"]
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
         return out.stdout.strip() if out.returncode == 0 else None
