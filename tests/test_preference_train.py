@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from rebel_jax import reward_model
+from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
+from rebel_jax.reward_model import RewardConfig
+from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
 

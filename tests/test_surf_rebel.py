@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rebel_jax import agent_preference, surf
 from rebel_jax import reward_model as rm
 from rebel_jax.queries import Segments
 
@@ -93,7 +94,7 @@ def test_agent_value_term_equals_hand_computation(estimator, output):
     params = _tiny_params(cfg, seed=1)
     seg = _segments(2, 3, length=5)
     lam, gamma = 0.7, 0.9
-    term = jax.jit(rm.agent_value_term(cfg, lam, seg.obs, seg.action, gamma, estimator))
+    term = jax.jit(agent_preference.agent_value_term(cfg, lam, seg.obs, seg.action, gamma, estimator))
     loss, metrics = term(params, _empty_batch(), jax.random.key(0))
 
     rewards = _numpy_rewards(params, seg.obs, seg.action, output)  # (M, N, H)
@@ -116,14 +117,16 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
     batch, key, lam, gamma = _empty_batch(), jax.random.key(0), -0.3, 0.95
 
     def loss(params, lam, obs, action):
-        return rm.agent_value_term(TINY, lam, obs, action, gamma)(params, batch, key)[0]
+        return agent_preference.agent_value_term(TINY, lam, obs, action, gamma)(params, batch, key)[0]
 
     grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(params, lam, obs, action)
-    value_grads = jax.grad(lambda p: jnp.sum(rm.agent_value(TINY, p, obs, action, gamma, "discounted")))(params)
+    value_grads = jax.grad(lambda p: jnp.sum(agent_preference.agent_value(TINY, p, obs, action, gamma, "discounted")))(
+        params
+    )
     for got, want in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(value_grads), strict=True):
         np.testing.assert_allclose(np.asarray(got), lam * np.asarray(want), rtol=1e-5, atol=1e-7)
     assert np.abs(np.asarray(jax.tree.leaves(value_grads)[0])).max() > 0
-    total_value = float(jnp.sum(rm.agent_value(TINY, params, obs, action, gamma, "discounted")))
+    total_value = float(jnp.sum(agent_preference.agent_value(TINY, params, obs, action, gamma, "discounted")))
     np.testing.assert_allclose(float(grads[1]), total_value, rtol=1e-5)  # d loss / d lambda = sum_m V_m.
     np.testing.assert_array_equal(np.asarray(grads[2]), 0.0)
     np.testing.assert_array_equal(np.asarray(grads[3]), 0.0)
@@ -136,7 +139,7 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
 @jax.jit
 def _session_with_lambda(state, key, lam, agent_obs, agent_action):
     """A BT + REBEL session with lambda traced: one compilation serves every lambda."""
-    terms = [rm.bt_loss(SMALL), rm.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
+    terms = [rm.bt_loss(SMALL), agent_preference.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
     return rm.train(SMALL, state, key, terms)
 
 
@@ -171,7 +174,7 @@ def test_lambda_sign_moves_the_agents_reward():
 def test_crop_masks_match_a_python_reference_with_the_same_draws():
     key, shape, stored, crop = jax.random.key(5), (3, 7), 14, 3
     central = stored - 2 * crop
-    mask_a, mask_b = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
+    mask_a, mask_b = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
 
     @jax.jit
     def draws(key):  # The documented draws: one length per pair, then a start per segment.
@@ -192,7 +195,7 @@ def test_crop_masks_match_a_python_reference_with_the_same_draws():
 def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     shape, stored, crop = (4000,), 12, 2
     central = stored - 2 * crop
-    masks = np.stack(jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
+    masks = np.stack(jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
     assert set(np.unique(masks)) == {0.0, 1.0}
     edges = np.diff(np.pad(masks, ((0, 0), (0, 0), (1, 1))), axis=-1)
     assert np.all((edges == 1).sum(-1) == 1) and np.all((edges == -1).sum(-1) == 1)  # One contiguous run.
@@ -202,7 +205,7 @@ def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     starts = np.argmax(masks, axis=-1)
     for length in range(central - crop, central + crop + 1):  # Every start in [0, L - length] occurs.
         assert set(starts[0][lengths[0] == length]) == set(range(stored - length + 1))
-    full = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
+    full = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
     np.testing.assert_array_equal(np.stack(full), 1.0)
 
 
@@ -223,21 +226,23 @@ def _surf_batch(seed, members, size, stored):
 def test_cropped_bt_loss_without_crop_is_bt_loss_exactly():
     params = _init(SMALL, jax.random.key(8), OBS, ACT, H).params
     batch, key = _surf_batch(9, 2, 5, H), jax.random.key(10)
-    surf = rm.SURFConfig(crop=0)
+    surf_cfg = surf.SURFConfig(crop=0)
     value_and_grad = functools.partial(jax.value_and_grad, has_aux=True)
     plain = jax.jit(value_and_grad(rm.bt_loss(SMALL)))(params, batch, key)
-    cropped = jax.jit(value_and_grad(rm.cropped_bt_loss(SMALL, surf)))(params, batch, key)
+    cropped = jax.jit(value_and_grad(surf.cropped_bt_loss(SMALL, surf_cfg)))(params, batch, key)
     for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(cropped), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
-    surf = rm.SURFConfig(crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(crop=2)
+    stored = H + 2 * surf_cfg.crop
     params = _tiny_params(seed=12)
     batch, key = _surf_batch(13, 2, 5, stored), jax.random.key(14)
-    loss, metrics = jax.jit(rm.cropped_bt_loss(TINY, surf))(params, batch, key)
-    mask_a, mask_b = map(np.asarray, jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf.crop))
+    loss, metrics = jax.jit(surf.cropped_bt_loss(TINY, surf_cfg))(params, batch, key)
+    mask_a, mask_b = map(
+        np.asarray, jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf_cfg.crop)
+    )
     assert not np.array_equal(mask_a[0], mask_a[1])  # Members see different crops.
     expected = 0.0
     for m in range(2):
@@ -256,7 +261,7 @@ def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
 def test_pseudo_labels_match_numpy():
     logits = np.array([-3.0, -0.5, -1e-3, 0.0, 1e-3, 0.4, 1.2, 2.5, 6.0], np.float32)
     for threshold in (0.5, 0.6, 0.9, 0.99):
-        labels, confident = jax.jit(rm.pseudo_labels)(logits, threshold)
+        labels, confident = jax.jit(surf.pseudo_labels)(logits, threshold)
         prob = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
         np.testing.assert_array_equal(np.asarray(labels), (prob > 0.5).astype(np.float32))
         np.testing.assert_array_equal(
@@ -270,32 +275,32 @@ def _pool(seed, size, stored):
 
 
 def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
-    surf = rm.SURFConfig(threshold=0.6, weight=0.5, ratio=3, crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(threshold=0.6, weight=0.5, ratio=3, crop=2)
+    stored = H + 2 * surf_cfg.crop
     params = _init(TINY, jax.random.key(15), OBS, ACT, stored).params
     params = jax.tree.map(lambda x: 3.0 * x, params)  # Sharper preferences: some pairs pass the threshold.
     pool = _pool(16, 30, stored)
     batch, key = _surf_batch(17, 2, 4, stored), jax.random.key(18)
-    term = rm.pseudo_label_term(TINY, surf, *pool)
+    term = surf.pseudo_label_term(TINY, surf_cfg, *pool)
     (loss, metrics), grads = jax.jit(jax.value_and_grad(term, has_aux=True))(params, batch, key)
 
     @jax.jit
     def draws(key):  # The documented draws: pool indices, then crops.
         key_index, key_crop = jax.random.split(key)
-        return jax.random.randint(key_index, (2, 12), 0, 30), *rm.crop_masks(key_crop, (2, 12), stored, surf.crop)
+        return jax.random.randint(key_index, (2, 12), 0, 30), *surf.crop_masks(key_crop, (2, 12), stored, surf_cfg.crop)
 
     index, mask_a, mask_b = map(np.asarray, draws(key))
     expected, confident_count, fixed_labels, fixed_confident = 0.0, 0, [], []
     for m in range(2):
         obs_a, act_a, obs_b, act_b = (np.asarray(x)[index[m]] for x in pool)
         rewards_a, rewards_b = _numpy_rewards(params, obs_a, act_a)[m], _numpy_rewards(params, obs_b, act_b)[m]
-        central = slice(surf.crop, surf.crop + H)
+        central = slice(surf_cfg.crop, surf_cfg.crop + H)
         prob = 1.0 / (1.0 + np.exp(-(rewards_b[:, central].sum(-1) - rewards_a[:, central].sum(-1))))
-        assert np.all(np.abs(np.maximum(prob, 1 - prob) - surf.threshold) > 1e-4)  # No float32 borderline case.
+        assert np.all(np.abs(np.maximum(prob, 1 - prob) - surf_cfg.threshold) > 1e-4)  # No float32 borderline case.
         labels = (prob > 0.5).astype(np.float64)
-        confident = (np.maximum(prob, 1 - prob) >= surf.threshold).astype(np.float64)
+        confident = (np.maximum(prob, 1 - prob) >= surf_cfg.threshold).astype(np.float64)
         logits = (rewards_b * mask_b[m]).sum(-1) - (rewards_a * mask_a[m]).sum(-1)
-        expected += surf.weight * np.mean(_numpy_ce(logits, labels) * confident)
+        expected += surf_cfg.weight * np.mean(_numpy_ce(logits, labels) * confident)
         confident_count += confident.sum()
         fixed_labels.append(labels)
         fixed_confident.append(confident)
@@ -309,22 +314,22 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
 
     def fixed_loss(params):
         def one(member_params, member_index, member_mask_a, member_mask_b):
-            reward_a = rm._network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
-            reward_b = rm._network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
+            reward_a = rm.network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
+            reward_b = rm.network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
             return jnp.sum(reward_b * member_mask_b, -1) - jnp.sum(reward_a * member_mask_a, -1)
 
         logits = jax.vmap(one)(params, jnp.asarray(index), jnp.asarray(mask_a), jnp.asarray(mask_b))
-        return surf.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
+        return surf_cfg.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
 
     for x, y in zip(jax.tree.leaves(grads), jax.tree.leaves(jax.jit(jax.grad(fixed_loss))(params)), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
 
 
 def test_surf_session_runs_under_jit_and_vmap_over_keys():
-    surf = rm.SURFConfig(threshold=0.7, ratio=2, crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(threshold=0.7, ratio=2, crop=2)
+    stored = H + 2 * surf_cfg.crop
     state = _state_with_labels(SMALL, 19, 40, stored)
-    terms = [rm.cropped_bt_loss(SMALL, surf), rm.pseudo_label_term(SMALL, surf, *_pool(20, 50, stored))]
+    terms = [surf.cropped_bt_loss(SMALL, surf_cfg), surf.pseudo_label_term(SMALL, surf_cfg, *_pool(20, 50, stored))]
     session = functools.partial(rm.train, SMALL, terms=terms)
     keys = jax.random.split(jax.random.key(21), 2)
     batched, batched_metrics = jax.jit(jax.vmap(session, in_axes=(None, 0)))(state, keys)
@@ -346,11 +351,11 @@ def test_surf_session_runs_under_jit_and_vmap_over_keys():
 )
 def test_agent_preference_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"rebel.{field}"):
-        dataclasses.replace(rm.AgentPreferenceConfig(), **{field: value}).validate()
+        dataclasses.replace(agent_preference.AgentPreferenceConfig(), **{field: value}).validate()
     with pytest.raises(ValueError, match="rebel.gamma"):
-        rm.AgentPreferenceConfig(estimator="mean", gamma=1.0).validate()
-    rm.AgentPreferenceConfig().validate()
-    rm.AgentPreferenceConfig(gamma=1.0).validate()
+        agent_preference.AgentPreferenceConfig(estimator="mean", gamma=1.0).validate()
+    agent_preference.AgentPreferenceConfig().validate()
+    agent_preference.AgentPreferenceConfig(gamma=1.0).validate()
 
 
 @pytest.mark.parametrize(
@@ -358,10 +363,10 @@ def test_agent_preference_validate_names_the_field(field, value):
 )
 def test_surf_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"surf.{field}"):
-        dataclasses.replace(rm.SURFConfig(), **{field: value}).validate()
+        dataclasses.replace(surf.SURFConfig(), **{field: value}).validate()
     with pytest.raises(ValueError, match="surf.crop"):
-        rm.SURFConfig(crop=5).validate(segment_length=5)
-    rm.SURFConfig().validate(segment_length=50)
+        surf.SURFConfig(crop=5).validate(segment_length=5)
+    surf.SURFConfig().validate(segment_length=50)
 
 
 def test_scale_free_value_term_matches_a_numpy_reference():
@@ -369,7 +374,7 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     seg = _segments(22, 4)
     batch = _surf_batch(23, 2, 5, H)  # The last pair is padding: excluded from the spread.
     lam, gamma = -0.3, 0.95
-    term = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
+    term = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
     loss, _ = jax.jit(term)(params, batch, jax.random.key(0))
     rewards = _numpy_rewards(params, seg.obs, seg.action)  # (M, N, H)
     values = (rewards * gamma ** np.arange(H)).sum(-1).mean(-1)
@@ -388,7 +393,7 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     # saturates), so the term barely moves, where the literal term scales with it.
     small = jax.tree.map(lambda x: x, params)
     small["params"]["Dense_1"] = jax.tree.map(lambda x: 0.01 * x, params["params"]["Dense_1"])
-    literal = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
+    literal = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
     ratio_free = float(term(small, batch, None)[0]) / float(term(params, batch, None)[0])
     ratio_literal = float(literal(small, batch, None)[0]) / float(literal(params, batch, None)[0])
     assert abs(ratio_literal) < 0.2 and abs(ratio_free - 1.0) < abs(ratio_literal - 1.0)
@@ -399,9 +404,11 @@ def test_value_term_gradient_reaches_only_the_reward_parameters():
     seg = _segments(25, 3)
 
     def loss_of_inputs(obs, action):
-        return rm.agent_value_term(TINY, 0.7, obs, action, 0.9)(params, None, None)[0]
+        return agent_preference.agent_value_term(TINY, 0.7, obs, action, 0.9)(params, None, None)[0]
 
     grad_obs, grad_action = jax.grad(loss_of_inputs, argnums=(0, 1))(jnp.asarray(seg.obs), jnp.asarray(seg.action))
     assert not np.any(np.asarray(grad_obs)) and not np.any(np.asarray(grad_action))
-    grads = jax.grad(lambda p: rm.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0])(params)
+    grads = jax.grad(
+        lambda p: agent_preference.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0]
+    )(params)
     assert any(np.any(np.asarray(g)) for g in jax.tree.leaves(grads))

@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import pretrain, queries, replay, reward_model, teachers
+from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
 from rebel_jax.config import Config
 from rebel_jax.envs import DMCEnv, PointProbe, State, make_env
 from rebel_jax.queries import Segments
@@ -191,9 +191,9 @@ class Trainer:
         if not self.preference:
             return ts
         key, key_reward = jax.random.split(key)
-        reward = reward_model.init(
-            self.reward_cfg, key_reward, obs_size, action_size, self.stored_length, self.pool_capacity
-        )
+        reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
+        if self.pool_capacity:
+            reward = reward.replace(pool=surf.init_pool(self.pool_capacity, self.stored_length, obs_size, action_size))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
         ts = ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
@@ -382,16 +382,14 @@ class Trainer:
         if cfg.algo == "rebel":
             obs, actions = self.value_trajectories(ts, key)
             rebel = cfg.rebel
-            value = reward_model.agent_value_term(
+            value = agent_preference.agent_value_term(
                 rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
             )
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
             pool = ts.reward.pool
-            pseudo = reward_model.pseudo_label_term(
-                rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count
-            )
-            return [reward_model.cropped_bt_loss(rcfg, cfg.surf), pseudo]
+            pseudo = surf.pseudo_label_term(rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count)
+            return [surf.cropped_bt_loss(rcfg, cfg.surf), pseudo]
         return [reward_model.bt_loss(rcfg)]
 
     def learn(
@@ -425,9 +423,9 @@ class Trainer:
                 self.cfg.query.recent_episodes,
                 self.cfg.query.pool,
             )
-            stored = reward_model.add_unlabelled(stored, pool_a, pool_b, kept > 0)
+            stored = surf.add_unlabelled(stored, pool_a, pool_b, kept > 0)
             terms = self._loss_terms(ts.replace(reward=stored), key_terms)
-            steps = reward_model.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
+            steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
             trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
         else:
             trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
@@ -625,7 +623,7 @@ def compiled(trainer: Trainer) -> tuple[Callable, Callable, Callable]:
     return init, round_fn, evaluate
 
 
-if __name__ == "__main__":
-    from rebel_jax.cli import main
+if __name__ == "__main__":  # ``python -m rebel_jax.train`` runs the package's entry point; train never imports cli.
+    import runpy
 
-    main()
+    runpy.run_module("rebel_jax", run_name="__main__")
