@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -123,8 +124,7 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
     value_grads = jax.grad(lambda p: jnp.sum(agent_preference.agent_value(TINY, p, obs, action, gamma, "discounted")))(
         params
     )
-    for got, want in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(value_grads), strict=True):
-        np.testing.assert_allclose(np.asarray(got), lam * np.asarray(want), rtol=1e-5, atol=1e-7)
+    chex.assert_trees_all_close(grads[0], jax.tree.map(lambda g: lam * g, value_grads), rtol=1e-5, atol=1e-7)
     assert np.abs(np.asarray(jax.tree.leaves(value_grads)[0])).max() > 0
     total_value = float(jnp.sum(agent_preference.agent_value(TINY, params, obs, action, gamma, "discounted")))
     np.testing.assert_allclose(float(grads[1]), total_value, rtol=1e-5)  # d loss / d lambda = sum_m V_m.
@@ -150,10 +150,7 @@ def test_zero_lambda_trains_exactly_like_bt_alone():
     alone, alone_metrics = _train(SMALL, state, key)
     both, both_metrics = _session_with_lambda(state, key, 0.0, agent.obs, agent.action)
     assert int(both_metrics["epochs"]) == int(alone_metrics["epochs"]) > 0
-    for x, y in zip(
-        jax.tree.leaves((alone.params, alone.opt_state)), jax.tree.leaves((both.params, both.opt_state)), strict=True
-    ):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    chex.assert_trees_all_equal((alone.params, alone.opt_state), (both.params, both.opt_state))
 
 
 def test_lambda_sign_moves_the_agents_reward():
@@ -230,8 +227,7 @@ def test_cropped_bt_loss_without_crop_is_bt_loss_exactly():
     value_and_grad = functools.partial(jax.value_and_grad, has_aux=True)
     plain = jax.jit(value_and_grad(rm.bt_loss(SMALL)))(params, batch, key)
     cropped = jax.jit(value_and_grad(surf.cropped_bt_loss(SMALL, surf_cfg)))(params, batch, key)
-    for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(cropped), strict=True):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    chex.assert_trees_all_equal(plain, cropped)
 
 
 def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
@@ -321,8 +317,7 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
         logits = jax.vmap(one)(params, jnp.asarray(index), jnp.asarray(mask_a), jnp.asarray(mask_b))
         return surf_cfg.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
 
-    for x, y in zip(jax.tree.leaves(grads), jax.tree.leaves(jax.jit(jax.grad(fixed_loss))(params)), strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+    chex.assert_trees_all_close(grads, jax.jit(jax.grad(fixed_loss))(params), rtol=1e-4, atol=1e-6)
 
 
 def test_surf_session_runs_under_jit_and_vmap_over_keys():
@@ -338,8 +333,8 @@ def test_surf_session_runs_under_jit_and_vmap_over_keys():
     for i in range(2):
         alone, metrics = jax.jit(session)(state, keys[i])
         np.testing.assert_allclose(float(batched_metrics["loss"][i]), float(metrics["loss"]), rtol=1e-5)
-        for x, y in zip(jax.tree.leaves(alone.params), jax.tree.leaves(batched.params), strict=True):
-            np.testing.assert_allclose(np.asarray(x), np.asarray(y)[i], rtol=1e-4, atol=1e-6)
+        column = jax.tree.map(lambda x, i=i: x[i], batched.params)
+        chex.assert_trees_all_close(alone.params, column, rtol=1e-4, atol=1e-6)
 
 
 # Validation.
@@ -412,3 +407,122 @@ def test_value_term_gradient_reaches_only_the_reward_parameters():
         lambda p: agent_preference.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0]
     )(params)
     assert any(np.any(np.asarray(g)) for g in jax.tree.leaves(grads))
+
+
+# REBEL: the un-relaxed penalty (eq. "bilevel_rlhf_fo") and the lower bound's r >= 0.
+
+
+def _store(cfg, seed, pairs, capacity):
+    """A label store of ``capacity`` slots holding ``pairs`` random pairs (labels do not matter here)."""
+    state = _init(dataclasses.replace(cfg, label_capacity=capacity), jax.random.key(seed), OBS, ACT, H)
+    seg_a, seg_b = _segments(seed + 1, pairs), _segments(seed + 2, pairs)
+    return _add_labels(state, seg_a, seg_b, np.ones(pairs, np.float32), np.ones(pairs, np.float32)).data
+
+
+@pytest.mark.parametrize("k", [3, 10])
+def test_best_segments_are_the_highest_learned_returns_of_either_side(k):
+    params = _tiny_params(seed=30)
+    data = _store(TINY, 31, pairs=3, capacity=8)  # 6 stored segments among 16 slots.
+    obs, action, valid = jax.jit(agent_preference.best_segments, static_argnums=(0, 3))(TINY, params, data, k)
+    candidates_obs = np.concatenate([np.asarray(data.obs_a)[:3], np.asarray(data.obs_b)[:3]])
+    candidates_act = np.concatenate([np.asarray(data.act_a)[:3], np.asarray(data.act_b)[:3]])
+    returns = _numpy_rewards(params, candidates_obs, candidates_act).mean(0).sum(-1)  # Ensemble mean, summed.
+    order = sorted(range(6), key=lambda i: -returns[i])[: min(k, 6)]
+    chex.assert_shape([obs], (k, H, OBS))
+    np.testing.assert_array_equal(np.asarray(valid), [1.0] * len(order) + [0.0] * (k - len(order)))
+    np.testing.assert_array_equal(np.asarray(obs)[: len(order)], candidates_obs[order])
+    np.testing.assert_array_equal(np.asarray(action)[: len(order)], candidates_act[order])
+
+
+@pytest.mark.parametrize("estimator", ["discounted", "mean"])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_value_gap_term_matches_a_numpy_reference(estimator, normalize):
+    params = _tiny_params(seed=32)
+    agent, best = _segments(33, 3, length=7), _segments(34, 4)
+    valid = np.array([1.0, 1.0, 1.0, 0.0], np.float32)  # The last one is an empty slot: ignored.
+    batch = _surf_batch(35, 2, 5, H)
+    lam, gamma = 0.7, 0.9
+    term = agent_preference.value_gap_term(
+        TINY, lam, agent.obs, agent.action, best.obs, best.action, valid, gamma, estimator, normalize
+    )
+    loss, metrics = jax.jit(term)(params, batch, jax.random.key(0))
+
+    agent_rewards = _numpy_rewards(params, agent.obs, agent.action)  # (M, 3, 7)
+    best_rewards = _numpy_rewards(params, best.obs[:3], best.action[:3])  # (M, 3, H), valid ones only
+    expected, values, optimal = 0.0, [], []
+    for m in range(TINY.ensemble_size):
+        if estimator == "discounted":
+            value = np.mean([sum(gamma**t * agent_rewards[m, n, t] for t in range(7)) for n in range(3)])
+            best_value = best_rewards[m].mean() * sum(gamma**t for t in range(7))  # Over V's horizon, 7 steps.
+        else:
+            value = agent_rewards[m].mean() / (1 - gamma)
+            best_value = best_rewards[m].mean() / (1 - gamma)
+        if normalize:
+            w = np.asarray(batch.weight[m]) > 0
+            labelled = np.concatenate(
+                [
+                    _numpy_rewards(params, np.asarray(batch.obs_a[m])[w], np.asarray(batch.act_a[m])[w])[m],
+                    _numpy_rewards(params, np.asarray(batch.obs_b[m])[w], np.asarray(batch.act_b[m])[w])[m],
+                ]
+            )
+            value, best_value = value / labelled.std(), best_value / labelled.std()
+        values.append(value)
+        optimal.append(best_value)
+        expected += lam * (best_value - value)
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["agent_term"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["optimal_value"]), np.mean(optimal), rtol=1e-4)
+
+
+def test_value_gap_term_gradient_reaches_only_the_reward_parameters():
+    params = _tiny_params(seed=36)
+    agent, best = _segments(37, 3), _segments(38, 2)
+    valid = jnp.ones(2)
+
+    def loss(params, *inputs):
+        return agent_preference.value_gap_term(TINY, 0.5, *inputs, valid, 0.9)(params, None, None)[0]
+
+    inputs = tuple(map(jnp.asarray, (agent.obs, agent.action, best.obs, best.action)))
+    grads = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(params, *inputs)
+    assert all(not np.any(np.asarray(g)) for g in grads[1:])
+
+    def total(fn, *args):
+        return jax.grad(lambda p: jnp.sum(fn(TINY, p, *args)))(params)
+
+    optimal = total(agent_preference.optimal_value, best.obs, best.action, valid, 0.9, "discounted", H)
+    value = total(agent_preference.agent_value, agent.obs, agent.action, 0.9, "discounted")
+    expected = jax.tree.map(lambda a, b: 0.5 * (a - b), optimal, value)
+    chex.assert_trees_all_close(grads[0], expected, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("output", ["sigmoid", "tanh"])
+def test_the_lower_bound_holds_with_sigmoid_rewards_and_can_fail_with_tanh(output):
+    """Eq. "bilevel_rlhf_fo_lb" bounds eq. "bilevel_rlhf_fo" because V(pi_theta) >= 0 when r >= 0.
+
+    As minimised losses, with lambda >= 0: penalty ``lambda (V* - V)`` <= lower bound ``lambda V*``.
+    The output layer is pushed negative so that tanh rewards are negative everywhere.
+    """
+    cfg = dataclasses.replace(TINY, output=output)
+    params = _tiny_params(cfg, seed=39)
+    params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] - 3.0
+    agent, best = _segments(40, 3), _segments(41, 2)
+    lam = 0.5
+    term = agent_preference.value_gap_term(cfg, lam, agent.obs, agent.action, best.obs, best.action, jnp.ones(2), 0.9)
+    penalty, metrics = term(params, None, None)
+    lower_bound = lam * cfg.ensemble_size * float(metrics["optimal_value"])  # lambda * sum_m V*_m
+    rewards = _numpy_rewards(params, agent.obs, agent.action, output)
+    if output == "sigmoid":
+        assert rewards.min() > 0 and float(metrics["agent_value"]) > 0
+        assert float(penalty) <= lower_bound
+    else:
+        assert rewards.max() < 0 and float(metrics["agent_value"]) < 0
+        assert float(penalty) > lower_bound
+
+
+def test_rebel_form_validates():
+    with pytest.raises(ValueError, match="rebel.form"):
+        agent_preference.AgentPreferenceConfig(form="exact").validate()
+    with pytest.raises(ValueError, match="rebel.best_segments"):
+        agent_preference.AgentPreferenceConfig(form="penalty", best_segments=0).validate()
+    agent_preference.AgentPreferenceConfig(form="penalty").validate()

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from rebel_jax.errors import check as _check
-from rebel_jax.reward_model import LossTerm, PrefBatch, RewardConfig, network, predict
+from rebel_jax.reward_model import LabelData, LossTerm, PrefBatch, RewardConfig, mean_reward, network, predict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,12 +56,25 @@ class AgentPreferenceConfig:
     """The scale-free form: V divided by each member's spread (std) of the per-step reward on
     the labelled segments of the minibatch, so that one lambda means the same on walker and
     cheetah (see ``agent_value_term``). Off: the paper's literal ``lambda * V``."""
+    form: Literal["lower_bound", "penalty"] = "lower_bound"
+    """Which of the paper's objectives the term is. ``lower_bound``: eq. "bilevel_rlhf_fo_lb" as
+    eq. "mle_new" writes it, ``+lambda * V(pi_theta)``, the current policy standing in for
+    ``pi*(nu)``; it bounds eq. "bilevel_rlhf_fo" from below when ``V(pi_theta) >= 0``, which the
+    paper gets from ``r >= 0``: ``--reward.output sigmoid`` makes that literal (tanh rewards can
+    be negative). ``penalty``: the un-relaxed penalty of eq. "bilevel_rlhf_fo",
+    ``+lambda * (V(pi*(nu)) - V(pi_theta))``, with ``V(pi*(nu))`` estimated from the
+    ``best_segments`` labelled segments of highest learned return (``optimal_value``). In both,
+    ``lambda > 0`` is the paper's ``lambda >= 0``."""
+    best_segments: int = 10
+    """``form='penalty'``: how many labelled segments estimate ``V(pi*(nu))``: those with the
+    highest ensemble-mean learned return at the start of the session (``best_segments``)."""
 
     def validate(self) -> None:
         _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
         _check(self.estimator in ("discounted", "mean"), "rebel.estimator", self.estimator, "discounted, mean")
         _check(self.source in ("onpolicy", "replay"), "rebel.source", self.source, "onpolicy, replay")
-        for name in ("num_segments", "segment_length"):
+        _check(self.form in ("lower_bound", "penalty"), "rebel.form", self.form, "lower_bound, penalty")
+        for name in ("num_segments", "segment_length", "best_segments"):
             _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
         if self.estimator == "mean":
             _check(0 <= self.gamma < 1, "rebel.gamma", self.gamma, "[0, 1) with estimator 'mean'")
@@ -155,5 +168,138 @@ def agent_value_term(
             values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
         loss = lam * jnp.sum(values)
         return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
+
+    return loss_fn
+
+
+# The un-relaxed penalty (eq. "bilevel_rlhf_fo").
+
+
+def best_segments(cfg: RewardConfig, params: Any, data: LabelData, k: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The ``k`` labelled segments of highest learned return: the behaviour ``V(pi*(nu))`` is estimated from.
+
+    Both segments of every stored pair are candidates (the label does not matter: a segment
+    the teacher rejected may still be the best one in another pair); each is scored by the
+    ensemble-mean learned return ``sum_h r(s_h, a_h)`` under ``params`` (the reward at the start
+    of the session). Empty slots of the store never win; with fewer than ``k`` stored segments
+    the rest of the ``k`` are marked invalid.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters the segments are ranked with.
+      data: the label store.
+      k: segments to keep (at most ``2 * capacity``).
+
+    Returns:
+      ``(obs (k, H, obs_size), action (k, H, act_size), valid (k,) float)``, best first.
+    """
+    obs = jnp.concatenate([data.obs_a, data.obs_b])
+    action = jnp.concatenate([data.act_a, data.act_b])
+    filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
+    returns = jnp.sum(mean_reward(cfg, params, obs, action), axis=-1)
+    _, index = jax.lax.top_k(jnp.where(filled, returns, -jnp.inf), min(k, obs.shape[0]))
+    return obs[index], action[index], filled[index].astype(obs.dtype)
+
+
+def optimal_value(
+    cfg: RewardConfig,
+    params: Any,
+    obs: jax.Array,
+    action: jax.Array,
+    valid: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str,
+    horizon: int,
+) -> jax.Array:
+    """Each member's estimate of ``V(pi*(nu))``: the best segments' mean reward, sustained over the horizon.
+
+    ``pi*(nu)`` maximises the learned reward's value; the best labelled behaviour is the
+    nearest to it that the session has. With ``rbar_m`` member m's mean per-step reward over
+    the valid segments' steps, ``V*_m = rbar_m * sum_{t < horizon} gamma^t`` (``discounted``,
+    the horizon of the ``V(pi_theta)`` trajectories, so the two values are sums over as many
+    steps) or ``rbar_m / (1 - gamma)`` (``mean``, as ``agent_value``'s). An estimate, not a
+    bound: it is the value of repeating the best segment's per-step reward from the start.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters.
+      obs: (K, H, obs_size) the best segments (``best_segments``).
+      action: (K, H, act_size) their actions.
+      valid: (K,) 1 for real segments, 0 for empty slots.
+      gamma: discount.
+      estimator: ``"discounted"`` or ``"mean"``.
+      horizon: steps T of the discounted sum.
+
+    Returns:
+      (M,) values.
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    rewards = predict(cfg, params, obs, action)  # (M, K, H)
+    weight = jnp.broadcast_to(valid[:, None], rewards.shape[1:])
+    per_step = jnp.sum(rewards * weight, axis=(1, 2)) / jnp.maximum(jnp.sum(weight), 1.0)
+    if estimator == "mean":
+        return per_step / (1.0 - gamma)
+    return per_step * jnp.sum(jnp.asarray(gamma, rewards.dtype) ** jnp.arange(horizon, dtype=rewards.dtype))
+
+
+def value_gap_term(
+    cfg: RewardConfig,
+    lam: float | jax.Array,
+    obs: jax.Array,
+    action: jax.Array,
+    best_obs: jax.Array,
+    best_action: jax.Array,
+    best_valid: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str = "discounted",
+    normalize: bool = False,
+) -> LossTerm:
+    """REBEL's un-relaxed penalty ``lambda * sum_m (V*_m - V_m)`` (the paper's eq. "bilevel_rlhf_fo").
+
+    Eq. "bilevel_rlhf_fo" maximises ``L + lambda * (V(pi_theta) - V(pi*(nu)))``; as a
+    minimised loss the term is ``+lambda * (V(pi*(nu)) - V(pi_theta))``. ``V_m`` is
+    ``agent_value`` on the current policy's trajectories and ``V*_m`` is ``optimal_value`` on
+    the best labelled segments; both pass through ``stop_gradient`` on their inputs, so only
+    the reward parameters get gradients, and the best segments stay fixed while the reward
+    trains (the paper's first-order step: ``grad_nu V(pi*(nu))`` is the reward's gradient at
+    the fixed optimal behaviour). With ``lambda > 0`` (the paper's sign) the term raises the
+    current policy's value towards the best behaviour's: the prose of the paper's section on
+    agent preference, which the literal lower bound (``agent_value_term``) contradicts.
+
+    Args:
+      cfg: the reward settings.
+      lam: signed weight lambda.
+      obs: (N, T, obs_size) states of the current policy's trajectories.
+      action: (N, T, act_size) its actions.
+      best_obs: (K, H, obs_size) the best labelled segments (``best_segments``).
+      best_action: (K, H, act_size) their actions.
+      best_valid: (K,) 1 for real segments.
+      gamma: discount of both values.
+      estimator: ``"discounted"`` or ``"mean"``; ``V*`` is summed over T steps (``discounted``).
+      normalize: divide both values by each member's spread of the per-step reward on the
+        batch's labelled segments, as ``agent_value_term``.
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (mean V),
+      ``optimal_value`` (mean V*) and ``agent_term`` (the loss).
+
+    References:
+      REBEL (AAAI 2025), the penalty reformulation "bilevel_rlhf_fo" (REFERENCE section 1).
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    horizon = obs.shape[1]
+    fixed = jax.lax.stop_gradient
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        del key  # Unused.
+        values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator)
+        best = optimal_value(
+            cfg, params, fixed(best_obs), fixed(best_action), fixed(best_valid), gamma, estimator, horizon
+        )
+        if normalize:
+            spread = fixed(_labelled_spread(cfg, params, batch))
+            values, best = values / spread, best / spread
+        loss = lam * jnp.sum(best - values)
+        return loss, {"agent_value": jnp.mean(values), "optimal_value": jnp.mean(best), "agent_term": loss}
 
     return loss_fn

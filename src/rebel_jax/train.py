@@ -170,7 +170,6 @@ class Trainer:
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
-        self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
@@ -382,9 +381,15 @@ class Trainer:
         if cfg.algo == "rebel":
             obs, actions = self.value_trajectories(ts, key)
             rebel = cfg.rebel
-            value = agent_preference.agent_value_term(
-                rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
-            )
+            if rebel.form == "penalty":  # V(pi*(nu)) from the best labelled segments, ranked once per session.
+                best = agent_preference.best_segments(rcfg, ts.reward.params, ts.reward.data, rebel.best_segments)
+                value = agent_preference.value_gap_term(
+                    rcfg, ts.lam, obs, actions, *best, rebel.gamma, rebel.estimator, rebel.normalize
+                )
+            else:
+                value = agent_preference.agent_value_term(
+                    rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
+                )
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
             pool = ts.reward.pool
@@ -428,7 +433,8 @@ class Trainer:
             steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
             trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
         else:
-            trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
+            terms = self._loss_terms(ts.replace(reward=stored), key_terms)  # The store with this session's labels.
+            trained, train_metrics = reward_model.train(rcfg, stored, key_train, terms)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):
@@ -533,7 +539,6 @@ class Trainer:
           learning steps, the last finished training and evaluation returns, and
           ``diverged`` (1.0 if a loss, parameter, observation or return is NaN or infinite).
         """
-        self.trace_count += 1  # Python side effect: counts traces, not calls.
         episodes_before = ts.episodes
         session = {}
         if self.host_teacher:  # The host ran this round's session, if any, before the round.
