@@ -1,8 +1,13 @@
 """REBEL's agent-preference term: the learned reward's value of the current policy.
 
 REBEL adds ``lambda * V(pi_theta)`` to the Bradley-Terry loss of the reward ensemble (the
-paper's eq. "mle_new"), V being the learned reward's discounted return of the current policy.
-The term is one more loss term of :mod:`rebel_jax.reward_model` (``(params, batch, key) ->
+paper's eq. "mle_new", its lower bound "bilevel_rlhf_fo_lb": ``agent_value_term``), V being
+the learned reward's discounted return of the current policy. ``value_gap_term`` is the
+penalty before that relaxation, ``lambda * (V(pi*(nu)) - V(pi_theta))`` (eq. "bilevel_rlhf_fo"),
+with ``V(pi*(nu))`` estimated from the best labelled segments (``best_segments``,
+``optimal_value``); ``AgentPreferenceConfig.form`` picks one.
+
+Each term is one more loss term of :mod:`rebel_jax.reward_model` (``(params, batch, key) ->
 (loss, metrics)``), passed to ``reward_model.train`` beside ``bt_loss``. Which trajectories V
 is computed on (``rebel.source``) is the trainer's choice; this module takes them as arrays.
 
