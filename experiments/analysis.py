@@ -1,15 +1,23 @@
-"""Statistics and plots for comparing methods over seeds and tasks, rliable's way in NumPy/SciPy.
+"""Statistics and plots for comparing methods over seeds and tasks, with ``rliable``.
 
-Follows Agarwal et al. 2021 as implemented in ``rliable``: summarise the per-run scores of a
-method by their interquartile mean (IQM), with a percentile bootstrap confidence interval
-that, when several tasks are aggregated, resamples the runs of each task independently
-(stratified bootstrap). A "run" is one seed: a run directory written by
-``python -m rebel_jax.train --run-dir DIR`` holds all seeds of one invocation, vmapped.
+Follows Agarwal et al. 2021 through its library, ``rliable``: a method's per-run scores are
+summarised by their interquartile mean (IQM, ``rliable.metrics.aggregate_iqm``) with a
+percentile bootstrap confidence interval that, when several tasks are aggregated, resamples
+the runs of each task independently (``rliable.library.get_interval_estimates``, its
+stratified bootstrap); ``performance_profile`` gives rliable's score distributions. A "run"
+is one seed: a run directory written by ``python -m rebel_jax.train --run-dir DIR`` holds all
+seeds of one invocation, vmapped.
 
-Sample efficiency (the paper's "up to 70% better sample efficiency") is reported as the
-ratio of environment steps two methods need for their mean evaluation curves to first reach
-a common return (``sample_efficiency_ratio``, ``common_threshold``), on curves reduced to
-the rounds where a new evaluation finished (``distinct_evaluations``).
+What rliable lacks is here: sample efficiency (the paper's "up to 70% better sample
+efficiency") is the ratio of environment steps two methods need for their mean evaluation
+curves to first reach a common return (``steps_to_reach``, ``sample_efficiency_ratio``,
+``common_threshold``), on curves reduced to the rounds where a new evaluation finished
+(``distinct_evaluations``); its interval (``sample_efficiency_ratio_ci``) resamples whole
+seed curves with rliable's independent stratified bootstrap.
+
+rliable's bootstraps draw from NumPy's global generator (``np.random.choice``); every
+function here seeds it for the call and puts its state back afterwards, so an interval is a
+function of its ``seed`` and leaves the caller's global stream alone.
 
 Scores of different tasks are pooled only on a common scale: dm_control returns lie in
 [0, 1000], so divide them by 1000 before ``aggregate_iqm_ci``.
@@ -21,18 +29,20 @@ References:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import pathlib
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 
 import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
-import scipy.stats  # noqa: E402
 from numpy.typing import ArrayLike  # noqa: E402
+from rliable import library as rly  # noqa: E402
+from rliable import metrics as rly_metrics  # noqa: E402
 
 Curve = tuple[np.ndarray, np.ndarray]
 """``(env_steps (evals,), returns (evals,) or (evals, seeds))``; a 2-D curve is averaged over seeds."""
@@ -42,106 +52,131 @@ Interval = tuple[float, float]
 
 
 # -- statistics over runs ------------------------------------------------------------------
-def iqm(scores: ArrayLike, axis: int | None = None) -> float | np.ndarray:
-    """Interquartile mean: the mean of the middle half of the scores.
+@contextlib.contextmanager
+def _global_seed(seed: int) -> Iterator[None]:
+    """NumPy's global generator seeded with ``seed`` inside, its previous state restored after."""
+    state = np.random.get_state()  # noqa: NPY002 - rliable draws from the legacy global generator.
+    np.random.seed(seed)  # noqa: NPY002 - rliable draws from the legacy global generator.
+    try:
+        yield
+    finally:
+        np.random.set_state(state)  # noqa: NPY002 - rliable draws from the legacy global generator.
 
-    The definition of rliable's ``aggregate_iqm``, ``scipy.stats.trim_mean(scores, 0.25)``:
-    sort, drop ``floor(n / 4)`` scores at each end, average the rest. For ``n`` not a multiple
-    of 4 only whole scores are dropped (the middle 3 of 5, the middle 4 of 6).
+
+def iqm(scores: ArrayLike) -> float:
+    """Interquartile mean of all scores pooled (rliable's ``aggregate_iqm``).
+
+    ``scipy.stats.trim_mean(scores, 0.25)`` over every score: sort, drop ``floor(n / 4)`` at
+    each end, average the rest (the middle 3 of 5, the middle 4 of 6).
 
     Args:
-      scores: per-run scores, ``(runs,)`` or ``(runs, tasks)``.
-      axis: the axis to reduce. ``None`` (rliable's choice for aggregates) pools every score,
-        e.g. all runs of all tasks.
+      scores: per-run scores, ``(runs,)`` or ``(runs, tasks)`` (all runs of all tasks pooled).
 
     Returns:
-      The IQM: a float for ``axis=None``, else an array without ``axis``.
+      The IQM.
     """
-    return scipy.stats.trim_mean(np.asarray(scores, dtype=float), 0.25, axis=axis)
+    return float(rly_metrics.aggregate_iqm(np.asarray(scores, dtype=float)))
+
+
+def _interval(
+    score_matrix: np.ndarray, statistic: Callable[[np.ndarray], float], reps: int, confidence: float, seed: int, method
+) -> Interval:
+    """rliable's stratified-bootstrap interval of ``statistic`` of a ``(runs, tasks)`` matrix."""
+    if score_matrix.shape[0] < 2:
+        return math.nan, math.nan
+    with _global_seed(seed):
+        _, intervals = rly.get_interval_estimates(
+            {"scores": score_matrix},
+            lambda x: np.array([statistic(x)]),
+            method=method.lower(),
+            reps=reps,
+            confidence_interval_size=confidence,
+        )
+    low, high = np.asarray(intervals["scores"], dtype=float).reshape(2)
+    return float(low), float(high)
 
 
 def bootstrap_ci(
     scores: ArrayLike,
-    statistic: Callable[..., np.ndarray] = iqm,
+    statistic: Callable[[np.ndarray], float] = iqm,
     reps: int = 2000,
     confidence: float = 0.95,
     seed: int = 0,
     method: str = "percentile",
 ) -> Interval:
-    """Bootstrap confidence interval of a statistic of the runs of one task.
+    """Bootstrap confidence interval of a statistic of the runs of one task (rliable's).
 
-    Resamples the runs with replacement ``reps`` times with ``scipy.stats.bootstrap``. The
-    default ``method="percentile"`` is rliable's: the ``(1 - confidence) / 2`` and
-    ``(1 + confidence) / 2`` quantiles of the statistic over the resamples. SciPy's ``"BCa"``
-    (bias-corrected and accelerated) and ``"basic"`` are the alternatives.
+    Resamples the runs with replacement ``reps`` times. The default ``method="percentile"`` is
+    rliable's: the ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` quantiles (linear
+    interpolation) of the statistic over the resamples; ``"bca"`` (bias-corrected and
+    accelerated), ``"bc"`` and ``"basic"`` are ``arch``'s alternatives.
 
     Args:
       scores: ``(runs,)`` one finite score per run.
-      statistic: ``statistic(x, axis=...)``, vectorised over the other axes (``iqm``,
-        ``np.mean``, ``np.median``).
+      statistic: ``statistic(x)`` of an ``(runs, 1)`` array (``iqm``, ``np.mean``, ``np.median``).
       reps: bootstrap resamples.
       confidence: the interval's coverage, in (0, 1).
-      seed: seed of the resampling generator (the interval is a function of it).
-      method: ``"percentile"``, ``"BCa"`` or ``"basic"``.
+      seed: seed of the resampling (the interval is a function of it).
+      method: ``"percentile"``, ``"bca"``, ``"bc"`` or ``"basic"`` (case-insensitive).
 
     Returns:
       ``(low, high)``; NaN for fewer than two runs, where no spread can be estimated.
     """
-    x = np.asarray(scores, dtype=float).reshape(-1)
-    if x.size < 2:
-        return math.nan, math.nan
-    res = scipy.stats.bootstrap(
-        (x,),
-        statistic,
-        n_resamples=reps,
-        vectorized=True,
-        confidence_level=confidence,
-        method=method,
-        rng=np.random.default_rng(seed),
-    )
-    return float(res.confidence_interval.low), float(res.confidence_interval.high)
-
-
-def _pooled_iqm(*tasks: np.ndarray, axis: int = -1) -> np.ndarray:
-    """IQM of the scores of all tasks pooled along ``axis`` (the runs axis of each sample)."""
-    return iqm(np.concatenate(tasks, axis=axis), axis=axis)
+    x = np.asarray(scores, dtype=float).reshape(-1, 1)
+    return _interval(x, statistic, reps, confidence, seed, method)
 
 
 def aggregate_iqm_ci(
     score_matrix: ArrayLike, reps: int = 2000, confidence: float = 0.95, seed: int = 0, method: str = "percentile"
 ) -> tuple[float, Interval]:
-    """IQM over all runs and tasks with a stratified bootstrap confidence interval.
+    """IQM over all runs and tasks with rliable's stratified bootstrap confidence interval.
 
-    As rliable's ``StratifiedBootstrap``: every resample draws, for each task independently,
-    as many runs as it has with replacement, then takes the IQM of all drawn scores pooled.
-    With one task this is ``bootstrap_ci(scores, iqm)``.
+    Every resample draws, for each task independently, as many runs as it has with
+    replacement, then takes the IQM of all drawn scores pooled. With one task this is
+    ``bootstrap_ci(scores, iqm)`` (the same draws for the same seed).
 
     Args:
       score_matrix: ``(runs, tasks)`` normalised scores (or ``(runs,)`` for one task).
       reps: bootstrap resamples.
       confidence: the interval's coverage, in (0, 1).
-      seed: seed of the resampling generator.
-      method: ``"percentile"`` (rliable's) or SciPy's ``"BCa"`` or ``"basic"``.
+      seed: seed of the resampling.
+      method: ``"percentile"`` (rliable's) or ``"bca"``, ``"bc"``, ``"basic"``.
 
     Returns:
       ``(iqm, (low, high))``; the interval is NaN for fewer than two runs.
     """
     m = np.asarray(score_matrix, dtype=float)
     m = m[:, None] if m.ndim == 1 else m
-    point = float(iqm(m))
-    if m.shape[0] < 2:
-        return point, (math.nan, math.nan)
-    res = scipy.stats.bootstrap(
-        tuple(m.T),
-        _pooled_iqm,
-        n_resamples=reps,
-        vectorized=True,
-        paired=False,
-        confidence_level=confidence,
-        method=method,
-        rng=np.random.default_rng(seed),
-    )
-    return point, (float(res.confidence_interval.low), float(res.confidence_interval.high))
+    return iqm(m), _interval(m, iqm, reps, confidence, seed, method)
+
+
+def performance_profile(
+    scores: Mapping[str, ArrayLike], taus: ArrayLike, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """rliable's performance profiles (score distributions) with stratified-bootstrap bands.
+
+    The profile of a method at ``tau`` is the fraction of its runs (of all tasks) whose score
+    exceeds ``tau`` (``rliable.library.create_performance_profile``, run-score distribution).
+
+    Args:
+      scores: ``{label: (runs,) or (runs, tasks) normalised scores}``.
+      taus: ``(K,)`` thresholds.
+      reps: bootstrap resamples of each band.
+      confidence: the bands' coverage.
+      seed: seed of the resampling.
+
+    Returns:
+      ``{label: (profile (K,), band (2, K) low and high)}``.
+    """
+    matrices = {}
+    for label, s in scores.items():
+        m = np.asarray(s, dtype=float)
+        matrices[label] = m[:, None] if m.ndim == 1 else m
+    with _global_seed(seed):
+        profiles, bands = rly.create_performance_profile(
+            matrices, np.asarray(taus, dtype=float), reps=reps, confidence_interval_size=confidence
+        )
+    return {label: (np.asarray(profiles[label]), np.asarray(bands[label])) for label in matrices}
 
 
 # -- curves ------------------------------------------------------------------------------
@@ -265,12 +300,14 @@ def sample_efficiency_ratio_ci(
 ) -> Interval:
     """Percentile bootstrap interval of ``sample_efficiency_ratio`` over the seeds.
 
-    Each resample draws the seeds of a and of b independently with replacement (stratified
-    by method), averages the drawn curves and takes the ratio. A resample in which a method
-    never reaches the threshold counts as an infinite number of its steps (see
-    ``sample_efficiency_ratio``); the quantiles are taken over the resamples' ratios as they
-    are (``inverted_cdf``, no interpolation across ``inf``), excluding resamples where
-    neither method reaches the threshold.
+    Each resample draws the seeds of a and of b independently with replacement (rliable's
+    ``StratifiedIndependentBootstrap`` over the seed indices, so whole seed curves are drawn),
+    averages the drawn curves and takes the ratio. A resample in which a method never reaches
+    the threshold counts as an infinite number of its steps (see ``sample_efficiency_ratio``);
+    resamples where neither does are left out. The interval is rliable's percentile interval
+    (linear interpolation between resamples) of the others' ratios; where some ratio is
+    infinite it takes the quantiles as they are (``inverted_cdf``, no interpolation across
+    ``inf``).
 
     Args:
       run_a: ``(steps, returns (evals, seeds))`` of method a.
@@ -278,26 +315,30 @@ def sample_efficiency_ratio_ci(
       threshold: the common return.
       reps: bootstrap resamples.
       confidence: the interval's coverage, in (0, 1).
-      seed: seed of the resampling generator.
+      seed: seed of the resampling.
 
     Returns:
       ``(low, high)``; NaN if no resample has a defined ratio.
     """
-    rng = np.random.default_rng(seed)
-    resampled = []
-    for steps, returns in (run_a, run_b):
-        r = np.asarray(returns, dtype=float)
-        idx = rng.integers(0, r.shape[1], size=(reps, r.shape[1]))
-        resampled.append((np.asarray(steps, dtype=float), _nanmean_std(r[:, idx], axis=2)[0]))  # (evals, reps)
-    (steps_a, means_a), (steps_b, means_b) = resampled
-    reach_a = [steps_to_reach(steps_a, means_a[:, k], threshold) for k in range(reps)]
-    reach_b = [steps_to_reach(steps_b, means_b[:, k], threshold) for k in range(reps)]
-    ratios = np.array([_steps_ratio(a, b) for a, b in zip(reach_a, reach_b, strict=True)])
+    (steps_a, returns_a), (steps_b, returns_b) = (
+        (np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)) for steps, returns in (run_a, run_b)
+    )
+
+    def ratio(seeds_a: np.ndarray, seeds_b: np.ndarray) -> np.ndarray:
+        mean_a = _nanmean_std(returns_a[:, seeds_a[:, 0]], axis=1)[0]
+        mean_b = _nanmean_std(returns_b[:, seeds_b[:, 0]], axis=1)[0]
+        reach = (steps_to_reach(steps_a, mean_a, threshold), steps_to_reach(steps_b, mean_b, threshold))
+        return np.array([_steps_ratio(*reach)])
+
+    index_a, index_b = (np.arange(r.shape[1])[:, None] for r in (returns_a, returns_b))
+    with _global_seed(seed):
+        ratios = rly.StratifiedIndependentBootstrap(index_a, index_b).apply(ratio, reps)[:, 0]
     ratios = ratios[~np.isnan(ratios)]
     if ratios.size == 0:
         return math.nan, math.nan
     alpha = (1 - confidence) / 2
-    low, high = np.quantile(ratios, [alpha, 1 - alpha], method="inverted_cdf")
+    method = "linear" if np.all(np.isfinite(ratios)) else "inverted_cdf"
+    low, high = np.percentile(ratios, [100 * alpha, 100 * (1 - alpha)], method=method)
     return float(low), float(high)
 
 

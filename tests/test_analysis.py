@@ -18,6 +18,7 @@ _PATH = pathlib.Path(__file__).parents[1] / "experiments" / "analysis.py"
 _SPEC = importlib.util.spec_from_file_location("analysis", _PATH)
 analysis = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(analysis)
+from rliable import library as rly  # noqa: E402
 
 
 def trimmed_mean_reference(scores: list[float]) -> float:
@@ -44,11 +45,9 @@ def test_iqm_matches_plain_python_trimmed_mean(n):
     assert analysis.iqm(scores) == pytest.approx(trimmed_mean_reference(scores.tolist()), rel=1e-12)
 
 
-def test_iqm_pools_tasks_by_default_and_reduces_an_axis_on_request():
+def test_iqm_pools_all_runs_of_all_tasks():
     matrix = np.random.default_rng(0).normal(size=(7, 3)) + np.arange(3)
     assert analysis.iqm(matrix) == pytest.approx(trimmed_mean_reference(matrix.ravel().tolist()))
-    per_task = analysis.iqm(matrix, axis=0)
-    assert per_task == pytest.approx([trimmed_mean_reference(matrix[:, t].tolist()) for t in range(3)])
 
 
 # -- bootstrap ---------------------------------------------------------------------------
@@ -80,6 +79,15 @@ def test_bootstrap_ci_of_the_mean_matches_the_normal_interval():
     half = 1.96 * scores.std() / math.sqrt(scores.size)
     assert low == pytest.approx(scores.mean() - half, abs=0.1 * half)
     assert high == pytest.approx(scores.mean() + half, abs=0.1 * half)
+
+
+def test_bootstrap_ci_leaves_numpys_global_generator_as_it_was():
+    np.random.seed(123)  # noqa: NPY002 - rliable draws from the legacy global generator.
+    expected = np.random.random_sample(3)  # noqa: NPY002 - rliable draws from the legacy global generator.
+    np.random.seed(123)  # noqa: NPY002 - rliable draws from the legacy global generator.
+    analysis.bootstrap_ci(np.random.default_rng(0).normal(size=20), seed=5)  # rliable draws with np.random.choice.
+    analysis.sample_efficiency_ratio_ci((np.arange(3), np.ones((3, 2))), (np.arange(3), np.ones((3, 2))), 0.5, reps=10)
+    np.testing.assert_array_equal(np.random.random_sample(3), expected)  # noqa: NPY002 - rliable draws from the legacy global generator.
 
 
 def test_bootstrap_ci_is_undefined_for_one_run():
@@ -268,3 +276,42 @@ def test_plot_curves_and_iqm(tmp_path):
     fig.savefig(tmp_path / "plot.png")
     plt.close(fig)
     assert (tmp_path / "plot.png").stat().st_size > 0
+
+
+def test_sample_efficiency_ratio_ci_equals_rliables_interval_of_the_ratio_of_mean_slopes():
+    # Seed curves through the origin, returns_s(t) = slope_s * t: a mean curve reaches the threshold T
+    # at T / mean(slope) (interpolation between evaluations is exact on a line), so the ratio of
+    # steps b / a of a resample is mean(slopes_a) / mean(slopes_b) of the same seed draws. rliable's
+    # independent stratified bootstrap of that statistic must give the same interval.
+    rng = np.random.default_rng(11)
+    steps = np.arange(0, 110, 10)
+    slopes_a, slopes_b = rng.uniform(1.0, 2.0, 6), rng.uniform(0.5, 1.5, 4)
+    threshold = 0.4 * min(slopes_a.min(), slopes_b.min()) * steps[-1]  # Every resample's mean curve reaches it.
+    curve_a, curve_b = (steps, steps[:, None] * slopes_a), (steps, steps[:, None] * slopes_b)
+    for seed, confidence in ((0, 0.95), (3, 0.8)):
+        interval = analysis.sample_efficiency_ratio_ci(curve_a, curve_b, threshold, 500, confidence, seed)
+        np.random.seed(seed)  # noqa: NPY002 - rliable draws from the legacy global generator.
+        _, reference = rly.get_interval_estimates(
+            {"ratio": [slopes_a[:, None], slopes_b[:, None]]},
+            lambda a, b: np.array([a.mean() / b.mean()]),
+            reps=500,
+            confidence_interval_size=confidence,
+        )
+        np.testing.assert_allclose(interval, np.asarray(reference["ratio"]).reshape(2), rtol=1e-9)
+    assert interval[0] < slopes_a.mean() / slopes_b.mean() < interval[1]
+
+
+# -- performance profiles ----------------------------------------------------------------
+def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
+    rng = np.random.default_rng(12)
+    scores = {"a": rng.uniform(size=(9, 2)), "b": rng.uniform(size=7), "flat": np.full(5, 0.5)}
+    taus = np.linspace(0.0, 1.0, 11)
+    result = analysis.performance_profile(scores, taus, reps=200)
+    assert list(result) == ["a", "b", "flat"]
+    for label, s in scores.items():
+        profile, band = result[label]
+        expected = [np.mean(np.asarray(s) > tau) for tau in taus]
+        np.testing.assert_allclose(profile, expected)
+        assert band.shape == (2, taus.size) and np.all(band[0] <= band[1])
+        assert np.all((band >= 0) & (band <= 1))
+    np.testing.assert_allclose(result["flat"][1], np.stack([result["flat"][0]] * 2))  # No spread, no band.

@@ -13,12 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import queries
+from rebel_jax import agent_preference, queries, surf
 from rebel_jax import reward_model as rm
+from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig
+from rebel_jax.reward_model import RewardConfig
 from rebel_jax.train import Trainer
 
 # -- the reward network's initial weights -------------------------------------------------------
@@ -127,7 +128,9 @@ def test_episode_pool_needs_a_complete_episode_by_the_first_session():
 
 def _labelled_state(cfg, count, stored, pool_capacity, seed=0):
     rng = np.random.default_rng(seed)
-    state = rm.init(cfg, jax.random.key(seed), 3, 2, stored, pool_capacity)
+    state = rm.init(cfg, jax.random.key(seed), 3, 2, stored)
+    if pool_capacity:
+        state = state.replace(pool=surf.init_pool(pool_capacity, stored, 3, 2))
 
     def seg(n):
         return queries.Segments(
@@ -142,10 +145,10 @@ def _labelled_state(cfg, count, stored, pool_capacity, seed=0):
 
 @pytest.mark.parametrize("count", [10, 100, 300])
 def test_surf_session_runs_ceil_reward_update_times_labels_over_batch_steps(count):
-    assert int(rm.surf_iterations(1000, jnp.asarray(count), 128)) == math.ceil(1000 * count / 128)
+    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128)) == math.ceil(1000 * count / 128)
     cfg = RewardConfig(hidden=8, depth=1, batch_size=128, label_capacity=400)
     state, _ = _labelled_state(cfg, count, 4, 0)
-    steps = rm.surf_iterations(7, state.data.count, cfg.batch_size)  # Few steps: a quick test.
+    steps = surf.surf_iterations(7, state.data.count, cfg.batch_size)  # Few steps: a quick test.
     train = jax.jit(lambda state, key, steps: rm.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
     trained, metrics = train(state, jax.random.key(1), steps)
     assert int(metrics["epochs"]) == math.ceil(7 * count / 128)
@@ -157,14 +160,14 @@ def test_surf_pool_grows_by_each_session_and_keeps_the_older_pairs():
     cfg = RewardConfig(hidden=8, depth=1)
     state, seg = _labelled_state(cfg, 4, 4, pool_capacity=12)
     first_a, first_b, second_a, second_b = seg(5), seg(5), seg(5), seg(5)
-    state = rm.add_unlabelled(state, first_a, first_b)
-    state = rm.add_unlabelled(state, second_a, second_b, keep=jnp.asarray(False))  # A no-op session adds none.
+    state = surf.add_unlabelled(state, first_a, first_b)
+    state = surf.add_unlabelled(state, second_a, second_b, keep=jnp.asarray(False))  # A no-op session adds none.
     assert int(state.pool.count) == 5
-    state = rm.add_unlabelled(state, second_a, second_b)
+    state = surf.add_unlabelled(state, second_a, second_b)
     assert int(state.pool.count) == 10 and int(state.pool.ptr) == 10
     np.testing.assert_array_equal(np.asarray(state.pool.obs_a[:5]), np.asarray(first_a.obs))
     np.testing.assert_array_equal(np.asarray(state.pool.act_b[5:10]), np.asarray(second_b.action))
-    state = rm.add_unlabelled(state, first_a, first_b)  # Full: wraps over the oldest, as SURF's ring.
+    state = surf.add_unlabelled(state, first_a, first_b)  # Full: wraps over the oldest, as SURF's ring.
     assert int(state.pool.count) == 12 and int(state.pool.ptr) == 3
 
 
@@ -249,7 +252,7 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
     values = np.zeros(cfg.reward.ensemble_size)
     for h in range(length):
         values += 0.9**h * np.asarray(rm.predict(cfg.reward, params, obs[:, h], actions[:, h])).mean(axis=1)
-    got = rm.agent_value(cfg.reward, params, obs, actions, 0.9, "discounted")
+    got = agent_preference.agent_value(cfg.reward, params, obs, actions, 0.9, "discounted")
     np.testing.assert_allclose(np.asarray(got), values, rtol=1e-5)
 
 

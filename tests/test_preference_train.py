@@ -3,17 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from rebel_jax import reward_model
+from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
+from rebel_jax.reward_model import RewardConfig
+from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
 
@@ -37,6 +41,8 @@ ROUNDS = MICRO_PEBBLE.train.num_rounds
 
 def _run(cfg: Config, keys, lam=None):
     trainer = Trainer(cfg)
+    chex.clear_trace_counter()
+    trainer.round = chex.assert_max_traces(trainer.round, n=1)  # Every round of the run is one program.
     init, round_fn, _ = compiled(trainer)
     state = init(keys)
     if lam is not None:
@@ -66,8 +72,7 @@ def pebble_run():
 
 
 def test_schedule_sessions_and_budget(pebble_run):
-    trainer, state, metrics = pebble_run
-    assert trainer.trace_count == 1
+    _, state, metrics = pebble_run  # Its rounds were traced once (``_run``).
     sessions = [int(np.all(m["session"] == 1.0)) for m in metrics]
     assert sessions == [0, 0, 1, 1, 1]  # at env steps 80, 120, 160
     assert all(np.all(np.isnan(m["reward_accuracy_all"])) for m, s in zip(metrics, sessions, strict=True) if not s)
@@ -99,14 +104,26 @@ def test_pebble_relabel_matches_the_reward_model(pebble_run):
 def test_rebel_with_lambda_zero_is_pebble_bit_for_bit(pebble_run, rebel_runs):
     _, pebble, _ = pebble_run
     _, rebel, _ = rebel_runs
+    first_two = functools.partial(jax.tree.map, lambda x: np.asarray(x)[:2])
     for name in ("sac", "reward", "buffer"):
-        for x, y in zip(jax.tree.leaves(getattr(pebble, name)), jax.tree.leaves(getattr(rebel, name)), strict=True):
-            np.testing.assert_array_equal(np.asarray(x)[:2], np.asarray(y)[:2])
+        chex.assert_trees_all_equal(first_two(getattr(pebble, name)), first_two(getattr(rebel, name)))
 
 
 def test_rebel_lambda_is_traced_and_changes_the_learned_reward(rebel_runs):
-    trainer, state, metrics = rebel_runs
-    assert trainer.trace_count == 1  # lambda 0 and -1 ran in one program
+    _, state, metrics = rebel_runs  # lambda 0 and -1 ran in one program, traced once (``_run``).
+    differs = [not np.array_equal(x[:2], x[2:]) for x in jax.tree.leaves(jax.device_get(state.reward.params))]
+    assert all(differs)
+    assert np.all(np.isfinite(metrics[-1]["reward_loss"])) and np.all(np.isfinite(metrics[-1]["critic_loss"]))
+
+
+def test_rebel_penalty_form_with_lambda_zero_is_pebble_and_otherwise_trains_another_reward(pebble_run):
+    """``rebel.form penalty`` (eq. "bilevel_rlhf_fo") through the round: lambda 0 adds exactly nothing."""
+    rebel = dataclasses.replace(MICRO_PEBBLE.rebel, form="penalty", best_segments=4)
+    cfg = dataclasses.replace(MICRO_PEBBLE, algo="rebel", rebel=rebel)
+    _, state, metrics = _run(cfg, KEYS, lam=[0.0, 0.0, 1.0, 1.0])
+    _, pebble, _ = pebble_run
+    first_two = functools.partial(jax.tree.map, lambda x: np.asarray(x)[:2])
+    chex.assert_trees_all_equal(first_two(pebble.reward), first_two(state.reward))
     differs = [not np.array_equal(x[:2], x[2:]) for x in jax.tree.leaves(jax.device_get(state.reward.params))]
     assert all(differs)
     assert np.all(np.isfinite(metrics[-1]["reward_loss"])) and np.all(np.isfinite(metrics[-1]["critic_loss"]))

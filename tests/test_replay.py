@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,9 +44,12 @@ FIELDS = ("obs", "action", "next_obs", "reward", "learned_reward", "terminal", "
 
 def test_init_layout():
     buffer = replay.init(capacity=20, num_envs=E, obs_size=OBS, action_size=ACT)
-    assert buffer.obs.shape == (6, E, OBS) and buffer.action.shape == (6, E, ACT)
-    assert buffer.reward.shape == buffer.terminal.shape == buffer.episode_step.shape == (6, E)
-    assert buffer.episode_step.dtype == jnp.int32 and buffer.ptr.dtype == buffer.size.dtype == jnp.int32
+    chex.assert_shape([buffer.obs, buffer.next_obs], (6, E, OBS))
+    chex.assert_shape(buffer.action, (6, E, ACT))
+    chex.assert_shape(
+        [buffer.reward, buffer.learned_reward, buffer.terminal, buffer.truncated, buffer.episode_step], (6, E)
+    )
+    chex.assert_type([buffer.episode_step, buffer.ptr, buffer.size], jnp.int32)
     with pytest.raises(ValueError):
         replay.init(capacity=2, num_envs=E, obs_size=OBS, action_size=ACT)
 

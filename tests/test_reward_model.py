@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,8 +53,7 @@ def _state_with_labels(cfg, seed, n, mistake=0.0):
 
 
 def _assert_trees_close(a, b, rtol=1e-5, atol=1e-6):
-    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol)
+    chex.assert_trees_all_close(a, b, rtol=rtol, atol=atol)
 
 
 def test_bt_cross_entropy_hand_values():
@@ -222,7 +222,7 @@ def test_learns_a_linear_reward_from_an_oracle():
     learned = np.asarray(jax.jit(rm.mean_reward, static_argnums=0)(cfg, state.params, seg.obs, seg.action)).ravel()
     corr = np.corrcoef(learned, np.asarray(seg.true_reward).ravel())[0, 1]
     assert corr > 0.8, corr
-    assert _predict(cfg, state.params, seg.obs, seg.action).shape == (3, 200, H)
+    chex.assert_shape(_predict(cfg, state.params, seg.obs, seg.action), (cfg.ensemble_size, 200, H))
 
 
 def test_pref_probs_are_sigmoid_of_return_differences():

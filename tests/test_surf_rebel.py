@@ -5,11 +5,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rebel_jax import agent_preference, surf
 from rebel_jax import reward_model as rm
 from rebel_jax.queries import Segments
 
@@ -93,7 +95,7 @@ def test_agent_value_term_equals_hand_computation(estimator, output):
     params = _tiny_params(cfg, seed=1)
     seg = _segments(2, 3, length=5)
     lam, gamma = 0.7, 0.9
-    term = jax.jit(rm.agent_value_term(cfg, lam, seg.obs, seg.action, gamma, estimator))
+    term = jax.jit(agent_preference.agent_value_term(cfg, lam, seg.obs, seg.action, gamma, estimator))
     loss, metrics = term(params, _empty_batch(), jax.random.key(0))
 
     rewards = _numpy_rewards(params, seg.obs, seg.action, output)  # (M, N, H)
@@ -116,14 +118,15 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
     batch, key, lam, gamma = _empty_batch(), jax.random.key(0), -0.3, 0.95
 
     def loss(params, lam, obs, action):
-        return rm.agent_value_term(TINY, lam, obs, action, gamma)(params, batch, key)[0]
+        return agent_preference.agent_value_term(TINY, lam, obs, action, gamma)(params, batch, key)[0]
 
     grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(params, lam, obs, action)
-    value_grads = jax.grad(lambda p: jnp.sum(rm.agent_value(TINY, p, obs, action, gamma, "discounted")))(params)
-    for got, want in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(value_grads), strict=True):
-        np.testing.assert_allclose(np.asarray(got), lam * np.asarray(want), rtol=1e-5, atol=1e-7)
+    value_grads = jax.grad(lambda p: jnp.sum(agent_preference.agent_value(TINY, p, obs, action, gamma, "discounted")))(
+        params
+    )
+    chex.assert_trees_all_close(grads[0], jax.tree.map(lambda g: lam * g, value_grads), rtol=1e-5, atol=1e-7)
     assert np.abs(np.asarray(jax.tree.leaves(value_grads)[0])).max() > 0
-    total_value = float(jnp.sum(rm.agent_value(TINY, params, obs, action, gamma, "discounted")))
+    total_value = float(jnp.sum(agent_preference.agent_value(TINY, params, obs, action, gamma, "discounted")))
     np.testing.assert_allclose(float(grads[1]), total_value, rtol=1e-5)  # d loss / d lambda = sum_m V_m.
     np.testing.assert_array_equal(np.asarray(grads[2]), 0.0)
     np.testing.assert_array_equal(np.asarray(grads[3]), 0.0)
@@ -136,7 +139,7 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
 @jax.jit
 def _session_with_lambda(state, key, lam, agent_obs, agent_action):
     """A BT + REBEL session with lambda traced: one compilation serves every lambda."""
-    terms = [rm.bt_loss(SMALL), rm.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
+    terms = [rm.bt_loss(SMALL), agent_preference.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
     return rm.train(SMALL, state, key, terms)
 
 
@@ -147,10 +150,7 @@ def test_zero_lambda_trains_exactly_like_bt_alone():
     alone, alone_metrics = _train(SMALL, state, key)
     both, both_metrics = _session_with_lambda(state, key, 0.0, agent.obs, agent.action)
     assert int(both_metrics["epochs"]) == int(alone_metrics["epochs"]) > 0
-    for x, y in zip(
-        jax.tree.leaves((alone.params, alone.opt_state)), jax.tree.leaves((both.params, both.opt_state)), strict=True
-    ):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    chex.assert_trees_all_equal((alone.params, alone.opt_state), (both.params, both.opt_state))
 
 
 def test_lambda_sign_moves_the_agents_reward():
@@ -171,7 +171,7 @@ def test_lambda_sign_moves_the_agents_reward():
 def test_crop_masks_match_a_python_reference_with_the_same_draws():
     key, shape, stored, crop = jax.random.key(5), (3, 7), 14, 3
     central = stored - 2 * crop
-    mask_a, mask_b = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
+    mask_a, mask_b = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
 
     @jax.jit
     def draws(key):  # The documented draws: one length per pair, then a start per segment.
@@ -192,7 +192,7 @@ def test_crop_masks_match_a_python_reference_with_the_same_draws():
 def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     shape, stored, crop = (4000,), 12, 2
     central = stored - 2 * crop
-    masks = np.stack(jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
+    masks = np.stack(jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
     assert set(np.unique(masks)) == {0.0, 1.0}
     edges = np.diff(np.pad(masks, ((0, 0), (0, 0), (1, 1))), axis=-1)
     assert np.all((edges == 1).sum(-1) == 1) and np.all((edges == -1).sum(-1) == 1)  # One contiguous run.
@@ -202,7 +202,7 @@ def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     starts = np.argmax(masks, axis=-1)
     for length in range(central - crop, central + crop + 1):  # Every start in [0, L - length] occurs.
         assert set(starts[0][lengths[0] == length]) == set(range(stored - length + 1))
-    full = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
+    full = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
     np.testing.assert_array_equal(np.stack(full), 1.0)
 
 
@@ -223,21 +223,22 @@ def _surf_batch(seed, members, size, stored):
 def test_cropped_bt_loss_without_crop_is_bt_loss_exactly():
     params = _init(SMALL, jax.random.key(8), OBS, ACT, H).params
     batch, key = _surf_batch(9, 2, 5, H), jax.random.key(10)
-    surf = rm.SURFConfig(crop=0)
+    surf_cfg = surf.SURFConfig(crop=0)
     value_and_grad = functools.partial(jax.value_and_grad, has_aux=True)
     plain = jax.jit(value_and_grad(rm.bt_loss(SMALL)))(params, batch, key)
-    cropped = jax.jit(value_and_grad(rm.cropped_bt_loss(SMALL, surf)))(params, batch, key)
-    for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(cropped), strict=True):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    cropped = jax.jit(value_and_grad(surf.cropped_bt_loss(SMALL, surf_cfg)))(params, batch, key)
+    chex.assert_trees_all_equal(plain, cropped)
 
 
 def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
-    surf = rm.SURFConfig(crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(crop=2)
+    stored = H + 2 * surf_cfg.crop
     params = _tiny_params(seed=12)
     batch, key = _surf_batch(13, 2, 5, stored), jax.random.key(14)
-    loss, metrics = jax.jit(rm.cropped_bt_loss(TINY, surf))(params, batch, key)
-    mask_a, mask_b = map(np.asarray, jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf.crop))
+    loss, metrics = jax.jit(surf.cropped_bt_loss(TINY, surf_cfg))(params, batch, key)
+    mask_a, mask_b = map(
+        np.asarray, jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf_cfg.crop)
+    )
     assert not np.array_equal(mask_a[0], mask_a[1])  # Members see different crops.
     expected = 0.0
     for m in range(2):
@@ -256,7 +257,7 @@ def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
 def test_pseudo_labels_match_numpy():
     logits = np.array([-3.0, -0.5, -1e-3, 0.0, 1e-3, 0.4, 1.2, 2.5, 6.0], np.float32)
     for threshold in (0.5, 0.6, 0.9, 0.99):
-        labels, confident = jax.jit(rm.pseudo_labels)(logits, threshold)
+        labels, confident = jax.jit(surf.pseudo_labels)(logits, threshold)
         prob = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
         np.testing.assert_array_equal(np.asarray(labels), (prob > 0.5).astype(np.float32))
         np.testing.assert_array_equal(
@@ -270,32 +271,32 @@ def _pool(seed, size, stored):
 
 
 def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
-    surf = rm.SURFConfig(threshold=0.6, weight=0.5, ratio=3, crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(threshold=0.6, weight=0.5, ratio=3, crop=2)
+    stored = H + 2 * surf_cfg.crop
     params = _init(TINY, jax.random.key(15), OBS, ACT, stored).params
     params = jax.tree.map(lambda x: 3.0 * x, params)  # Sharper preferences: some pairs pass the threshold.
     pool = _pool(16, 30, stored)
     batch, key = _surf_batch(17, 2, 4, stored), jax.random.key(18)
-    term = rm.pseudo_label_term(TINY, surf, *pool)
+    term = surf.pseudo_label_term(TINY, surf_cfg, *pool)
     (loss, metrics), grads = jax.jit(jax.value_and_grad(term, has_aux=True))(params, batch, key)
 
     @jax.jit
     def draws(key):  # The documented draws: pool indices, then crops.
         key_index, key_crop = jax.random.split(key)
-        return jax.random.randint(key_index, (2, 12), 0, 30), *rm.crop_masks(key_crop, (2, 12), stored, surf.crop)
+        return jax.random.randint(key_index, (2, 12), 0, 30), *surf.crop_masks(key_crop, (2, 12), stored, surf_cfg.crop)
 
     index, mask_a, mask_b = map(np.asarray, draws(key))
     expected, confident_count, fixed_labels, fixed_confident = 0.0, 0, [], []
     for m in range(2):
         obs_a, act_a, obs_b, act_b = (np.asarray(x)[index[m]] for x in pool)
         rewards_a, rewards_b = _numpy_rewards(params, obs_a, act_a)[m], _numpy_rewards(params, obs_b, act_b)[m]
-        central = slice(surf.crop, surf.crop + H)
+        central = slice(surf_cfg.crop, surf_cfg.crop + H)
         prob = 1.0 / (1.0 + np.exp(-(rewards_b[:, central].sum(-1) - rewards_a[:, central].sum(-1))))
-        assert np.all(np.abs(np.maximum(prob, 1 - prob) - surf.threshold) > 1e-4)  # No float32 borderline case.
+        assert np.all(np.abs(np.maximum(prob, 1 - prob) - surf_cfg.threshold) > 1e-4)  # No float32 borderline case.
         labels = (prob > 0.5).astype(np.float64)
-        confident = (np.maximum(prob, 1 - prob) >= surf.threshold).astype(np.float64)
+        confident = (np.maximum(prob, 1 - prob) >= surf_cfg.threshold).astype(np.float64)
         logits = (rewards_b * mask_b[m]).sum(-1) - (rewards_a * mask_a[m]).sum(-1)
-        expected += surf.weight * np.mean(_numpy_ce(logits, labels) * confident)
+        expected += surf_cfg.weight * np.mean(_numpy_ce(logits, labels) * confident)
         confident_count += confident.sum()
         fixed_labels.append(labels)
         fixed_confident.append(confident)
@@ -309,22 +310,21 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
 
     def fixed_loss(params):
         def one(member_params, member_index, member_mask_a, member_mask_b):
-            reward_a = rm._network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
-            reward_b = rm._network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
+            reward_a = rm.network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
+            reward_b = rm.network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
             return jnp.sum(reward_b * member_mask_b, -1) - jnp.sum(reward_a * member_mask_a, -1)
 
         logits = jax.vmap(one)(params, jnp.asarray(index), jnp.asarray(mask_a), jnp.asarray(mask_b))
-        return surf.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
+        return surf_cfg.weight * jnp.sum(jnp.mean(rm.bt_cross_entropy(logits, fixed_labels) * fixed_confident, axis=1))
 
-    for x, y in zip(jax.tree.leaves(grads), jax.tree.leaves(jax.jit(jax.grad(fixed_loss))(params)), strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+    chex.assert_trees_all_close(grads, jax.jit(jax.grad(fixed_loss))(params), rtol=1e-4, atol=1e-6)
 
 
 def test_surf_session_runs_under_jit_and_vmap_over_keys():
-    surf = rm.SURFConfig(threshold=0.7, ratio=2, crop=2)
-    stored = H + 2 * surf.crop
+    surf_cfg = surf.SURFConfig(threshold=0.7, ratio=2, crop=2)
+    stored = H + 2 * surf_cfg.crop
     state = _state_with_labels(SMALL, 19, 40, stored)
-    terms = [rm.cropped_bt_loss(SMALL, surf), rm.pseudo_label_term(SMALL, surf, *_pool(20, 50, stored))]
+    terms = [surf.cropped_bt_loss(SMALL, surf_cfg), surf.pseudo_label_term(SMALL, surf_cfg, *_pool(20, 50, stored))]
     session = functools.partial(rm.train, SMALL, terms=terms)
     keys = jax.random.split(jax.random.key(21), 2)
     batched, batched_metrics = jax.jit(jax.vmap(session, in_axes=(None, 0)))(state, keys)
@@ -333,8 +333,8 @@ def test_surf_session_runs_under_jit_and_vmap_over_keys():
     for i in range(2):
         alone, metrics = jax.jit(session)(state, keys[i])
         np.testing.assert_allclose(float(batched_metrics["loss"][i]), float(metrics["loss"]), rtol=1e-5)
-        for x, y in zip(jax.tree.leaves(alone.params), jax.tree.leaves(batched.params), strict=True):
-            np.testing.assert_allclose(np.asarray(x), np.asarray(y)[i], rtol=1e-4, atol=1e-6)
+        column = jax.tree.map(lambda x, i=i: x[i], batched.params)
+        chex.assert_trees_all_close(alone.params, column, rtol=1e-4, atol=1e-6)
 
 
 # Validation.
@@ -346,11 +346,11 @@ def test_surf_session_runs_under_jit_and_vmap_over_keys():
 )
 def test_agent_preference_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"rebel.{field}"):
-        dataclasses.replace(rm.AgentPreferenceConfig(), **{field: value}).validate()
+        dataclasses.replace(agent_preference.AgentPreferenceConfig(), **{field: value}).validate()
     with pytest.raises(ValueError, match="rebel.gamma"):
-        rm.AgentPreferenceConfig(estimator="mean", gamma=1.0).validate()
-    rm.AgentPreferenceConfig().validate()
-    rm.AgentPreferenceConfig(gamma=1.0).validate()
+        agent_preference.AgentPreferenceConfig(estimator="mean", gamma=1.0).validate()
+    agent_preference.AgentPreferenceConfig().validate()
+    agent_preference.AgentPreferenceConfig(gamma=1.0).validate()
 
 
 @pytest.mark.parametrize(
@@ -358,10 +358,10 @@ def test_agent_preference_validate_names_the_field(field, value):
 )
 def test_surf_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"surf.{field}"):
-        dataclasses.replace(rm.SURFConfig(), **{field: value}).validate()
+        dataclasses.replace(surf.SURFConfig(), **{field: value}).validate()
     with pytest.raises(ValueError, match="surf.crop"):
-        rm.SURFConfig(crop=5).validate(segment_length=5)
-    rm.SURFConfig().validate(segment_length=50)
+        surf.SURFConfig(crop=5).validate(segment_length=5)
+    surf.SURFConfig().validate(segment_length=50)
 
 
 def test_scale_free_value_term_matches_a_numpy_reference():
@@ -369,7 +369,7 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     seg = _segments(22, 4)
     batch = _surf_batch(23, 2, 5, H)  # The last pair is padding: excluded from the spread.
     lam, gamma = -0.3, 0.95
-    term = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
+    term = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
     loss, _ = jax.jit(term)(params, batch, jax.random.key(0))
     rewards = _numpy_rewards(params, seg.obs, seg.action)  # (M, N, H)
     values = (rewards * gamma ** np.arange(H)).sum(-1).mean(-1)
@@ -388,7 +388,7 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     # saturates), so the term barely moves, where the literal term scales with it.
     small = jax.tree.map(lambda x: x, params)
     small["params"]["Dense_1"] = jax.tree.map(lambda x: 0.01 * x, params["params"]["Dense_1"])
-    literal = rm.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
+    literal = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
     ratio_free = float(term(small, batch, None)[0]) / float(term(params, batch, None)[0])
     ratio_literal = float(literal(small, batch, None)[0]) / float(literal(params, batch, None)[0])
     assert abs(ratio_literal) < 0.2 and abs(ratio_free - 1.0) < abs(ratio_literal - 1.0)
@@ -399,9 +399,130 @@ def test_value_term_gradient_reaches_only_the_reward_parameters():
     seg = _segments(25, 3)
 
     def loss_of_inputs(obs, action):
-        return rm.agent_value_term(TINY, 0.7, obs, action, 0.9)(params, None, None)[0]
+        return agent_preference.agent_value_term(TINY, 0.7, obs, action, 0.9)(params, None, None)[0]
 
     grad_obs, grad_action = jax.grad(loss_of_inputs, argnums=(0, 1))(jnp.asarray(seg.obs), jnp.asarray(seg.action))
     assert not np.any(np.asarray(grad_obs)) and not np.any(np.asarray(grad_action))
-    grads = jax.grad(lambda p: rm.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0])(params)
+    grads = jax.grad(
+        lambda p: agent_preference.agent_value_term(TINY, 0.7, seg.obs, seg.action, 0.9)(p, None, None)[0]
+    )(params)
     assert any(np.any(np.asarray(g)) for g in jax.tree.leaves(grads))
+
+
+# REBEL: the un-relaxed penalty (eq. "bilevel_rlhf_fo") and the lower bound's r >= 0.
+
+
+def _store(cfg, seed, pairs, capacity):
+    """A label store of ``capacity`` slots holding ``pairs`` random pairs (labels do not matter here)."""
+    state = _init(dataclasses.replace(cfg, label_capacity=capacity), jax.random.key(seed), OBS, ACT, H)
+    seg_a, seg_b = _segments(seed + 1, pairs), _segments(seed + 2, pairs)
+    return _add_labels(state, seg_a, seg_b, np.ones(pairs, np.float32), np.ones(pairs, np.float32)).data
+
+
+@pytest.mark.parametrize("k", [3, 10])
+def test_best_segments_are_the_highest_learned_returns_of_either_side(k):
+    params = _tiny_params(seed=30)
+    data = _store(TINY, 31, pairs=3, capacity=8)  # 6 stored segments among 16 slots.
+    obs, action, valid = jax.jit(agent_preference.best_segments, static_argnums=(0, 3))(TINY, params, data, k)
+    candidates_obs = np.concatenate([np.asarray(data.obs_a)[:3], np.asarray(data.obs_b)[:3]])
+    candidates_act = np.concatenate([np.asarray(data.act_a)[:3], np.asarray(data.act_b)[:3]])
+    returns = _numpy_rewards(params, candidates_obs, candidates_act).mean(0).sum(-1)  # Ensemble mean, summed.
+    order = sorted(range(6), key=lambda i: -returns[i])[: min(k, 6)]
+    chex.assert_shape([obs], (k, H, OBS))
+    np.testing.assert_array_equal(np.asarray(valid), [1.0] * len(order) + [0.0] * (k - len(order)))
+    np.testing.assert_array_equal(np.asarray(obs)[: len(order)], candidates_obs[order])
+    np.testing.assert_array_equal(np.asarray(action)[: len(order)], candidates_act[order])
+
+
+@pytest.mark.parametrize("estimator", ["discounted", "mean"])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_value_gap_term_matches_a_numpy_reference(estimator, normalize):
+    params = _tiny_params(seed=32)
+    agent, best = _segments(33, 3, length=7), _segments(34, 4)
+    valid = np.array([1.0, 1.0, 1.0, 0.0], np.float32)  # The last one is an empty slot: ignored.
+    batch = _surf_batch(35, 2, 5, H)
+    lam, gamma = 0.7, 0.9
+    term = agent_preference.value_gap_term(
+        TINY, lam, agent.obs, agent.action, best.obs, best.action, valid, gamma, estimator, normalize
+    )
+    loss, metrics = jax.jit(term)(params, batch, jax.random.key(0))
+
+    agent_rewards = _numpy_rewards(params, agent.obs, agent.action)  # (M, 3, 7)
+    best_rewards = _numpy_rewards(params, best.obs[:3], best.action[:3])  # (M, 3, H), valid ones only
+    expected, values, optimal = 0.0, [], []
+    for m in range(TINY.ensemble_size):
+        if estimator == "discounted":
+            value = np.mean([sum(gamma**t * agent_rewards[m, n, t] for t in range(7)) for n in range(3)])
+            best_value = best_rewards[m].mean() * sum(gamma**t for t in range(7))  # Over V's horizon, 7 steps.
+        else:
+            value = agent_rewards[m].mean() / (1 - gamma)
+            best_value = best_rewards[m].mean() / (1 - gamma)
+        if normalize:
+            w = np.asarray(batch.weight[m]) > 0
+            labelled = np.concatenate(
+                [
+                    _numpy_rewards(params, np.asarray(batch.obs_a[m])[w], np.asarray(batch.act_a[m])[w])[m],
+                    _numpy_rewards(params, np.asarray(batch.obs_b[m])[w], np.asarray(batch.act_b[m])[w])[m],
+                ]
+            )
+            value, best_value = value / labelled.std(), best_value / labelled.std()
+        values.append(value)
+        optimal.append(best_value)
+        expected += lam * (best_value - value)
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["agent_term"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["optimal_value"]), np.mean(optimal), rtol=1e-4)
+
+
+def test_value_gap_term_gradient_reaches_only_the_reward_parameters():
+    params = _tiny_params(seed=36)
+    agent, best = _segments(37, 3), _segments(38, 2)
+    valid = jnp.ones(2)
+
+    def loss(params, *inputs):
+        return agent_preference.value_gap_term(TINY, 0.5, *inputs, valid, 0.9)(params, None, None)[0]
+
+    inputs = tuple(map(jnp.asarray, (agent.obs, agent.action, best.obs, best.action)))
+    grads = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(params, *inputs)
+    assert all(not np.any(np.asarray(g)) for g in grads[1:])
+
+    def total(fn, *args):
+        return jax.grad(lambda p: jnp.sum(fn(TINY, p, *args)))(params)
+
+    optimal = total(agent_preference.optimal_value, best.obs, best.action, valid, 0.9, "discounted", H)
+    value = total(agent_preference.agent_value, agent.obs, agent.action, 0.9, "discounted")
+    expected = jax.tree.map(lambda a, b: 0.5 * (a - b), optimal, value)
+    chex.assert_trees_all_close(grads[0], expected, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("output", ["sigmoid", "tanh"])
+def test_the_lower_bound_holds_with_sigmoid_rewards_and_can_fail_with_tanh(output):
+    """Eq. "bilevel_rlhf_fo_lb" bounds eq. "bilevel_rlhf_fo" because V(pi_theta) >= 0 when r >= 0.
+
+    As minimised losses, with lambda >= 0: penalty ``lambda (V* - V)`` <= lower bound ``lambda V*``.
+    The output layer is pushed negative so that tanh rewards are negative everywhere.
+    """
+    cfg = dataclasses.replace(TINY, output=output)
+    params = _tiny_params(cfg, seed=39)
+    params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] - 3.0
+    agent, best = _segments(40, 3), _segments(41, 2)
+    lam = 0.5
+    term = agent_preference.value_gap_term(cfg, lam, agent.obs, agent.action, best.obs, best.action, jnp.ones(2), 0.9)
+    penalty, metrics = term(params, None, None)
+    lower_bound = lam * cfg.ensemble_size * float(metrics["optimal_value"])  # lambda * sum_m V*_m
+    rewards = _numpy_rewards(params, agent.obs, agent.action, output)
+    if output == "sigmoid":
+        assert rewards.min() > 0 and float(metrics["agent_value"]) > 0
+        assert float(penalty) <= lower_bound
+    else:
+        assert rewards.max() < 0 and float(metrics["agent_value"]) < 0
+        assert float(penalty) > lower_bound
+
+
+def test_rebel_form_validates():
+    with pytest.raises(ValueError, match="rebel.form"):
+        agent_preference.AgentPreferenceConfig(form="exact").validate()
+    with pytest.raises(ValueError, match="rebel.best_segments"):
+        agent_preference.AgentPreferenceConfig(form="penalty", best_segments=0).validate()
+    agent_preference.AgentPreferenceConfig(form="penalty").validate()

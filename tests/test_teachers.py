@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -160,7 +161,8 @@ def test_vmap_over_stacked_preset_knobs_equals_each_preset_alone():
     cases = CASES  # B-Pref's six presets and one teacher with every knob on
     names = sorted(cases)
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *[teachers.knobs(cases[n]) for n in names])
-    assert all(v.shape == (len(names),) and v.dtype == jnp.float32 for v in stacked.values())
+    chex.assert_shape(list(stacked.values()), (len(names),))
+    chex.assert_type(list(stacked.values()), jnp.float32)
 
     def run(knobs):
         return teachers.label(teachers.TeacherConfig(**knobs), key, seg_a, seg_b, MARGIN)

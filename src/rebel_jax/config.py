@@ -13,11 +13,13 @@ from typing import Annotated, Literal
 
 import tyro
 
+from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import AgentPreferenceConfig, RewardConfig, SURFConfig
+from rebel_jax.reward_model import RewardConfig
+from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 
 Algo = Literal["sac", "pebble", "surf", "rebel"]

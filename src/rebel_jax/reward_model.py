@@ -11,15 +11,13 @@ Label convention (``teachers``): ``label = P(seg_b preferred to seg_a)`` in {0, 
 The training loss is a sum of *terms*, each a pure ``(params, batch, key) -> (loss, metrics)``
 over the whole ensemble's ``params`` and a ``PrefBatch`` of labelled pairs (with a leading
 member axis: every member sees its own shuffle, as in B-Pref). ``bt_loss`` is the
-Bradley-Terry term. Further factories of the same type close over their own data and are
-passed to ``train``:
+Bradley-Terry term. The methods' further terms live in their own modules, which import this
+one (never the other way round), close over their own data and are passed to ``train``:
 
-- ``agent_value_term``: REBEL's agent preference ``lambda * V``, the learned reward's value
-  on segments visited by the current policy;
-- ``cropped_bt_loss`` and ``pseudo_label_term``: SURF's temporal cropping of the labelled pairs
-  and its confidence-thresholded pseudo-labels on unlabelled pairs. With SURF, segments are
-  stored at length ``L = H + 2 * crop`` and a crop is a 0/1 step mask over them, so every
-  shape stays static.
+- :mod:`rebel_jax.agent_preference`: REBEL's agent preference ``lambda * V``, the learned
+  reward's value on trajectories of the current policy;
+- :mod:`rebel_jax.surf`: SURF's temporal cropping of the labelled pairs, its
+  confidence-thresholded pseudo-labels on unlabelled pairs and the pool that holds them.
 """
 
 from __future__ import annotations
@@ -141,31 +139,14 @@ class LabelData:
 
 
 @flax.struct.dataclass
-class UnlabelledPool:
-    """SURF's growing store of unlabelled pairs (``u_buffer_seg1/2`` of ``reward_model_semi_dataaug.py``)."""
-
-    obs_a: jax.Array
-    """(U, L, obs_size) observations of the first segments."""
-    act_a: jax.Array
-    """(U, L, act_size) their actions."""
-    obs_b: jax.Array
-    """(U, L, obs_size) observations of the second segments."""
-    act_b: jax.Array
-    """(U, L, act_size) their actions."""
-    ptr: jax.Array
-    """Next slot to write (wraps at U)."""
-    count: jax.Array
-    """Filled slots, <= U."""
-
-
-@flax.struct.dataclass
 class RewardState:
     """The ensemble's parameters (leading member axis), its Adam state, its labels and (SURF) its pool."""
 
     params: Any
     opt_state: Any
     data: LabelData
-    pool: UnlabelledPool | None = None
+    pool: Any = None
+    """SURF's unlabelled pairs (:class:`rebel_jax.surf.UnlabelledPool`, ``surf.init_pool``), or None."""
 
 
 @flax.struct.dataclass
@@ -182,7 +163,8 @@ class PrefBatch:
     """(M, B) 1 for real pairs, 0 for padding of the last minibatch."""
 
 
-def _network(cfg: RewardConfig) -> RewardMLP:
+def network(cfg: RewardConfig) -> RewardMLP:
+    """One member's flax module (apply it per member, or ``vmap`` it over the member axis)."""
     return RewardMLP(hidden=cfg.hidden, depth=cfg.depth, output=cfg.output, initializer=cfg.init)
 
 
@@ -190,10 +172,8 @@ def _optimizer(cfg: RewardConfig) -> optax.GradientTransformation:
     return optax.adam(cfg.lr)
 
 
-def init(
-    cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int, pool_capacity: int = 0
-) -> RewardState:
-    """A fresh ensemble (one init key per member) with an empty label store.
+def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int) -> RewardState:
+    """A fresh ensemble (one init key per member) with an empty label store and no pool.
 
     Args:
       cfg: the reward settings.
@@ -201,13 +181,12 @@ def init(
       obs_size: observation size.
       act_size: action size.
       segment_length: H of the stored segments.
-      pool_capacity: unlabelled pairs SURF's pool holds; 0: no pool.
 
     Returns:
-      The ``RewardState``.
+      The ``RewardState`` (SURF adds its pool with ``surf.init_pool``).
     """
     keys = jax.random.split(key, cfg.ensemble_size)
-    params = jax.vmap(_network(cfg).init, in_axes=(0, None, None))(keys, jnp.zeros(obs_size), jnp.zeros(act_size))
+    params = jax.vmap(network(cfg).init, in_axes=(0, None, None))(keys, jnp.zeros(obs_size), jnp.zeros(act_size))
     shape = (cfg.label_capacity, segment_length)
     data = LabelData(
         obs_a=jnp.zeros(shape + (obs_size,)),
@@ -218,50 +197,7 @@ def init(
         ptr=jnp.zeros((), jnp.int32),
         count=jnp.zeros((), jnp.int32),
     )
-    pool = None
-    if pool_capacity:
-        pool_shape = (pool_capacity, segment_length)
-        pool = UnlabelledPool(
-            obs_a=jnp.zeros(pool_shape + (obs_size,)),
-            act_a=jnp.zeros(pool_shape + (act_size,)),
-            obs_b=jnp.zeros(pool_shape + (obs_size,)),
-            act_b=jnp.zeros(pool_shape + (act_size,)),
-            ptr=jnp.zeros((), jnp.int32),
-            count=jnp.zeros((), jnp.int32),
-        )
-    return RewardState(params=params, opt_state=_optimizer(cfg).init(params), data=data, pool=pool)
-
-
-def add_unlabelled(state: RewardState, seg_a: Any, seg_b: Any, keep: jax.Array | bool = True) -> RewardState:
-    """Appends unlabelled pairs to SURF's pool (``put_unlabeled_queries``), all of them or none.
-
-    Args:
-      state: the reward state, with a pool.
-      seg_a: segments with ``obs`` and ``action`` (N, L, ...).
-      seg_b: the other segment of each pair.
-      keep: whether to add them (a seed whose session is a no-op adds none).
-
-    Returns:
-      The state with the pairs written at ``ptr`` onwards (wrapping), ``count`` updated.
-    """
-    pool = state.pool
-    capacity = pool.obs_a.shape[0]
-    num = seg_a.obs.shape[0]
-    slot = jnp.where(keep, (pool.ptr + jnp.arange(num)) % capacity, capacity)  # Out of range: dropped.
-
-    def write(store, new):
-        return store.at[slot].set(new.astype(store.dtype), mode="drop")
-
-    added = jnp.where(keep, num, 0)
-    pool = pool.replace(
-        obs_a=write(pool.obs_a, seg_a.obs),
-        act_a=write(pool.act_a, seg_a.action),
-        obs_b=write(pool.obs_b, seg_b.obs),
-        act_b=write(pool.act_b, seg_b.action),
-        ptr=(pool.ptr + added) % capacity,
-        count=jnp.minimum(pool.count + added, capacity),
-    )
-    return state.replace(pool=pool)
+    return RewardState(params=params, opt_state=_optimizer(cfg).init(params), data=data)
 
 
 def predict(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -276,7 +212,7 @@ def predict(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -
     Returns:
       (M, ...) rewards in (-1, 1) (``tanh`` output) or (0, 1) (``sigmoid``).
     """
-    return jax.vmap(_network(cfg).apply, in_axes=(0, None, None))(params, obs, action)
+    return jax.vmap(network(cfg).apply, in_axes=(0, None, None))(params, obs, action)
 
 
 def mean_reward(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -301,7 +237,7 @@ def _member_logits(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Arra
     """Logits of member m on member m's own minibatch: (M, B)."""
 
     def one(member_params, obs_a, act_a, obs_b, act_b):
-        apply = _network(cfg).apply
+        apply = network(cfg).apply
         return jnp.sum(apply(member_params, obs_b, act_b), -1) - jnp.sum(apply(member_params, obs_a, act_a), -1)
 
     return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b)
@@ -357,13 +293,16 @@ def bt_loss(cfg: RewardConfig) -> LossTerm:
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
-        return _bt_term(_member_logits(cfg, params, batch), batch)
+        return bt_term(_member_logits(cfg, params, batch), batch)
 
     return loss_fn
 
 
-def _bt_term(logits: jax.Array, batch: PrefBatch) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """The BT term and its metrics from the members' (M, B) logits on their own minibatches."""
+def bt_term(logits: jax.Array, batch: PrefBatch) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The BT term and its metrics from the members' (M, B) logits on their own minibatches.
+
+    Shared by ``bt_loss`` and SURF's ``cropped_bt_loss``, which differ only in the logits.
+    """
     per_pair = bt_cross_entropy(logits, batch.labels) * batch.weight
     per_member = jnp.sum(per_pair, axis=1) / jnp.maximum(jnp.sum(batch.weight, axis=1), 1.0)
     loss = jnp.sum(per_member)
@@ -592,16 +531,6 @@ def train(
     return end.state, metrics
 
 
-def surf_iterations(reward_update: int, count: jax.Array, batch_size: int) -> jax.Array:
-    """SURF's gradient steps per session: ``ceil(reward_update * labels / batch_size)``.
-
-    ``train_PEBBLE_semi_dataaug.py`` (alinlab/SURF 2088ee8), ``learn_reward``: ``num_iters =
-    int(np.ceil(self.cfg.reward_update * self.labeled_feedback / self.reward_model.train_batch_size))``,
-    with ``reward_update=1000`` in its walker command and ``train_batch_size = 128``.
-    """
-    return (reward_update * count + batch_size - 1) // batch_size
-
-
 def train_iterations(
     cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm], num_iters: jax.Array
 ) -> tuple[RewardState, dict[str, jax.Array]]:
@@ -618,7 +547,7 @@ def train_iterations(
       state: the reward state with its labels.
       key: PRNG key of the session.
       terms: loss terms.
-      num_iters: () int, may be traced (see :func:`surf_iterations`).
+      num_iters: () int, may be traced (see :func:`rebel_jax.surf.surf_iterations`).
 
     Returns:
       The trained state and metrics ``epochs`` (the steps run, int32), ``train_accuracy`` and
@@ -654,344 +583,3 @@ def train_iterations(
     steps = jnp.maximum(end.batch, 1)
     metrics = {"epochs": end.batch, "train_accuracy": end.correct / steps, "loss": end.loss / steps}
     return state.replace(params=end.params, opt_state=end.opt_state), metrics
-
-
-# REBEL: the agent-preference term.
-
-
-@dataclasses.dataclass(frozen=True)
-class AgentPreferenceConfig:
-    """REBEL's agent-preference term ``lambda * V`` added to the reward loss (REFERENCE section 1)."""
-
-    lam: float = 0.0
-    """Weight lambda, signed; the paper's equation adds ``+lambda * V`` to the minimised loss,
-    its prose says the term raises the current policy's value, which needs ``lambda < 0``
-    here. 0 turns the term off."""
-    estimator: Literal["discounted", "mean"] = "discounted"
-    """How V is estimated from the segments: ``discounted`` is the paper's
-    ``sum_h gamma^h r(s_h, a_h)`` over a segment, averaged over segments; ``mean`` is the
-    per-step mean reward over all their steps times the horizon ``1 / (1 - gamma)``, a
-    stationary estimate of the infinite-horizon value."""
-    source: Literal["onpolicy", "replay"] = "onpolicy"
-    """Where V's trajectories come from. ``onpolicy``, the paper's ``V = E[sum_h gamma^h
-    r(s_h, a_h) | s_0, a_h ~ pi]`` (eq. "mle_new"): the last complete episodes of the in-batch
-    evaluation environments, which start at the task's reset and follow the current policy
-    (its mean action, frozen at the episode start), over their whole length, at no extra env
-    cost. ``replay``, this project's earlier estimate: ``num_segments`` segments of
-    ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
-    with actions redrawn from the current policy."""
-    num_segments: int = 64
-    """``source='replay'``: segments N of recent agent experience, drawn once per feedback session,
-    over which V is averaged (their actions redrawn from the current policy)."""
-    segment_length: int = 50
-    """``source='replay'``: steps H per segment."""
-    gamma: float = 0.99
-    """Discount of V; in [0, 1] for ``discounted``, in [0, 1) for ``mean``."""
-    normalize: bool = False
-    """The scale-free form: V divided by each member's spread (std) of the per-step reward on
-    the labelled segments of the minibatch, so that one lambda means the same on walker and
-    cheetah (see ``agent_value_term``). Off: the paper's literal ``lambda * V``."""
-
-    def validate(self) -> None:
-        _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
-        _check(self.estimator in ("discounted", "mean"), "rebel.estimator", self.estimator, "discounted, mean")
-        _check(self.source in ("onpolicy", "replay"), "rebel.source", self.source, "onpolicy, replay")
-        for name in ("num_segments", "segment_length"):
-            _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
-        if self.estimator == "mean":
-            _check(0 <= self.gamma < 1, "rebel.gamma", self.gamma, "[0, 1) with estimator 'mean'")
-        else:
-            _check(0 <= self.gamma <= 1, "rebel.gamma", self.gamma, "[0, 1]")
-
-
-def agent_value(
-    cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array, gamma: float | jax.Array, estimator: str
-) -> jax.Array:
-    """Each member's value V_m of the current policy under its learned reward.
-
-    Args:
-      cfg: the reward settings.
-      params: ensemble parameters.
-      obs: (N, H, obs_size) states of N segments of H consecutive steps visited by the agent.
-      action: (N, H, act_size) actions drawn in them from the current policy.
-      gamma: discount (a float or a traced scalar).
-      estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
-        ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
-
-    Returns:
-      (M,) values ``V_m``.
-    """
-    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-    rewards = predict(cfg, params, obs, action)  # (M, N, H)
-    if estimator == "mean":
-        return jnp.mean(rewards, axis=(1, 2)) / (1.0 - gamma)
-    discounts = jnp.asarray(gamma, rewards.dtype) ** jnp.arange(rewards.shape[-1], dtype=rewards.dtype)
-    return jnp.mean(jnp.sum(rewards * discounts, axis=-1), axis=1)
-
-
-def _labelled_spread(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
-    """(M,) each member's std of the per-step reward over its minibatch's labelled steps (>= 1e-6)."""
-
-    def one(member_params, obs_a, act_a, obs_b, act_b, weight):
-        apply = _network(cfg).apply
-        rewards = jnp.concatenate([apply(member_params, obs_a, act_a), apply(member_params, obs_b, act_b)], axis=0)
-        w = jnp.broadcast_to(jnp.concatenate([weight, weight])[:, None], rewards.shape)
-        mean = jnp.sum(rewards * w) / jnp.maximum(jnp.sum(w), 1.0)
-        var = jnp.sum(w * (rewards - mean) ** 2) / jnp.maximum(jnp.sum(w), 1.0)
-        return jnp.maximum(jnp.sqrt(var), 1e-6)
-
-    return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, batch.weight)
-
-
-def agent_value_term(
-    cfg: RewardConfig,
-    lam: float | jax.Array,
-    obs: jax.Array,
-    action: jax.Array,
-    gamma: float | jax.Array,
-    estimator: str = "discounted",
-    normalize: bool = False,
-) -> LossTerm:
-    """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
-
-    The term closes over N segments of states recently visited by the agent with actions
-    already drawn by the caller from the current policy ``pi_theta``, which is held fixed:
-    ``obs`` and ``action`` pass through ``stop_gradient``, so only the reward parameters get
-    gradients. The members' values are summed, as ``bt_loss`` sums the members' losses. The
-    equation is implemented literally: the loss adds ``+lambda * V``, so minimising it with
-    ``lambda > 0`` lowers the current policy's value and ``lambda < 0`` raises it.
-
-    Args:
-      cfg: the reward settings.
-      lam: signed weight lambda, a float or a traced scalar (e.g. ``vmap``-ed over).
-      obs: (N, H, obs_size) states.
-      action: (N, H, act_size) actions from the current policy.
-      gamma: discount of V.
-      estimator: ``"discounted"`` or ``"mean"``, see ``agent_value``.
-      normalize: the scale-free form ``lambda * sum_m V_m / s_m`` (``rebel.normalize``): ``s_m``
-        is member m's standard deviation of the per-step reward over the steps of the batch's
-        labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
-        BT loss fixes the reward's scale only up to what the labels demand, so with it one
-        lambda weighs V alike on tasks whose learned rewards spread differently.
-
-    Returns:
-      ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
-      mean V, unscaled) and ``agent_term`` (the loss).
-
-    References:
-      REBEL (AAAI 2025), the reward loss "mle_new" (REFERENCE section 1).
-    """
-    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-
-    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        del key  # Unused.
-        values = agent_value(cfg, params, jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action), gamma, estimator)
-        if normalize:
-            values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
-        loss = lam * jnp.sum(values)
-        return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
-
-    return loss_fn
-
-
-# SURF: temporal cropping and pseudo-labels.
-
-
-@dataclasses.dataclass(frozen=True)
-class SURFConfig:
-    """SURF's semi-supervised reward learning with temporal cropping (walker_walk settings)."""
-
-    threshold: float = 0.99
-    """Pseudo-label confidence tau: an unlabelled pair counts when ``max(P, 1 - P) >= tau``."""
-    weight: float = 1.0
-    """Weight of the unlabelled (pseudo-label) loss."""
-    ratio: int = 4
-    """Unlabelled pairs per labelled pair in each minibatch (mu)."""
-    pool_size: int = 1000
-    """Unlabelled pairs added to the pool at each feedback session (SURF's ``inv_label_ratio``
-    times the queries per session; walker: 100 x 10 = 1000). The pool keeps every session's
-    pairs, as SURF's ``u_buffer``."""
-    reward_update: int = 1000
-    """SURF's ``reward_update``: a session runs ``ceil(reward_update * labels / reward.batch_size)``
-    gradient steps with no early stop (its walker command: 1000)."""
-    crop: int = 5
-    """Temporal crop c: segments are stored at length ``H + 2c``; each segment of a pair is
-    cropped to a length uniform in ``[H - c, H + c]`` (shared by the pair) with its own uniform
-    start; pseudo-labels come from the central H steps. 0 turns cropping off."""
-
-    def validate(self, segment_length: int | None = None) -> None:
-        """Checks the ranges; with ``segment_length`` (H) also that ``crop < H``."""
-        _check(0 <= self.threshold <= 1, "surf.threshold", self.threshold, "[0, 1]")
-        _check(self.weight >= 0, "surf.weight", self.weight, ">= 0")
-        for name in ("ratio", "pool_size", "reward_update"):
-            _check(getattr(self, name) >= 1, f"surf.{name}", getattr(self, name), ">= 1")
-        _check(self.crop >= 0, "surf.crop", self.crop, ">= 0")
-        if segment_length is not None:
-            _check(self.crop < segment_length, "surf.crop", self.crop, f"< segment_length {segment_length}")
-
-
-def _central_length(stored_length: int, crop: int) -> int:
-    """H of segments stored at length ``H + 2 * crop``, checked to leave crops of >= 1 step."""
-    length = stored_length - 2 * crop
-    _check(crop >= 0 and length - crop >= 1, "surf.crop", crop, f"< stored length {stored_length} / 3")
-    return length
-
-
-def crop_masks(key: jax.Array, shape: tuple[int, ...], stored_length: int, crop: int) -> tuple[jax.Array, jax.Array]:
-    """Random temporal crops of both segments of pairs, as 0/1 step masks (SURF's ``get_cropping_mask``).
-
-    With ``H = stored_length - 2 * crop``, each pair draws one length uniform in
-    ``[H - crop, H + crop]``, and each of its two segments its own start uniform in
-    ``[0, stored_length - length]``: both crops have the same length (as SURF's code), so the
-    logit compares sums over equally many steps.
-
-    Args:
-      key: PRNG key.
-      shape: leading shape of the pairs, e.g. ``(M, B)``.
-      stored_length: L, the stored segment length.
-      crop: the crop c.
-
-    Returns:
-      ``(mask_a, mask_b)``, each ``shape + (L,)`` float32, ones on the cropped steps.
-    """
-    length = _central_length(stored_length, crop)
-    key_length, key_a, key_b = jax.random.split(key, 3)
-    lengths = jax.random.randint(key_length, shape, length - crop, length + crop + 1)
-    steps = jnp.arange(stored_length)
-
-    def mask(key_start: jax.Array) -> jax.Array:
-        starts = jax.random.randint(key_start, shape, 0, stored_length - lengths + 1)
-        inside = (steps >= starts[..., None]) & (steps < (starts + lengths)[..., None])
-        return inside.astype(jnp.float32)
-
-    return mask(key_a), mask(key_b)
-
-
-def _masked_pair_logits(cfg: RewardConfig, member_params: Any, obs_a, act_a, obs_b, act_b, mask_a, mask_b):
-    """One member's logits ``G(b) - G(a)`` with G the sum over the masked steps, and its rewards."""
-    apply = _network(cfg).apply
-    reward_a = apply(member_params, obs_a, act_a)
-    reward_b = apply(member_params, obs_b, act_b)
-    logits = jnp.sum(reward_b * mask_b, axis=-1) - jnp.sum(reward_a * mask_a, axis=-1)
-    return logits, reward_a, reward_b
-
-
-def cropped_bt_loss(cfg: RewardConfig, surf: SURFConfig) -> LossTerm:
-    """The Bradley-Terry term on temporally cropped segments (SURF's temporal data augmentation).
-
-    As ``bt_loss`` (same metrics ``bt_loss`` and ``bt_accuracy``), but every member sums its
-    rewards over its own fresh crops (``crop_masks``, drawn from the term's key) of the stored
-    segments of length ``L = H + 2 * crop``. With ``crop = 0`` it equals ``bt_loss``.
-
-    Args:
-      cfg: the reward settings.
-      surf: the SURF settings (``crop``).
-
-    Returns:
-      ``(params, batch, key) -> (loss, metrics)``.
-
-    References:
-      Park et al., SURF, ICLR 2022, section 4.2 (temporal cropping).
-    """
-
-    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        mask_a, mask_b = crop_masks(key, batch.labels.shape, batch.obs_a.shape[2], surf.crop)
-
-        def one(member_params, obs_a, act_a, obs_b, act_b, member_mask_a, member_mask_b):
-            return _masked_pair_logits(cfg, member_params, obs_a, act_a, obs_b, act_b, member_mask_a, member_mask_b)[0]
-
-        logits = jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, mask_a, mask_b)
-        return _bt_term(logits, batch)
-
-    return loss_fn
-
-
-def pseudo_labels(logits: jax.Array, threshold: float | jax.Array) -> tuple[jax.Array, jax.Array]:
-    """SURF's pseudo-labels and confidence mask from BT logits ``G(b) - G(a)``.
-
-    Args:
-      logits: BT logits of unlabelled pairs, any shape.
-      threshold: confidence tau.
-
-    Returns:
-      ``(labels, confident)`` float: ``labels = 1[P > 0.5]`` with ``P = sigmoid(logits)`` the
-      probability that b is preferred (ties go to a, as SURF's argmax), ``confident =
-      1[max(P, 1 - P) >= threshold]``.
-    """
-    prob = jax.nn.sigmoid(logits)
-    labels = (prob > 0.5).astype(logits.dtype)
-    confident = (jnp.maximum(prob, 1.0 - prob) >= threshold).astype(logits.dtype)
-    return labels, confident
-
-
-def pseudo_label_term(
-    cfg: RewardConfig,
-    surf: SURFConfig,
-    pool_obs_a: jax.Array,
-    pool_act_a: jax.Array,
-    pool_obs_b: jax.Array,
-    pool_act_b: jax.Array,
-    pool_count: jax.Array | int | None = None,
-) -> LossTerm:
-    """SURF's semi-supervised term on unlabelled pairs with confident pseudo-labels.
-
-    Each call draws, per member, ``ratio * B`` pairs among the first ``pool_count`` of the pool
-    uniformly with replacement (B the labelled minibatch size, read from the batch's shape;
-    SURF walks through a shuffled order of its pool instead, which differs only in that a pair
-    may repeat within a pass). Each member labels them
-    itself from its sums over the central H steps, without gradient (``pseudo_labels``), and
-    is trained on fresh crops of them (``crop_masks``):
-    ``loss_m = mean over the drawn pairs of CE(cropped logits, label) * confident`` (the mean
-    counts the unconfident pairs too, as SURF's ``mean(CE * mask)``); the term is
-    ``weight * sum_m loss_m``.
-
-    Args:
-      cfg: the reward settings.
-      surf: the SURF settings.
-      pool_obs_a: (U, L, obs_size) first segments of the unlabelled pairs, stored at
-        ``L = H + 2 * crop``, sampled by the caller once per session.
-      pool_act_a: (U, L, act_size) their actions.
-      pool_obs_b: (U, L, obs_size) second segments.
-      pool_act_b: (U, L, act_size) their actions.
-      pool_count: filled pairs (may be traced); None: all U.
-
-    Returns:
-      ``(params, batch, key) -> (loss, metrics)`` with metrics ``pseudo_loss`` (the term) and
-      ``pseudo_fraction`` (the fraction of drawn pairs above the threshold, over members).
-
-    References:
-      Park et al., SURF, ICLR 2022, section 4.1 (semi-supervised reward learning).
-    """
-    pool_obs_a, pool_act_a, pool_obs_b, pool_act_b = map(jnp.asarray, (pool_obs_a, pool_act_a, pool_obs_b, pool_act_b))
-    pool_size, stored_length = pool_obs_a.shape[:2]
-    length = _central_length(stored_length, surf.crop)
-    central = slice(surf.crop, surf.crop + length)
-
-    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        members, labelled = batch.labels.shape
-        shape = (members, surf.ratio * labelled)
-        key_index, key_crop = jax.random.split(key)
-        index = jax.random.randint(key_index, shape, 0, pool_size if pool_count is None else jnp.maximum(pool_count, 1))
-        mask_a, mask_b = crop_masks(key_crop, shape, stored_length, surf.crop)
-
-        def one(member_params, member_index, member_mask_a, member_mask_b):
-            logits, reward_a, reward_b = _masked_pair_logits(
-                cfg,
-                member_params,
-                pool_obs_a[member_index],
-                pool_act_a[member_index],
-                pool_obs_b[member_index],
-                pool_act_b[member_index],
-                member_mask_a,
-                member_mask_b,
-            )
-            central_logits = jnp.sum(reward_b[:, central], axis=-1) - jnp.sum(reward_a[:, central], axis=-1)
-            return logits, jax.lax.stop_gradient(central_logits)
-
-        logits, central_logits = jax.vmap(one)(params, index, mask_a, mask_b)
-        labels, confident = pseudo_labels(central_logits, surf.threshold)
-        per_member = jnp.mean(bt_cross_entropy(logits, labels) * confident, axis=1)
-        loss = surf.weight * jnp.sum(per_member)
-        return loss, {"pseudo_loss": loss, "pseudo_fraction": jnp.mean(confident)}
-
-    return loss_fn

@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import pretrain, queries, replay, reward_model, teachers
+from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
 from rebel_jax.config import Config
 from rebel_jax.envs import DMCEnv, PointProbe, State, make_env
 from rebel_jax.queries import Segments
@@ -170,7 +170,6 @@ class Trainer:
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
-        self.trace_count = 0
 
     # -- init -----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
@@ -191,9 +190,9 @@ class Trainer:
         if not self.preference:
             return ts
         key, key_reward = jax.random.split(key)
-        reward = reward_model.init(
-            self.reward_cfg, key_reward, obs_size, action_size, self.stored_length, self.pool_capacity
-        )
+        reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
+        if self.pool_capacity:
+            reward = reward.replace(pool=surf.init_pool(self.pool_capacity, self.stored_length, obs_size, action_size))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
         ts = ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
@@ -382,16 +381,20 @@ class Trainer:
         if cfg.algo == "rebel":
             obs, actions = self.value_trajectories(ts, key)
             rebel = cfg.rebel
-            value = reward_model.agent_value_term(
-                rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
-            )
+            if rebel.form == "penalty":  # V(pi*(nu)) from the best labelled segments, ranked once per session.
+                best = agent_preference.best_segments(rcfg, ts.reward.params, ts.reward.data, rebel.best_segments)
+                value = agent_preference.value_gap_term(
+                    rcfg, ts.lam, obs, actions, *best, rebel.gamma, rebel.estimator, rebel.normalize
+                )
+            else:
+                value = agent_preference.agent_value_term(
+                    rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
+                )
             return [reward_model.bt_loss(rcfg), value]
         if cfg.algo == "surf":
             pool = ts.reward.pool
-            pseudo = reward_model.pseudo_label_term(
-                rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count
-            )
-            return [reward_model.cropped_bt_loss(rcfg, cfg.surf), pseudo]
+            pseudo = surf.pseudo_label_term(rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count)
+            return [surf.cropped_bt_loss(rcfg, cfg.surf), pseudo]
         return [reward_model.bt_loss(rcfg)]
 
     def learn(
@@ -425,12 +428,13 @@ class Trainer:
                 self.cfg.query.recent_episodes,
                 self.cfg.query.pool,
             )
-            stored = reward_model.add_unlabelled(stored, pool_a, pool_b, kept > 0)
+            stored = surf.add_unlabelled(stored, pool_a, pool_b, kept > 0)
             terms = self._loss_terms(ts.replace(reward=stored), key_terms)
-            steps = reward_model.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
+            steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
             trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
         else:
-            trained, train_metrics = reward_model.train(rcfg, stored, key_train, self._loss_terms(ts, key_terms))
+            terms = self._loss_terms(ts.replace(reward=stored), key_terms)  # The store with this session's labels.
+            trained, train_metrics = reward_model.train(rcfg, stored, key_train, terms)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):
@@ -535,7 +539,6 @@ class Trainer:
           learning steps, the last finished training and evaluation returns, and
           ``diverged`` (1.0 if a loss, parameter, observation or return is NaN or infinite).
         """
-        self.trace_count += 1  # Python side effect: counts traces, not calls.
         episodes_before = ts.episodes
         session = {}
         if self.host_teacher:  # The host ran this round's session, if any, before the round.
@@ -625,7 +628,7 @@ def compiled(trainer: Trainer) -> tuple[Callable, Callable, Callable]:
     return init, round_fn, evaluate
 
 
-if __name__ == "__main__":
-    from rebel_jax.cli import main
+if __name__ == "__main__":  # ``python -m rebel_jax.train`` runs the package's entry point; train never imports cli.
+    import runpy
 
-    main()
+    runpy.run_module("rebel_jax", run_name="__main__")

@@ -1,0 +1,310 @@
+"""REBEL's agent-preference term: the learned reward's value of the current policy.
+
+REBEL adds ``lambda * V(pi_theta)`` to the Bradley-Terry loss of the reward ensemble (the
+paper's eq. "mle_new", its lower bound "bilevel_rlhf_fo_lb": ``agent_value_term``), V being
+the learned reward's discounted return of the current policy. ``value_gap_term`` is the
+penalty before that relaxation, ``lambda * (V(pi*(nu)) - V(pi_theta))`` (eq. "bilevel_rlhf_fo"),
+with ``V(pi*(nu))`` estimated from the best labelled segments (``best_segments``,
+``optimal_value``); ``AgentPreferenceConfig.form`` picks one.
+
+Each term is one more loss term of :mod:`rebel_jax.reward_model` (``(params, batch, key) ->
+(loss, metrics)``), passed to ``reward_model.train`` beside ``bt_loss``. Which trajectories V
+is computed on (``rebel.source``) is the trainer's choice; this module takes them as arrays.
+
+References:
+  REBEL: Reward Regularization-Based Approach for Robotic Reinforcement Learning from Human
+  Feedback (AAAI 2025); REFERENCE.md section 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Literal
+
+import jax
+import jax.numpy as jnp
+
+from rebel_jax.errors import check as _check
+from rebel_jax.reward_model import LabelData, LossTerm, PrefBatch, RewardConfig, mean_reward, network, predict
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentPreferenceConfig:
+    """REBEL's agent-preference term ``lambda * V`` added to the reward loss (REFERENCE section 1)."""
+
+    lam: float = 0.0
+    """Weight lambda, signed; the paper's equation adds ``+lambda * V`` to the minimised loss,
+    its prose says the term raises the current policy's value, which needs ``lambda < 0``
+    here. 0 turns the term off."""
+    estimator: Literal["discounted", "mean"] = "discounted"
+    """How V is estimated from the segments: ``discounted`` is the paper's
+    ``sum_h gamma^h r(s_h, a_h)`` over a segment, averaged over segments; ``mean`` is the
+    per-step mean reward over all their steps times the horizon ``1 / (1 - gamma)``, a
+    stationary estimate of the infinite-horizon value."""
+    source: Literal["onpolicy", "replay"] = "onpolicy"
+    """Where V's trajectories come from. ``onpolicy``, the paper's ``V = E[sum_h gamma^h
+    r(s_h, a_h) | s_0, a_h ~ pi]`` (eq. "mle_new"): the last complete episodes of the in-batch
+    evaluation environments, which start at the task's reset and follow the current policy
+    (its mean action, frozen at the episode start), over their whole length, at no extra env
+    cost. ``replay``, this project's earlier estimate: ``num_segments`` segments of
+    ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
+    with actions redrawn from the current policy."""
+    num_segments: int = 64
+    """``source='replay'``: segments N of recent agent experience, drawn once per feedback session,
+    over which V is averaged (their actions redrawn from the current policy)."""
+    segment_length: int = 50
+    """``source='replay'``: steps H per segment."""
+    gamma: float = 0.99
+    """Discount of V; in [0, 1] for ``discounted``, in [0, 1) for ``mean``."""
+    normalize: bool = False
+    """The scale-free form: V divided by each member's spread (std) of the per-step reward on
+    the labelled segments of the minibatch, so that one lambda means the same on walker and
+    cheetah (see ``agent_value_term``). Off: the paper's literal ``lambda * V``."""
+    form: Literal["lower_bound", "penalty"] = "lower_bound"
+    """Which of the paper's objectives the term is. ``lower_bound``: eq. "bilevel_rlhf_fo_lb" as
+    eq. "mle_new" writes it, ``+lambda * V(pi_theta)``, the current policy standing in for
+    ``pi*(nu)``; it bounds eq. "bilevel_rlhf_fo" from below when ``V(pi_theta) >= 0``, which the
+    paper gets from ``r >= 0``: ``--reward.output sigmoid`` makes that literal (tanh rewards can
+    be negative). ``penalty``: the un-relaxed penalty of eq. "bilevel_rlhf_fo",
+    ``+lambda * (V(pi*(nu)) - V(pi_theta))``, with ``V(pi*(nu))`` estimated from the
+    ``best_segments`` labelled segments of highest learned return (``optimal_value``). In both,
+    ``lambda > 0`` is the paper's ``lambda >= 0``."""
+    best_segments: int = 10
+    """``form='penalty'``: how many labelled segments estimate ``V(pi*(nu))``: those with the
+    highest ensemble-mean learned return at the start of the session (``best_segments``)."""
+
+    def validate(self) -> None:
+        _check(math.isfinite(self.lam), "rebel.lam", self.lam, "a finite float")
+        _check(self.estimator in ("discounted", "mean"), "rebel.estimator", self.estimator, "discounted, mean")
+        _check(self.source in ("onpolicy", "replay"), "rebel.source", self.source, "onpolicy, replay")
+        _check(self.form in ("lower_bound", "penalty"), "rebel.form", self.form, "lower_bound, penalty")
+        for name in ("num_segments", "segment_length", "best_segments"):
+            _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
+        if self.estimator == "mean":
+            _check(0 <= self.gamma < 1, "rebel.gamma", self.gamma, "[0, 1) with estimator 'mean'")
+        else:
+            _check(0 <= self.gamma <= 1, "rebel.gamma", self.gamma, "[0, 1]")
+
+
+def agent_value(
+    cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array, gamma: float | jax.Array, estimator: str
+) -> jax.Array:
+    """Each member's value V_m of the current policy under its learned reward.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters.
+      obs: (N, H, obs_size) states of N segments of H consecutive steps visited by the agent.
+      action: (N, H, act_size) actions drawn in them from the current policy.
+      gamma: discount (a float or a traced scalar).
+      estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
+        ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
+
+    Returns:
+      (M,) values ``V_m``.
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    rewards = predict(cfg, params, obs, action)  # (M, N, H)
+    if estimator == "mean":
+        return jnp.mean(rewards, axis=(1, 2)) / (1.0 - gamma)
+    discounts = jnp.asarray(gamma, rewards.dtype) ** jnp.arange(rewards.shape[-1], dtype=rewards.dtype)
+    return jnp.mean(jnp.sum(rewards * discounts, axis=-1), axis=1)
+
+
+def _labelled_spread(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
+    """(M,) each member's std of the per-step reward over its minibatch's labelled steps (>= 1e-6)."""
+
+    def one(member_params, obs_a, act_a, obs_b, act_b, weight):
+        apply = network(cfg).apply
+        rewards = jnp.concatenate([apply(member_params, obs_a, act_a), apply(member_params, obs_b, act_b)], axis=0)
+        w = jnp.broadcast_to(jnp.concatenate([weight, weight])[:, None], rewards.shape)
+        mean = jnp.sum(rewards * w) / jnp.maximum(jnp.sum(w), 1.0)
+        var = jnp.sum(w * (rewards - mean) ** 2) / jnp.maximum(jnp.sum(w), 1.0)
+        return jnp.maximum(jnp.sqrt(var), 1e-6)
+
+    return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, batch.weight)
+
+
+def agent_value_term(
+    cfg: RewardConfig,
+    lam: float | jax.Array,
+    obs: jax.Array,
+    action: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str = "discounted",
+    normalize: bool = False,
+) -> LossTerm:
+    """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
+
+    The term closes over N segments of states recently visited by the agent with actions
+    already drawn by the caller from the current policy ``pi_theta``, which is held fixed:
+    ``obs`` and ``action`` pass through ``stop_gradient``, so only the reward parameters get
+    gradients. The members' values are summed, as ``bt_loss`` sums the members' losses. The
+    equation is implemented literally: the loss adds ``+lambda * V``, so minimising it with
+    ``lambda > 0`` lowers the current policy's value and ``lambda < 0`` raises it.
+
+    Args:
+      cfg: the reward settings.
+      lam: signed weight lambda, a float or a traced scalar (e.g. ``vmap``-ed over).
+      obs: (N, H, obs_size) states.
+      action: (N, H, act_size) actions from the current policy.
+      gamma: discount of V.
+      estimator: ``"discounted"`` or ``"mean"``, see ``agent_value``.
+      normalize: the scale-free form ``lambda * sum_m V_m / s_m`` (``rebel.normalize``): ``s_m``
+        is member m's standard deviation of the per-step reward over the steps of the batch's
+        labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
+        BT loss fixes the reward's scale only up to what the labels demand, so with it one
+        lambda weighs V alike on tasks whose learned rewards spread differently.
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
+      mean V, unscaled) and ``agent_term`` (the loss).
+
+    References:
+      REBEL (AAAI 2025), the reward loss "mle_new" (REFERENCE section 1).
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        del key  # Unused.
+        values = agent_value(cfg, params, jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action), gamma, estimator)
+        if normalize:
+            values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
+        loss = lam * jnp.sum(values)
+        return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
+
+    return loss_fn
+
+
+# The un-relaxed penalty (eq. "bilevel_rlhf_fo").
+
+
+def best_segments(cfg: RewardConfig, params: Any, data: LabelData, k: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The ``k`` labelled segments of highest learned return: the behaviour ``V(pi*(nu))`` is estimated from.
+
+    Both segments of every stored pair are candidates (the label does not matter: a segment
+    the teacher rejected may still be the best one in another pair); each is scored by the
+    ensemble-mean learned return ``sum_h r(s_h, a_h)`` under ``params`` (the reward at the start
+    of the session). Empty slots of the store never win; with fewer than ``k`` stored segments
+    the rest of the ``k`` are marked invalid.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters the segments are ranked with.
+      data: the label store.
+      k: segments to keep (at most ``2 * capacity``).
+
+    Returns:
+      ``(obs (k, H, obs_size), action (k, H, act_size), valid (k,) float)``, best first.
+    """
+    obs = jnp.concatenate([data.obs_a, data.obs_b])
+    action = jnp.concatenate([data.act_a, data.act_b])
+    filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
+    returns = jnp.sum(mean_reward(cfg, params, obs, action), axis=-1)
+    _, index = jax.lax.top_k(jnp.where(filled, returns, -jnp.inf), min(k, obs.shape[0]))
+    return obs[index], action[index], filled[index].astype(obs.dtype)
+
+
+def optimal_value(
+    cfg: RewardConfig,
+    params: Any,
+    obs: jax.Array,
+    action: jax.Array,
+    valid: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str,
+    horizon: int,
+) -> jax.Array:
+    """Each member's estimate of ``V(pi*(nu))``: the best segments' mean reward, sustained over the horizon.
+
+    ``pi*(nu)`` maximises the learned reward's value; the best labelled behaviour is the
+    nearest to it that the session has. With ``rbar_m`` member m's mean per-step reward over
+    the valid segments' steps, ``V*_m = rbar_m * sum_{t < horizon} gamma^t`` (``discounted``,
+    the horizon of the ``V(pi_theta)`` trajectories, so the two values are sums over as many
+    steps) or ``rbar_m / (1 - gamma)`` (``mean``, as ``agent_value``'s). An estimate, not a
+    bound: it is the value of repeating the best segment's per-step reward from the start.
+
+    Args:
+      cfg: the reward settings.
+      params: ensemble parameters.
+      obs: (K, H, obs_size) the best segments (``best_segments``).
+      action: (K, H, act_size) their actions.
+      valid: (K,) 1 for real segments, 0 for empty slots.
+      gamma: discount.
+      estimator: ``"discounted"`` or ``"mean"``.
+      horizon: steps T of the discounted sum.
+
+    Returns:
+      (M,) values.
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    rewards = predict(cfg, params, obs, action)  # (M, K, H)
+    weight = jnp.broadcast_to(valid[:, None], rewards.shape[1:])
+    per_step = jnp.sum(rewards * weight, axis=(1, 2)) / jnp.maximum(jnp.sum(weight), 1.0)
+    if estimator == "mean":
+        return per_step / (1.0 - gamma)
+    return per_step * jnp.sum(jnp.asarray(gamma, rewards.dtype) ** jnp.arange(horizon, dtype=rewards.dtype))
+
+
+def value_gap_term(
+    cfg: RewardConfig,
+    lam: float | jax.Array,
+    obs: jax.Array,
+    action: jax.Array,
+    best_obs: jax.Array,
+    best_action: jax.Array,
+    best_valid: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str = "discounted",
+    normalize: bool = False,
+) -> LossTerm:
+    """REBEL's un-relaxed penalty ``lambda * sum_m (V*_m - V_m)`` (the paper's eq. "bilevel_rlhf_fo").
+
+    Eq. "bilevel_rlhf_fo" maximises ``L + lambda * (V(pi_theta) - V(pi*(nu)))``; as a
+    minimised loss the term is ``+lambda * (V(pi*(nu)) - V(pi_theta))``. ``V_m`` is
+    ``agent_value`` on the current policy's trajectories and ``V*_m`` is ``optimal_value`` on
+    the best labelled segments; both pass through ``stop_gradient`` on their inputs, so only
+    the reward parameters get gradients, and the best segments stay fixed while the reward
+    trains (the paper's first-order step: ``grad_nu V(pi*(nu))`` is the reward's gradient at
+    the fixed optimal behaviour). With ``lambda > 0`` (the paper's sign) the term raises the
+    current policy's value towards the best behaviour's: the prose of the paper's section on
+    agent preference, which the literal lower bound (``agent_value_term``) contradicts.
+
+    Args:
+      cfg: the reward settings.
+      lam: signed weight lambda.
+      obs: (N, T, obs_size) states of the current policy's trajectories.
+      action: (N, T, act_size) its actions.
+      best_obs: (K, H, obs_size) the best labelled segments (``best_segments``).
+      best_action: (K, H, act_size) their actions.
+      best_valid: (K,) 1 for real segments.
+      gamma: discount of both values.
+      estimator: ``"discounted"`` or ``"mean"``; ``V*`` is summed over T steps (``discounted``).
+      normalize: divide both values by each member's spread of the per-step reward on the
+        batch's labelled segments, as ``agent_value_term``.
+
+    Returns:
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (mean V),
+      ``optimal_value`` (mean V*) and ``agent_term`` (the loss).
+
+    References:
+      REBEL (AAAI 2025), the penalty reformulation "bilevel_rlhf_fo" (REFERENCE section 1).
+    """
+    _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
+    horizon = obs.shape[1]
+    fixed = jax.lax.stop_gradient
+
+    def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        del key  # Unused.
+        values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator)
+        best = optimal_value(
+            cfg, params, fixed(best_obs), fixed(best_action), fixed(best_valid), gamma, estimator, horizon
+        )
+        if normalize:
+            spread = fixed(_labelled_spread(cfg, params, batch))
+            values, best = values / spread, best / spread
+        loss = lam * jnp.sum(best - values)
+        return loss, {"agent_value": jnp.mean(values), "optimal_value": jnp.mean(best), "agent_term": loss}
+
+    return loss_fn
