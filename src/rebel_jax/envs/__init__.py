@@ -1,13 +1,19 @@
-"""dm_control-equivalent locomotion tasks on MJX, and a pure-JAX probe task for tests."""
+"""dm_control-equivalent locomotion tasks on MJX, and a pure-JAX probe task for tests.
+
+Every task is a ``brax.envs.Env`` with brax's ``State``; importing this package registers them
+with brax as ``rebel_<task>`` (:mod:`rebel_jax.envs.registry`).
+"""
 
 from __future__ import annotations
 
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
-from rebel_jax.envs import dmc, pixels
-from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver
+from rebel_jax.envs import dmc, pixels, registry
+from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
 from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
 from rebel_jax.envs.wrappers import AutoResetWrapper
+
+registry.register()
 
 PROBES = {"probe_point": PointProbe}
 """Pure-JAX tasks that compile in seconds, for tests of the training loop (not dm_control tasks)."""
