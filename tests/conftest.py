@@ -27,8 +27,6 @@ _NO_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 if _NO_DEADLOCK not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_NO_DEADLOCK}".strip()
 warnings.filterwarnings("ignore", message=".*settotalmass.*")
-# brax imports jaxopt, which warns on import that it is no longer maintained.
-warnings.filterwarnings("ignore", message="JAXopt is no longer maintained", category=DeprecationWarning)
 
 
 class CompiledEnv:

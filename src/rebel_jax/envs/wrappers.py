@@ -45,7 +45,8 @@ class AutoResetWrapper(Wrapper):
     def reset(self, rng: jax.Array) -> State:
         rng, key = jax.random.split(rng)
         state = self._batch.reset(jax.random.split(key, self.num_envs))
-        info = dict(state.info, rng=jnp.broadcast_to(rng, (self.num_envs,) + rng.shape), final_obs=state.obs)
+        # One key per environment: with a shared key, environments that finish together would restart alike.
+        info = dict(state.info, rng=jax.random.split(rng, self.num_envs), final_obs=state.obs)
         return state.replace(info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
