@@ -11,7 +11,7 @@ from rebel_jax.envs import dmc, pixels, registry
 from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
 from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
-from rebel_jax.envs.wrappers import AutoResetWrapper
+from rebel_jax.envs.wrappers import AutoResetWrapper, VmapWrapper  # VmapWrapper: brax's
 
 registry.register()
 
@@ -54,6 +54,7 @@ __all__ = [
     "PointProbe",
     "Solver",
     "State",
+    "VmapWrapper",
     "make_env",
     "parse_solver",
 ]
