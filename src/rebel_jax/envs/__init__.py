@@ -23,13 +23,14 @@ PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t in TASKS)
 
 
 def make_env(
-    name: str, solver: str | Solver = "default", episode_length: int = 1000, unroll_substeps: bool = False
+    name: str, solver: str | Solver = "default", episode_length: int | None = 1000, unroll_substeps: bool = False
 ) -> DMCEnv | PixelEnv | PointProbe:
     """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
     or :data:`PROBES`.
 
     A probe has no physics engine: ``solver`` is checked but unused, and so is ``unroll_substeps``.
-    A pixel task's ``episode_length`` counts environment frames, as its state task's does.
+    A pixel task's ``episode_length`` counts environment frames, as its state task's does. ``None``: no
+    time limit (brax's convention, for ``brax.envs.wrappers.training.EpisodeWrapper``).
     """
     if name in PIXEL_TASKS:
         return PixelEnv(dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps))
