@@ -126,6 +126,7 @@ def test_auto_reset_restarts_finished_episodes_and_keeps_final_obs():
     np.testing.assert_array_equal(state.info["steps"], 0)  # restarted
     assert not np.allclose(state.info["final_obs"], state.obs)  # the episode's last obs is kept
     assert not np.allclose(state.obs, first_obs)  # a fresh draw, not the first state again
+    assert not np.allclose(state.obs[0], state.obs[1])  # each environment draws its own restart
     state = step(state, jnp.ones((2, 2)))
     np.testing.assert_array_equal(state.done, 0.0)
     np.testing.assert_array_equal(state.info["steps"], 1)

@@ -46,7 +46,7 @@ from flax import struct
 
 from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
 from rebel_jax.config import Config
-from rebel_jax.envs import DMCEnv, PointProbe, State, make_env
+from rebel_jax.envs import DMCEnv, PointProbe, State, VmapWrapper, make_env
 from rebel_jax.queries import Segments
 from rebel_jax.sac import SAC, SACState
 
@@ -158,6 +158,9 @@ class Trainer:
         self.sac = SAC(cfg.sac, self.env.observation_size, self.env.action_size)
         self.num_train = cfg.env.num_envs
         self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
+        # brax's VmapWrapper: reset(key) resets the envs on jax.random.split(key, batch_size).
+        self.envs = VmapWrapper(self.env, batch_size=self.num_all)  # training, then in-batch evaluation
+        self.eval_envs = VmapWrapper(self.env, batch_size=cfg.train.eval_episodes)  # Trainer.evaluate
         self.steps_per_round = cfg.train.steps_per_round // cfg.env.num_envs  # vector steps
         self.updates_per_step = max(1, round(cfg.sac.utd * cfg.env.num_envs))
         self.preference = cfg.preference  # the preference methods train SAC on the learned reward
@@ -213,7 +216,7 @@ class Trainer:
         return physics_positions(state.pipeline_state).shape[-1]
 
     def _reset_envs(self, key: jax.Array) -> State:
-        return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
+        return self.envs.reset(key)
 
     # -- one vector step ------------------------------------------------------------------
     def _act(self, ts: TrainState, t: jax.Array, key: jax.Array) -> jax.Array:
@@ -293,7 +296,7 @@ class Trainer:
         )
         ts = ts.replace(env=env_state, key=key, eval_actor=eval_actor)
         action = self._act(ts, t, key_act)
-        nxt = jax.vmap(self.env.step)(ts.env, action)
+        nxt = self.envs.step(ts.env, action)
         buffer, episodes = self._record(ts, nxt, action)
         learning = (t + 1) * self.num_train >= self.cfg.train.seed_steps
         zeros = {k: jnp.zeros(()) for k in ("critic_loss", "actor_loss", "alpha_loss", "alpha", "q", "entropy")}
@@ -565,11 +568,11 @@ class Trainer:
     # -- frozen-policy evaluation ----------------------------------------------------------
     def evaluate(self, actor_params, key: jax.Array) -> jax.Array:
         """Mean true return of ``eval_episodes`` deterministic episodes of a frozen policy."""
-        state = jax.vmap(self.env.reset)(jax.random.split(key, self.cfg.train.eval_episodes))
+        state = self.eval_envs.reset(key)
 
         def body(carry, _):
             state, total = carry
-            state = jax.vmap(self.env.step)(state, self.sac.act_deterministic(actor_params, state.obs))
+            state = self.eval_envs.step(state, self.sac.act_deterministic(actor_params, state.obs))
             return (state, total + state.reward), None
 
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), length=self.env.episode_length)

@@ -1,13 +1,19 @@
-"""dm_control-equivalent locomotion tasks on MJX, and a pure-JAX probe task for tests."""
+"""dm_control-equivalent locomotion tasks on MJX, and a pure-JAX probe task for tests.
+
+Every task is a ``brax.envs.Env`` with brax's ``State``; importing this package registers them
+with brax as ``rebel_<task>`` (:mod:`rebel_jax.envs.registry`).
+"""
 
 from __future__ import annotations
 
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
-from rebel_jax.envs import dmc, pixels
-from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver
+from rebel_jax.envs import dmc, pixels, registry
+from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
 from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
-from rebel_jax.envs.wrappers import AutoResetWrapper
+from rebel_jax.envs.wrappers import AutoResetWrapper, VmapWrapper  # VmapWrapper: brax's
+
+registry.register()
 
 PROBES = {"probe_point": PointProbe}
 """Pure-JAX tasks that compile in seconds, for tests of the training loop (not dm_control tasks)."""
@@ -17,13 +23,14 @@ PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t in TASKS)
 
 
 def make_env(
-    name: str, solver: str | Solver = "default", episode_length: int = 1000, unroll_substeps: bool = False
+    name: str, solver: str | Solver = "default", episode_length: int | None = 1000, unroll_substeps: bool = False
 ) -> DMCEnv | PixelEnv | PointProbe:
     """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
     or :data:`PROBES`.
 
     A probe has no physics engine: ``solver`` is checked but unused, and so is ``unroll_substeps``.
-    A pixel task's ``episode_length`` counts environment frames, as its state task's does.
+    A pixel task's ``episode_length`` counts environment frames, as its state task's does. ``None``: no
+    time limit (brax's convention, for ``brax.envs.wrappers.training.EpisodeWrapper``).
     """
     if name in PIXEL_TASKS:
         return PixelEnv(dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps))
@@ -48,6 +55,7 @@ __all__ = [
     "PointProbe",
     "Solver",
     "State",
+    "VmapWrapper",
     "make_env",
     "parse_solver",
 ]

@@ -1,7 +1,7 @@
 """DeepMind-Control-equivalent walker and cheetah tasks on MJX.
 
-Each task follows brax's ``Env`` / ``State`` interface: a pure ``reset(key) -> State``
-and ``step(state, action) -> State``, jittable and vmappable. Observations, rewards,
+Each task is a ``brax.envs.Env`` with brax's ``State``: a pure ``reset(key) -> State`` and
+``step(state, action) -> State``, jittable and vmappable. Observations, rewards,
 reset distributions, control and physics time steps and the 1000-step episode are
 dm_control's (suite ``walker.py`` and ``cheetah.py``); the tests compare them with
 dm_control on the same physics states.
@@ -14,39 +14,16 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from flax import struct
+from brax.envs.base import Env, State
 from mujoco import mjx
 
 from rebel_jax.envs import models
 from rebel_jax.envs.rewards import tolerance
-
-
-@struct.dataclass
-class State:
-    """One environment's state (brax's ``State``).
-
-    Attributes:
-      pipeline_state: the MJX physics data.
-      obs: the observation.
-      reward: the task's true reward for the last transition.
-      done: 1.0 when the episode has ended (here only by the time limit).
-      metrics: reward components and physical quantities behind the reward.
-      info: ``steps`` (control steps in this episode), ``truncation`` (1.0 when the
-        episode ended by the time limit rather than by termination).
-    """
-
-    pipeline_state: mjx.Data
-    obs: jax.Array
-    reward: jax.Array
-    done: jax.Array
-    metrics: dict[str, jax.Array] = struct.field(default_factory=dict)
-    info: dict[str, Any] = struct.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,15 +184,29 @@ def mj_model(task: str, solver: Solver | None = None) -> mujoco.MjModel:
     return model
 
 
-class DMCEnv:
-    """A dm_control-equivalent task on MJX with brax's ``Env`` interface.
+class DMCEnv(Env):
+    """A dm_control-equivalent task on MJX, a ``brax.envs.Env``.
 
-    Use :func:`rebel_jax.envs.make_env` to build one.
+    Its ``State`` (brax's) holds:
+      pipeline_state: the MJX physics data, kinematics current.
+      obs: the observation.
+      reward: the task's true reward for the last transition.
+      done: 1.0 when the episode has ended (only by the time limit: these tasks never terminate).
+      metrics: reward components and physical quantities behind the reward.
+      info: ``steps`` (control steps in this episode, int32) and ``truncation`` (1.0 when the
+        episode ended by the time limit rather than by termination, so always ``done`` here);
+        other keys (a wrapper's) are carried through ``step`` unchanged.
+
+    Use :func:`rebel_jax.envs.make_env` to build one. With ``episode_length=None`` the task has
+    no time limit and keeps no ``steps``/``truncation`` in ``info`` (``done`` stays 0): brax's
+    convention, where ``brax.envs.wrappers.training.EpisodeWrapper`` adds the time limit. The
+    tasks registered with brax (``rebel_walker_walk``, ...; see :mod:`rebel_jax.envs.registry`)
+    are built so.
     """
 
-    def __init__(self, task: str, solver: Solver, episode_length: int = 1000, unroll_substeps: bool = False):
-        if episode_length < 1:
-            raise ValueError(f"episode_length must be >= 1; got {episode_length}")
+    def __init__(self, task: str, solver: Solver, episode_length: int | None = 1000, unroll_substeps: bool = False):
+        if episode_length is not None and episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
         self.spec = TASKS[task]
         self.solver = solver
         self.episode_length = episode_length
@@ -260,12 +251,14 @@ class DMCEnv:
     def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
         return jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
 
-    def observe(self, d: mjx.Data, steps: jax.Array, done: jax.Array) -> State:
-        """The ``State`` of physics data ``d`` whose qpos/qvel are current (kinematics are recomputed)."""
+    def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
         d = _observed(d, self.sys)
         reward, metrics = self.spec.reward_fn(d)
-        info = {"steps": steps, "truncation": done}
         return State(d, self.spec.obs_fn(d), reward, done, metrics, info)
+
+    def observe(self, d: mjx.Data, steps: jax.Array, done: jax.Array) -> State:
+        """The ``State`` of physics data ``d`` whose qpos/qvel are current (kinematics are recomputed)."""
+        return self._observe(d, done, {"steps": steps, "truncation": done})
 
     def reset(self, rng: jax.Array) -> State:
         """Samples an initial state from dm_control's reset distribution."""
@@ -275,6 +268,8 @@ class DMCEnv:
         if self.spec.settle_steps:
             d = self._physics_steps(d, self.spec.settle_steps).replace(time=jnp.zeros(()))
         zero = jnp.zeros(())
+        if self.episode_length is None:
+            return self._observe(d, zero, {})
         return self.observe(d, jnp.zeros((), jnp.int32), zero)
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -286,9 +281,11 @@ class DMCEnv:
             )
         d = state.pipeline_state.replace(ctrl=action.astype(state.pipeline_state.ctrl.dtype))
         d = self._physics_steps(d, self.spec.n_substeps, self.unroll_substeps)
+        if self.episode_length is None:
+            return self._observe(d, jnp.zeros_like(state.done), dict(state.info))
         steps = state.info["steps"] + 1
         done = (steps >= self.episode_length).astype(jnp.float32)
-        return self.observe(d, steps, done)
+        return self._observe(d, done, dict(state.info, steps=steps, truncation=done))
 
 
 def parse_solver(solver: str | Solver) -> Solver:
@@ -306,14 +303,15 @@ def parse_solver(solver: str | Solver) -> Solver:
 
 
 def make_env(
-    name: str, solver: str | Solver = "default", episode_length: int = 1000, unroll_substeps: bool = False
+    name: str, solver: str | Solver = "default", episode_length: int | None = 1000, unroll_substeps: bool = False
 ) -> DMCEnv:
     """Builds a task by name.
 
     Args:
       name: one of ``walker_stand``, ``walker_walk``, ``walker_run``, ``cheetah_run``.
       solver: a name from :data:`SOLVERS` (``default`` or ``dm_control``) or a :class:`Solver`.
-      episode_length: control steps per episode (dm_control: 1000).
+      episode_length: control steps per episode (dm_control: 1000); None for no time limit (brax's
+        convention: ``EpisodeWrapper`` adds it).
       unroll_substeps: unroll the physics substeps of a control step in the compiled
         program instead of looping over them (longer compile, fewer loop round trips).
     """

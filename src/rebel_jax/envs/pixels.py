@@ -15,15 +15,16 @@ import math
 
 import jax
 import jax.numpy as jnp
+from brax.envs.base import Env, State
 
 from rebel_jax import render
-from rebel_jax.envs.dmc import DMCEnv, State
+from rebel_jax.envs.dmc import DMCEnv
 
 SUFFIX = "_pixels"
 
 
-class PixelEnv:
-    """A pixel-observation task around ``env`` (brax's ``Env`` interface, like :class:`DMCEnv`).
+class PixelEnv(Env):
+    """A pixel-observation task around ``env``, a ``brax.envs.Env`` like :class:`DMCEnv`.
 
     Args:
       env: the state task; it must expose ``mj_model``, ``reset``, ``step``, ``action_size``,
@@ -63,13 +64,19 @@ class PixelEnv:
         return self.env.action_size
 
     @property
-    def episode_length(self) -> int:
-        """Agent steps per episode."""
+    def episode_length(self) -> int | None:
+        """Agent steps per episode (None where the state task has no time limit)."""
+        if self.env.episode_length is None:
+            return None
         return math.ceil(self.env.episode_length / self.action_repeat)
 
     @property
     def dt(self) -> float:
         return self.env.dt * self.action_repeat
+
+    @property
+    def backend(self) -> str:
+        return self.env.backend
 
     @property
     def mj_model(self):
