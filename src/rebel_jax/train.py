@@ -172,6 +172,10 @@ class Trainer:
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
         self.trace_count = 0
 
+    def policy_params(self, ts: TrainState):
+        """What :meth:`evaluate` takes: the actor's parameters."""
+        return ts.sac.actor_params
+
     # -- init -----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
         """A fresh run of one seed."""
