@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rebel_jax import frame_replay
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, TrainConfig
 from rebel_jax.drqv2 import DrQV2Config
@@ -61,6 +62,14 @@ def test_seeds_differ_and_the_buffer_holds_frames_once(run):
     assert frames.dtype == jnp.uint8 and frames.shape[-3:] == (16, 16, 3)
     rows = state.buffer.reward.shape[1]
     assert frames.shape[1] < rows + rows // trainer.episode_length + 5
+    # The newest row's rebuilt next_obs is what the training environments observe now (the reset comes
+    # at the next vector step), so the trainer's rows, frames and episode steps line up with the env.
+    for seed in range(SEEDS):
+        buffer = jax.tree.map(lambda x, seed=seed: x[seed], state.buffer)
+        envs = jnp.arange(MICRO.env.num_envs)
+        last = jnp.full_like(envs, (int(buffer.ptr) - 1) % buffer.rows)
+        rebuilt = frame_replay.gather(buffer, last, envs, 1, 0.99)
+        np.testing.assert_array_equal(rebuilt.next_obs, state.env.obs[seed, : MICRO.env.num_envs])
     final = np.asarray(evaluate(trainer.policy_params(state), seed_keys(1, SEEDS)))
     assert final.shape == (SEEDS,) and np.all(np.isfinite(final))
 

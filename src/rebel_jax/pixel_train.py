@@ -36,6 +36,10 @@ from rebel_jax.train import EpisodeStats, _all_finite
 
 METRICS = ("critic_loss", "actor_loss", "q", "target_q", "std")
 
+DEFAULT_CAPACITY = 100_000
+"""Replay transitions per seed when ``train.buffer_capacity`` is 0 (at most ``train.total_steps``): 2.13 GB of
+84x84 frames per seed (:mod:`rebel_jax.frame_replay`). DrQ-v2 keeps 1M (config.yaml:18), 21 GB per seed."""
+
 
 @struct.dataclass
 class PixelTrainState:
@@ -80,6 +84,7 @@ class PixelTrainer:
         every = cfg.drqv2.update_every
         self.updates_per_step = max(1, self.num_train // every)
         self.update_period = max(1, every // self.num_train)  # vector steps between updates
+        self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
         self.trace_count = 0
 
     def policy_params(self, ts: PixelTrainState) -> dict:
@@ -92,7 +97,7 @@ class PixelTrainer:
         agent = self.agent.init(key_agent)
         height, width, _ = self.env.observation_shape
         buffer = frame_replay.init(
-            self.cfg.train.capacity,
+            self.capacity,
             self.num_train,
             (height, width, 3),
             self.env.action_size,
