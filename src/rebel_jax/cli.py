@@ -47,6 +47,7 @@ from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger, write_json
+from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 RUN_FILES = ("config.json", "meta.json", "metrics.jsonl", "final.json", "checkpoints", "checkpoints_damaged", "tb")
@@ -428,7 +429,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
       SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
     """
     cfg = args.config
-    trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
+    if cfg.algo == "drqv2":
+        trainer = PixelTrainer(cfg)
+    else:
+        trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     init, round_fn, evaluate = compiled(trainer)
@@ -500,10 +504,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                     print(f"warning: round {r}: {which} diverged; going on (--on-divergence continue)", file=sys.stderr)
             if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
                 ckpt.save(r + 1, state)
-        final = np.asarray(evaluate(state.sac.actor_params, keys))
+        final = np.asarray(evaluate(trainer.policy_params(state), keys))
         result = _final_result(final, ever_diverged, names)
         write_json(run_dir / "final.json", result)
-        if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and cfg.algo != "drqv2":  # no pixel clip yet
             _eval_clip(args, trainer, state, run_dir)
     finally:
         if host is not None:

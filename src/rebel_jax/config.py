@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 import tyro
 
 from rebel_jax.agent_preference import AgentPreferenceConfig
+from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
 from rebel_jax.pretrain import PretrainConfig
@@ -22,7 +23,8 @@ from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 
-Algo = Literal["sac", "pebble", "surf", "rebel"]
+Algo = Literal["sac", "pebble", "surf", "rebel", "drqv2"]
+PREFERENCE_ALGOS = ("pebble", "surf", "rebel")
 Precision = Literal["tf32", "highest", "bf16"]
 
 
@@ -51,7 +53,8 @@ class EnvConfig:
 
     task: str = "walker_walk"
     """Task name: walker_stand, walker_walk, walker_run or cheetah_run (or ``probe_point``, a pure-JAX
-    point mass that compiles in seconds, for tests of the training loop)."""
+    point mass that compiles in seconds, for tests of the training loop); ``<task>_pixels`` (and
+    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 10
@@ -64,9 +67,10 @@ class EnvConfig:
     """Control steps per episode (dm_control: 1000)."""
 
     def validate(self) -> None:
-        from rebel_jax.envs import PROBES, SOLVERS, TASKS
+        from rebel_jax.envs import PIXEL_TASKS, PROBES, SOLVERS, TASKS
 
-        _check(self.task in TASKS or self.task in PROBES, "env.task", self.task, f"one of {[*sorted(TASKS), *PROBES]}")
+        known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS
+        _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *PROBES]}")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
         _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")
@@ -205,7 +209,7 @@ class Config:
     """A whole run."""
 
     algo: Algo = "sac"
-    """sac (true reward), pebble, surf (PEBBLE+SURF) or rebel."""
+    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward)."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
     sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
@@ -219,11 +223,14 @@ class Config:
     """PEBBLE+SURF's semi-supervised terms; used by ``--algo surf`` only."""
     rebel: AgentPreferenceConfig = AgentPreferenceConfig()
     """REBEL's agent-preference term; used by ``--algo rebel`` only."""
+    drqv2: DrQV2Config = DrQV2Config()
+    """DrQ-v2's settings; used by ``--algo drqv2`` only. The defaults are DrQ-v2's cheetah_run ones; walker's are
+    ``--drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000`` (``drqv2.task_config``)."""
 
     @property
     def preference(self) -> bool:
-        """Whether the agent learns from preferences (everything but ``sac``)."""
-        return self.algo != "sac"
+        """Whether the agent learns from preferences (pebble, surf, rebel)."""
+        return self.algo in PREFERENCE_ALGOS
 
     @property
     def feedback_start(self) -> int:
@@ -242,11 +249,23 @@ class Config:
         )
 
     def validate(self) -> Config:
-        _check(self.algo in ("sac", "pebble", "surf", "rebel"), "algo", self.algo, "sac, pebble, surf, rebel")
+        _check(self.algo in ("sac", *PREFERENCE_ALGOS, "drqv2"), "algo", self.algo, "sac, pebble, surf, rebel, drqv2")
         _check_finite(self)
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
+        pixels = self.env.task.endswith("_pixels")
+        if self.algo == "drqv2" or pixels:
+            _check(self.algo == "drqv2", "algo", self.algo, f"drqv2 with the pixel task {self.env.task!r}")
+            _check(pixels, "env.task", self.env.task, "a pixel task (<task>_pixels) with --algo drqv2")
+            self.drqv2.validate()
+            every, envs = self.drqv2.update_every, self.env.num_envs
+            _check(
+                envs % every == 0 or every % envs == 0,
+                "env.num_envs",
+                envs,
+                f"a multiple or a divisor of drqv2.update_every={every} (whole updates per vector step)",
+            )
         if self.preference:
             for part in (self.feedback, self.reward, self.teacher, self.pretrain):
                 part.validate()

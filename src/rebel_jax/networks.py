@@ -178,3 +178,108 @@ def mlp_flops(in_size: int, hidden: int, depth: int, out: int) -> int:
     if depth == 0:
         return 2 * in_size * out
     return 2 * (in_size * hidden + (depth - 1) * hidden * hidden + hidden * out)
+
+
+# -- pixel networks (DrQ-v2) -------------------------------------------------------------------
+# Yarats et al. 2021, "Mastering Visual Continuous Control: Improved Data-Augmented Reinforcement
+# Learning" (facebookresearch/drqv2 c0c650b, drqv2.py); the same modules in SURF's pixel branch
+# (alinlab/SURF 866630a, agent/drqv2.py).
+
+
+class Encoder(nn.Module):
+    """DrQ-v2's convolutional encoder: four 3x3 convolutions of 32 channels, strides 2, 1, 1, 1, each
+    followed by ReLU, no padding, flattened (drqv2.py:48-67).
+
+    Input pixels are scaled to ``x / 255 - 0.5`` (drqv2.py:64). An 84x84 image gives 35x35x32 = 39,200
+    features (drqv2.py:53). Kernels are orthogonal with ReLU gain sqrt(2) and biases zero, as
+    DrQ-v2's ``weight_init`` for convolutions (utils.py:57-61). Channels are last (NHWC), where
+    PyTorch's are first: the flattened order differs, which the next linear layer absorbs.
+
+    Attributes:
+        channels: output channels of every convolution.
+        precision: ``tf32``, ``highest`` or ``bf16``.
+    """
+
+    channels: int = 32
+    precision: str = "tf32"
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        """Args: obs (..., H, W, C), uint8 or float in [0, 255]. Returns: (..., features) float32."""
+        kw = dense_kwargs(self.precision)  # nn.Conv takes the same precision arguments
+        init = dict(kernel_init=nn.initializers.orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)
+        x = obs.astype(jnp.float32) / 255.0 - 0.5
+        for stride in (2, 1, 1, 1):
+            x = nn.relu(nn.Conv(self.channels, (3, 3), strides=(stride, stride), padding="VALID", **init, **kw)(x))
+        return x.reshape(*x.shape[:-3], -1).astype(jnp.float32)
+
+
+def encoder_output_size(height: int, width: int, channels: int = 32) -> int:
+    """Features of :class:`Encoder` on an ``height x width`` image (84x84: 32 x 35 x 35 = 39,200)."""
+    h, w = (height - 3) // 2 + 1 - 6, (width - 3) // 2 + 1 - 6
+    return channels * h * w
+
+
+class Trunk(nn.Module):
+    """DrQ-v2's trunk: ``tanh(LayerNorm(Linear(features)))`` (drqv2.py:74-75, 100-101).
+
+    LayerNorm's epsilon is PyTorch's default 1e-5 (flax's is 1e-6); its scale starts at 1 and its bias at 0.
+
+    Attributes:
+        features: output size (DrQ-v2's ``feature_dim``, 50).
+        precision: ``tf32``, ``highest`` or ``bf16``.
+    """
+
+    features: int
+    precision: str = "tf32"
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        init = dict(kernel_init=nn.initializers.orthogonal(1.0), bias_init=nn.initializers.zeros)
+        x = nn.Dense(self.features, **init, **dense_kwargs(self.precision))(x).astype(jnp.float32)
+        return jnp.tanh(nn.LayerNorm(epsilon=1e-5)(x))
+
+
+class PixelActor(nn.Module):
+    """DrQ-v2's deterministic actor head on encoder features: trunk, MLP, ``tanh`` mean (drqv2.py:70-93).
+
+    The exploration noise (a fixed, scheduled standard deviation) is applied outside, by
+    :func:`rebel_jax.drqv2.truncated_sample`.
+
+    Attributes:
+        features: trunk size (50); hidden, depth: MLP sizes (1024, 2); action_size: action dimension.
+        precision: ``tf32``, ``highest`` or ``bf16``.
+    """
+
+    features: int
+    hidden: int
+    depth: int
+    action_size: int
+    precision: str = "tf32"
+
+    @nn.compact
+    def __call__(self, h: jax.Array) -> jax.Array:
+        """Args: h (..., encoder features). Returns: the mean action (..., action_size) in (-1, 1)."""
+        z = Trunk(self.features, self.precision)(h)
+        return jnp.tanh(MLP(self.hidden, self.depth, self.action_size, self.precision)(z))
+
+
+class PixelCritic(nn.Module):
+    """DrQ-v2's critic on encoder features: one trunk shared by two Q-networks on ``concat(trunk, action)``
+    (drqv2.py:96-121).
+
+    Attributes:
+        features: trunk size (50); hidden, depth: sizes of each Q MLP (1024, 2).
+        precision: ``tf32``, ``highest`` or ``bf16``.
+    """
+
+    features: int
+    hidden: int
+    depth: int
+    precision: str = "tf32"
+
+    @nn.compact
+    def __call__(self, h: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Args: h (..., encoder features), action (..., action_size). Returns: q1, q2 each (...)."""
+        z = Trunk(self.features, self.precision)(h)
+        return DoubleCritic(self.hidden, self.depth, self.precision)(z, action)

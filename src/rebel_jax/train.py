@@ -149,6 +149,8 @@ class Trainer:
             teachers): the round leaves them out and the buffer stores physics positions for clips.
         """
         self.cfg = cfg.validate()
+        if cfg.algo == "drqv2":
+            raise ValueError("--algo drqv2 runs in rebel_jax.pixel_train.PixelTrainer, not Trainer")
         if host_teacher and not cfg.preference:
             raise ValueError(f"host_teacher needs a preference algo, not {cfg.algo!r}")
         self.host_teacher = host_teacher
@@ -173,6 +175,10 @@ class Trainer:
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
+
+    def policy_params(self, ts: TrainState):
+        """What :meth:`evaluate` takes: the actor's parameters."""
+        return ts.sac.actor_params
 
     # -- init -----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:

@@ -9,13 +9,14 @@ from __future__ import annotations
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
 from rebel_jax.envs import dmc, pixels, registry
 from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
+from rebel_jax.envs.pixel_probe import PixelProbe
 from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
 from rebel_jax.envs.wrappers import AutoResetWrapper, VmapWrapper  # VmapWrapper: brax's
 
 registry.register()
 
-PROBES = {"probe_point": PointProbe}
+PROBES = {"probe_point": PointProbe, "probe_point_pixels": PixelProbe}
 """Pure-JAX tasks that compile in seconds, for tests of the training loop (not dm_control tasks)."""
 
 PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t in TASKS)
@@ -52,6 +53,7 @@ __all__ = [
     "AutoResetWrapper",
     "DMCEnv",
     "PixelEnv",
+    "PixelProbe",
     "PointProbe",
     "Solver",
     "State",

@@ -1,0 +1,265 @@
+"""Device-resident replay of pixel transitions that stores each frame once, as a pytree.
+
+A frame-stack observation of ``stack`` frames would store every frame ``stack`` times, and twice
+more as ``next_obs``; this buffer keeps a ring of single frames and rebuilds stacks and n-step
+transitions when sampling, as SURF's pixel branch does with its episodes (alinlab/SURF 866630a,
+branch ``pixel``, replay_buffer_drqv2.py:191-214: frames ``max(idx - stack, 0) .. idx`` padded with
+the episode's first frame; DrQ-v2's ``nstep`` reward loop, facebookresearch/drqv2 c0c650b
+replay_buffer.py:150-160).
+
+Layout:
+
+- ``frames`` (F, E, H, W, 3) uint8: a ring of frame rows. Each vector step writes the new frame of
+  every environment (the newest frame of ``next_obs``); a step that starts an episode first writes
+  the reset frame (the newest frame of ``obs``). ``F = T + ceil(T / episode_length) + stack + 1``
+  keeps every frame a stored transition refers to.
+- transition fields (T, E, ...) time-major as :mod:`rebel_jax.replay`; ``frame_index`` (T,) is the
+  frame row of each row's ``obs`` newest frame and ``episode_step`` (T,) its agent step in the
+  episode. Both are per row: the trainer's environments start their episodes together
+  (docs/ARCHITECTURE.md, "Episode-synchronous environments"), which this buffer requires.
+
+Row ``t``'s stack is frame rows ``frame_index[t] - min(j, episode_step[t])`` for ``j = stack-1 .. 0``
+(oldest first; the clamp repeats the reset frame, as the environment's stack does after a reset).
+An n-step transition from row ``t`` uses rows ``t .. t+n-1`` of one episode (DrQ-v2 samples only
+such windows, replay_buffer.py:150) and the stack ``n`` frames later.
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from rebel_jax.drqv2 import PixelTransition, nstep_return
+
+
+@flax.struct.dataclass
+class FrameStep:
+    """One vector step of E pixel environments.
+
+    Attributes:
+        obs: (E, H, W, 3 * stack) uint8 frame stacks before the action (oldest frame first).
+        action: (E, action_size).
+        next_obs: (E, H, W, 3 * stack) uint8 stacks after the action (before any reset).
+        reward: (E,) the reward to learn from.
+        terminal: (E,) 1.0 where the episode terminated at ``next_obs``.
+        truncated: (E,) 1.0 where the time limit cut the episode at ``next_obs``.
+        episode_step: () int32 agent step of ``obs`` in its episode, the same for every environment;
+            0 starts an episode (the first step added must be 0).
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    next_obs: jax.Array
+    reward: jax.Array
+    terminal: jax.Array
+    truncated: jax.Array
+    episode_step: jax.Array
+
+
+@flax.struct.dataclass
+class FrameBuffer:
+    """Frame ring and transition rows; see the module docstring.
+
+    Attributes:
+        frames: (F, E, H, W, 3) uint8 single frames.
+        frame_index: (T,) int32 frame row of each row's ``obs`` newest frame.
+        episode_step: (T,) int32 agent step of each row's ``obs`` in its episode.
+        action: (T, E, action_size) float32.
+        reward: (T, E) float32.
+        terminal, truncated: (T, E) float 0/1.
+        ptr: () int32 next transition row; size: () rows filled (at most T).
+        frame_ptr: () int32 next frame row.
+        stack: frames per observation (static).
+    """
+
+    frames: jax.Array
+    frame_index: jax.Array
+    episode_step: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    terminal: jax.Array
+    truncated: jax.Array
+    ptr: jax.Array
+    size: jax.Array
+    frame_ptr: jax.Array
+    stack: int = flax.struct.field(pytree_node=False, default=3)
+
+    @property
+    def rows(self) -> int:
+        """T, transition rows (static)."""
+        return self.reward.shape[0]
+
+    @property
+    def num_envs(self) -> int:
+        """E (static)."""
+        return self.reward.shape[1]
+
+    @property
+    def frame_rows(self) -> int:
+        """F, frame rows (static)."""
+        return self.frames.shape[0]
+
+
+def frame_rows(rows: int, episode_length: int, stack: int) -> int:
+    """F: one frame per row, a reset frame per episode start the rows can hold, the stack's look-back, one spare."""
+    return rows + math.ceil(rows / episode_length) + stack + 1
+
+
+def init(
+    capacity: int,
+    num_envs: int,
+    frame_shape: tuple[int, int, int],
+    action_size: int,
+    episode_length: int,
+    stack: int = 3,
+) -> FrameBuffer:
+    """An empty buffer of ``capacity // num_envs`` transition rows.
+
+    Args:
+        capacity: transitions to hold (rounded down to a multiple of ``num_envs``).
+        num_envs: environments per row.
+        frame_shape: (H, W, 3) of one frame.
+        action_size: action dimension.
+        episode_length: agent steps per episode (sizes the reset frames; shorter episodes need more).
+        stack: frames per observation.
+
+    Returns:
+        A zero-filled :class:`FrameBuffer`.
+    """
+    if num_envs < 1 or capacity < num_envs or episode_length < 1 or stack < 1:
+        raise ValueError(
+            f"need 1 <= num_envs <= capacity, episode_length >= 1, stack >= 1; got {num_envs}, {capacity}, "
+            f"{episode_length}, {stack}"
+        )
+    rows = capacity // num_envs
+    return FrameBuffer(
+        frames=jnp.zeros((frame_rows(rows, episode_length, stack), num_envs, *frame_shape), jnp.uint8),
+        frame_index=jnp.zeros((rows,), jnp.int32),
+        episode_step=jnp.zeros((rows,), jnp.int32),
+        action=jnp.zeros((rows, num_envs, action_size), jnp.float32),
+        reward=jnp.zeros((rows, num_envs), jnp.float32),
+        terminal=jnp.zeros((rows, num_envs), jnp.float32),
+        truncated=jnp.zeros((rows, num_envs), jnp.float32),
+        ptr=jnp.zeros((), jnp.int32),
+        size=jnp.zeros((), jnp.int32),
+        frame_ptr=jnp.zeros((), jnp.int32),
+        stack=stack,
+    )
+
+
+def nbytes(buffer: FrameBuffer) -> int:
+    """Device bytes of the buffer (all its arrays)."""
+    return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(buffer))
+
+
+def add(buffer: FrameBuffer, step: FrameStep) -> FrameBuffer:
+    """Write one row: the reset frame if the step starts an episode, the new frames, the transition.
+
+    Both frame writes are unconditional (no ``lax.cond``, which under ``vmap`` would copy the
+    buffer): the reset frame goes to ``frame_ptr`` and the new frame to ``frame_ptr + first``, so
+    outside an episode start the new frame overwrites the first write.
+
+    Args:
+        buffer: the buffer.
+        step: a :class:`FrameStep`.
+
+    Returns:
+        The buffer with the row written and the rings advanced.
+    """
+    first = (step.episode_step == 0).astype(jnp.int32)
+    f = buffer.frame_rows
+    frames = jax.lax.dynamic_update_index_in_dim(buffer.frames, step.obs[..., -3:], buffer.frame_ptr, axis=0)
+    frames = jax.lax.dynamic_update_index_in_dim(frames, step.next_obs[..., -3:], (buffer.frame_ptr + first) % f, 0)
+    # The obs' newest frame: the reset frame just written, or the previous step's new frame.
+    index = (buffer.frame_ptr + first - 1) % f
+
+    def write(field: jax.Array, value) -> jax.Array:
+        value = jnp.asarray(value).astype(field.dtype)
+        return jax.lax.dynamic_update_index_in_dim(field, value, buffer.ptr, axis=0)
+
+    return buffer.replace(
+        frames=frames,
+        frame_index=write(buffer.frame_index, index),
+        episode_step=write(buffer.episode_step, step.episode_step),
+        action=write(buffer.action, step.action),
+        reward=write(buffer.reward, step.reward),
+        terminal=write(buffer.terminal, step.terminal),
+        truncated=write(buffer.truncated, step.truncated),
+        ptr=(buffer.ptr + 1) % buffer.rows,
+        size=jnp.minimum(buffer.size + 1, buffer.rows),
+        frame_ptr=(buffer.frame_ptr + first + 1) % f,
+    )
+
+
+def valid_rows(buffer: FrameBuffer, nstep: int) -> jax.Array:
+    """(T,) bool: rows that start an n-step window of written rows within one episode.
+
+    Row ``t`` is valid when it is filled, the ``nstep - 1`` rows after it are written after it (not
+    stale rows of the previous lap) and belong to its episode (their agent step counts on).
+    """
+    t = jnp.arange(buffer.rows)
+    end = (t + nstep - 1) % buffer.rows
+    written = t < buffer.size
+    complete = (buffer.ptr - 1 - t) % buffer.rows >= nstep - 1
+    same_episode = buffer.episode_step[end] == buffer.episode_step + nstep - 1
+    return written & complete & same_episode
+
+
+def _stacks(buffer: FrameBuffer, newest: jax.Array, episode_step: jax.Array, env: jax.Array) -> jax.Array:
+    """(B, H, W, 3 * stack) stacks whose newest frame is row ``newest``, ``episode_step`` frames after the reset."""
+    back = jnp.arange(buffer.stack - 1, -1, -1)  # oldest first
+    rows = (newest[:, None] - jnp.minimum(back[None], episode_step[:, None])) % buffer.frame_rows
+    frames = buffer.frames[rows, env[:, None]]  # (B, stack, H, W, 3)
+    frames = jnp.moveaxis(frames, 1, -2)  # (B, H, W, stack, 3)
+    return frames.reshape(*frames.shape[:-2], -1)
+
+
+def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamma: float) -> PixelTransition:
+    """The n-step transitions starting at (``row``, ``env``), each a valid row (:func:`valid_rows`).
+
+    Args:
+        buffer: the buffer.
+        row, env: (B,) int indices.
+        nstep: steps of the return.
+        gamma: discount per step.
+
+    Returns:
+        A :class:`~rebel_jax.drqv2.PixelTransition`: stacks at ``row`` and ``nstep`` rows later, the
+        first action, DrQ-v2's n-step reward sum and bootstrap discount (``1 - terminal`` per step).
+    """
+    k, newest = buffer.episode_step[row], buffer.frame_index[row]
+    window = (row[:, None] + jnp.arange(nstep)[None]) % buffer.rows
+    rewards, terminals = buffer.reward[window, env[:, None]], buffer.terminal[window, env[:, None]]
+    reward, discount = nstep_return(rewards, 1.0 - terminals, gamma)
+    return PixelTransition(
+        obs=_stacks(buffer, newest, k, env),
+        action=buffer.action[row, env],
+        reward=reward,
+        discount=discount,
+        next_obs=_stacks(buffer, newest + nstep, k + nstep, env),
+    )
+
+
+def sample(buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gamma: float) -> PixelTransition:
+    """Uniform sample, with replacement, over the valid (row, env) pairs (DrQ-v2 samples a stored
+    episode, then a start in it; with equal-length episodes that is uniform over starts too).
+
+    Args:
+        buffer: a buffer with at least one valid row.
+        key: PRNG key.
+        batch_size: transitions to draw.
+        nstep, gamma: as :func:`gather`.
+
+    Returns:
+        A :class:`~rebel_jax.drqv2.PixelTransition` batch.
+    """
+    key_row, key_env = jax.random.split(key)
+    valid = valid_rows(buffer, nstep)
+    cumulative = jnp.cumsum(valid.astype(jnp.int32))
+    draw = jax.random.randint(key_row, (batch_size,), 0, jnp.maximum(cumulative[-1], 1))
+    row = jnp.searchsorted(cumulative, draw, side="right").astype(jnp.int32)  # the (draw+1)-th valid row
+    env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
+    return gather(buffer, jnp.minimum(row, buffer.rows - 1), env, nstep, gamma)
