@@ -21,7 +21,9 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from rebel_jax.cli import parse
+from rebel_jax.cli import last_logged, parse, summary_table
+from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+from rebel_jax.train import Trainer, compiled
 
 ROOT = pathlib.Path(__file__).parents[1]
 
@@ -31,9 +33,9 @@ def make_train_command(run_dir: pathlib.Path) -> list[str]:
     if shutil.which("make") is None:
         pytest.skip("make is not installed")
     args = f"ARGS=--run-dir {run_dir} --no-progress"
-    out = subprocess.run(
-        ["make", "-n", "-s", "train", f"PY={sys.executable}", args], cwd=ROOT, capture_output=True, text=True
-    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}  # under `make test`
+    cmd = ["make", "-n", "-s", "train", f"PY={sys.executable}", args]
+    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     lines = [line for line in out.stdout.splitlines() if " -m rebel_jax.train " in line]
     assert len(lines) == 1, out.stdout
@@ -98,3 +100,70 @@ def test_make_train_learns_well_above_the_random_policy(tmp_path):
 
     frames = iio.imread(run_dir / "eval.gif")
     assert frames.shape[0] == parse(cmd[3:]).video_steps + 1
+
+
+# The probe task (compiles in seconds): 3 evaluation episodes of 15 steps.
+PROBE = Config(
+    env=EnvConfig(task="probe_point", num_envs=1, episode_length=15),
+    sac=SACConfig(hidden=16, batch_size=16),
+    train=TrainConfig(total_steps=15, steps_per_round=15, eval_every=15, eval_episodes=3),
+)
+
+
+def _loop_return(trainer: Trainer, params, key: jax.Array, random_actions: bool) -> float:
+    """Mean return of the evaluation episodes stepped one by one in Python (the reference)."""
+    key_reset, key_actions = jax.random.split(key)
+    states = [trainer.env.reset(k) for k in jax.random.split(key_reset, trainer.cfg.train.eval_episodes)]
+    totals = np.zeros(len(states))
+    for key_t in jax.random.split(key_actions, trainer.env.episode_length):
+        uniform = jax.random.uniform(key_t, (len(states), trainer.env.action_size), minval=-1.0, maxval=1.0)
+        for i, state in enumerate(states):
+            action = uniform[i] if random_actions else trainer.sac.act_deterministic(params, state.obs[None])[0]
+            states[i] = trainer.env.step(state, action)
+            totals[i] += float(states[i].reward)
+    return float(totals.mean())
+
+
+def test_random_policy_evaluation_matches_a_step_loop_on_the_same_initial_states():
+    trainer = Trainer(PROBE)
+    _, _, evaluate = compiled(trainer)
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    params = jax.vmap(trainer.sac.init)(keys).actor_params
+    policy, random = np.asarray(evaluate(params, keys)), np.asarray(evaluate(params, keys, True))
+    for i in range(2):
+        one = jax.tree.map(lambda x, i=i: x[i], params)
+        np.testing.assert_allclose(policy[i], _loop_return(trainer, one, keys[i], False), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(random[i], _loop_return(trainer, one, keys[i], True), rtol=1e-4, atol=1e-4)
+    assert not np.allclose(policy, random)
+
+
+def _write_metrics(path: pathlib.Path, records: list[dict]) -> None:
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_summary_table_shows_the_last_logged_values_per_seed_and_their_mean(tmp_path):
+    step, segment = "reward_correlation", "reward_correlation_return"
+    records = [
+        {"env_steps": 10, "labels_used": [0, 0], step: [None, None], "eval_return": [1, 2]},
+        {"env_steps": 20, "labels_used": [4, 4], step: [0.5, 0.25], segment: [0.5, 0.6]},
+        {"env_steps": 30, "labels_used": [8, 6], step: [None, 0.75], segment: [None, None]},
+    ]
+    _write_metrics(tmp_path / "metrics.jsonl", records)
+    logged = last_logged(tmp_path, 2)
+    np.testing.assert_array_equal(logged["labels_used"], [8, 6])
+    np.testing.assert_array_equal(logged["reward_correlation"], [0.5, 0.75])
+    np.testing.assert_array_equal(logged["reward_correlation_return"], [0.5, 0.6])
+
+    random, final = np.array([1.04, 2.0]), np.array([10.0, 31.26])
+    lines = summary_table(["seed 0", "seed 1"], random, final, logged).splitlines()
+    assert len(lines) == 4 and "random-policy return" in lines[0]
+    assert lines[1].split()[2:] == ["1.0", "10.0", "8", "0.50", "0.50"]
+    assert lines[2].split()[2:] == ["2.0", "31.3", "6", "0.75", "0.60"]
+    expected = [f"{random.mean():.1f}", f"{final.mean():.1f}", "7", f"{0.625:.2f}", f"{0.55:.2f}"]
+    assert lines[3].split()[1:] == expected
+
+    # SAC logs no labels or correlations: dashes.
+    (tmp_path / "sac").mkdir()
+    _write_metrics(tmp_path / "sac" / "metrics.jsonl", [{"env_steps": 10, "eval_return": [1.0]}])
+    row = summary_table(["seed 0"], random[:1], final[:1], last_logged(tmp_path / "sac", 1)).splitlines()[1]
+    assert row.split()[2:] == ["1.0", "10.0", "-", "-", "-"]
