@@ -3,9 +3,15 @@
     python -m rebel_jax.train --preset paper --algo sac --task walker_walk --seeds 5
     python -m rebel_jax.train --preset paper --algo pebble --labels 100 --teacher noisy
 
-``--preset`` (``paper`` or ``tiny``) picks the defaults and ``--teacher`` (a B-Pref teacher:
-oracle, noisy, mistake, skip, equal, myopic) the teacher; every other flag overrides one
-field of :class:`rebel_jax.config.Config` (``--help`` lists them with their docs).
+``--preset`` (``paper``, ``tiny`` or ``demo``, the last ``make train``'s) picks the defaults and
+``--teacher`` (a B-Pref teacher: oracle, noisy, mistake, skip, equal, myopic) the teacher; every
+other flag overrides one field of :class:`rebel_jax.config.Config` (``--help`` lists them with
+their docs).
+
+A finished run evaluates its final policy and uniform random actions on the same episodes
+(``final.json``), draws ``learning_curve.png`` (:mod:`rebel_jax.plots`) and ``eval.gif``, and
+prints a table per column: both returns, the labels used and the learned reward's correlation
+with the true one (:func:`summary_table`).
 
 A run directory holds one run: a new run refuses a directory that holds one (``--resume``
 continues it, ``--overwrite`` replaces it). ``--resume`` refuses a configuration that differs
