@@ -487,7 +487,8 @@ def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pa
         lam, teacher = args.grid()[i]
         which = ([f"lambda {lam:g}"] if args.lam_grid else []) + ([f"teacher {teacher}"] if teacher else [])
         runs[", ".join(which) or cfg.algo] = (steps, returns[:, i : i + args.seeds])
-    title = f"{cfg.algo} on {cfg.env.task} ({cfg.env.episode_length}-step episodes)"
+    labels = f", {cfg.feedback.labels} labels" if cfg.preference and not args.host_teacher else ""
+    title = f"{cfg.algo} on {cfg.env.task} ({cfg.env.episode_length}-step episodes{labels})"
     return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
 
 
