@@ -1,5 +1,6 @@
 # The two commands of the README:
-#   make train   set up .venv and train on the small default (CPU, a few minutes)
+#   make train   set up .venv and run the demo: PEBBLE learns cheetah_run from an oracle's labels,
+#                3 seeds, about 3.5 minutes on 2 CPU cores (the `demo` preset of config.py; tests/test_demo.py)
 #   make test    set up .venv with the test extras and run ruff + the test suite
 #                (first installing Debian's chromium, chromium-driver and Mesa's EGL where they
 #                are missing and apt-get can run as root: the labelling page's browser test and
@@ -29,7 +30,7 @@ $(VENV)/.test: $(VENV)/.base
 	touch $@
 
 train: $(VENV)/.base
-	$(PY) -m rebel_jax.train --preset tiny --algo rebel --rebel.lam -0.01 $(ARGS)
+	$(PY) -m rebel_jax.train --preset demo --seeds 3 $(ARGS)
 
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .

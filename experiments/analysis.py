@@ -44,8 +44,11 @@ from numpy.typing import ArrayLike  # noqa: E402
 from rliable import library as rly  # noqa: E402
 from rliable import metrics as rly_metrics  # noqa: E402
 
-Curve = tuple[np.ndarray, np.ndarray]
-"""``(env_steps (evals,), returns (evals,) or (evals, seeds))``; a 2-D curve is averaged over seeds."""
+# Reading and plotting curves lives in the package (the CLI draws each run's curve); re-exported here.
+from rebel_jax.plots import Curve, load_runs, plot_curves  # noqa: E402, F401
+from rebel_jax.plots import nanmean_std as _nanmean_std  # noqa: E402
+from rebel_jax.plots import per_seed as _per_seed  # noqa: E402, F401
+from rebel_jax.plots import records as _records  # noqa: E402
 
 Interval = tuple[float, float]
 """``(low, high)`` of a confidence interval; NaN where it is undefined."""
@@ -180,18 +183,6 @@ def performance_profile(
 
 
 # -- curves ------------------------------------------------------------------------------
-def _nanmean_std(x: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and (population) standard deviation over the finite entries; NaN where none are."""
-    finite = np.isfinite(x)
-    count = finite.sum(axis=axis)
-    safe = np.maximum(count, 1)
-    mean = np.where(finite, x, 0.0).sum(axis=axis) / safe
-    dev = np.where(finite, x - np.expand_dims(mean, axis), 0.0)
-    std = np.sqrt((dev**2).sum(axis=axis) / safe)
-    empty = count == 0
-    return np.where(empty, np.nan, mean), np.where(empty, np.nan, std)
-
-
 def mean_curve(curve: Curve) -> Curve:
     """``(steps, mean over seeds)`` of a curve; a 1-D curve is returned as floats unchanged."""
     steps, values = np.asarray(curve[0], dtype=float), np.asarray(curve[1], dtype=float)
@@ -343,46 +334,6 @@ def sample_efficiency_ratio_ci(
 
 
 # -- run directories -----------------------------------------------------------------------
-def _records(run_dir: pathlib.Path) -> list[dict]:
-    """The rounds of ``metrics.jsonl`` in step order, one per ``env_steps``.
-
-    A resumed run appends the rounds after its last checkpoint again; the last record of a
-    step wins, as it is the one the finished run continued from.
-    """
-    by_step = {}
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-        if line.strip():
-            record = json.loads(line)
-            by_step[record["env_steps"]] = record
-    return [by_step[s] for s in sorted(by_step)]
-
-
-def _per_seed(value) -> list[float]:
-    """A logged per-seed list (or a scalar, for one seed) with ``None`` as NaN."""
-    values = value if isinstance(value, list) else [value]
-    return [math.nan if v is None else float(v) for v in values]
-
-
-def load_runs(run_dir: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """The per-seed evaluation curves of one run directory.
-
-    Args:
-      run_dir: a directory written by ``python -m rebel_jax.train`` (``metrics.jsonl``).
-
-    Returns:
-      ``(steps (evals,) int, returns (evals, seeds) float)``: one row per round with an
-      evaluation return for at least one seed, NaN for the seeds without one (``null``).
-      Rounds repeat the last finished evaluation (see ``distinct_evaluations``).
-    """
-    records = _records(pathlib.Path(run_dir))
-    rows = [(r["env_steps"], _per_seed(r.get("eval_return"))) for r in records]
-    rows = [(s, v) for s, v in rows if any(math.isfinite(x) for x in v)]
-    seeds = len(_per_seed(records[0].get("eval_return"))) if records else 0
-    steps = np.array([s for s, _ in rows], dtype=np.int64)
-    returns = np.array([v for _, v in rows], dtype=float).reshape(len(rows), seeds)
-    return steps, returns
-
-
 def distinct_evaluations(curve: Curve) -> Curve:
     """Only the rounds in which a new evaluation finished.
 
@@ -496,25 +447,6 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
 
 
 # -- plots -------------------------------------------------------------------------------
-def plot_curves(ax, runs: Mapping[str, Curve]) -> None:
-    """Mean +- std over seeds of the evaluation return of each run, one line and band per label.
-
-    Args:
-      ax: a matplotlib ``Axes``.
-      runs: ``{label: (steps (evals,), returns (evals, seeds))}``, e.g. from ``load_runs``.
-    """
-    for label, (steps, returns) in runs.items():
-        r = np.asarray(returns, dtype=float)
-        r = r[:, None] if r.ndim == 1 else r
-        mean, std = _nanmean_std(r, axis=1)
-        n = r.shape[1]
-        (line,) = ax.plot(steps, mean, label=f"{label} ({n} seed{'' if n == 1 else 's'})")
-        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.25, linewidth=0)
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("evaluation return (true reward)")
-    ax.legend()
-
-
 def plot_iqm(
     ax, scores: Mapping[str, ArrayLike], reps: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> dict[str, tuple[float, Interval]]:

@@ -3,9 +3,15 @@
     python -m rebel_jax.train --preset paper --algo sac --task walker_walk --seeds 5
     python -m rebel_jax.train --preset paper --algo pebble --labels 100 --teacher noisy
 
-``--preset`` (``paper`` or ``tiny``) picks the defaults and ``--teacher`` (a B-Pref teacher:
-oracle, noisy, mistake, skip, equal, myopic) the teacher; every other flag overrides one
-field of :class:`rebel_jax.config.Config` (``--help`` lists them with their docs).
+``--preset`` (``paper``, ``tiny`` or ``demo``, the last ``make train``'s) picks the defaults and
+``--teacher`` (a B-Pref teacher: oracle, noisy, mistake, skip, equal, myopic) the teacher; every
+other flag overrides one field of :class:`rebel_jax.config.Config` (``--help`` lists them with
+their docs).
+
+A finished run evaluates its final policy and uniform random actions on the same episodes
+(``final.json``), draws ``learning_curve.png`` (:mod:`rebel_jax.plots`) and ``eval.gif``, and
+prints a table per column: both returns, the labels used and the learned reward's correlation
+with the true one (:func:`summary_table`).
 
 A run directory holds one run: a new run refuses a directory that holds one (``--resume``
 continues it, ``--overwrite`` replaces it). ``--resume`` refuses a configuration that differs
@@ -42,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 import tyro
 
-from rebel_jax import sweep, teachers, video
+from rebel_jax import plots, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
@@ -50,7 +56,17 @@ from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import Trainer, compiled, seed_keys
 
-RUN_FILES = ("config.json", "meta.json", "metrics.jsonl", "final.json", "checkpoints", "checkpoints_damaged", "tb")
+RUN_FILES = (
+    "config.json",
+    "meta.json",
+    "metrics.jsonl",
+    "final.json",
+    "checkpoints",
+    "checkpoints_damaged",
+    "tb",
+    "learning_curve.png",
+    "eval.gif",
+)
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
@@ -392,31 +408,92 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     return start, restored
 
 
-def _final_result(final: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
+def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
     return {
         "status": "diverged" if ever_diverged.any() else "completed",
         "diverged": [names[i] for i in np.flatnonzero(ever_diverged)],
         "final_eval_return": final,
         "mean": float(final.mean()),  # NaN (written as null) if any seed's is: no silent nanmean
         "std": float(final.std()),
+        "random_return": random,
+        "random_mean": float(random.mean()),
     }
 
 
-def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> None:
-    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy."""
+SUMMARY_METRICS = ("labels_used", "reward_correlation", "reward_correlation_return")
+"""Logged per-column metrics whose last finite value the summary table shows (preference methods)."""
+
+
+def last_logged(run_dir: pathlib.Path, columns: int) -> dict[str, np.ndarray]:
+    """Per column, the last finite value of each of :data:`SUMMARY_METRICS` in ``metrics.jsonl`` (NaN if none)."""
+    last = {name: np.full(columns, np.nan) for name in SUMMARY_METRICS}
+    for record in plots.records(run_dir):
+        for name in SUMMARY_METRICS:
+            if name in record:
+                values = np.asarray(plots.per_seed(record[name]), float)
+                last[name] = np.where(np.isfinite(values), values, last[name])
+    return last
+
+
+def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logged: dict[str, np.ndarray]) -> str:
+    """The table printed at the end of a run: one row per column and their mean.
+
+    Columns: the random policy's and the trained policy's evaluation return (the same initial
+    states), the labels used, and the learned reward's Pearson correlation with the true one
+    at the last feedback session, per step and over segment returns (``-`` for ``sac``).
+    """
+    header = ("", "random-policy return", "final return", "labels used", "reward corr. per step", "per segment")
+    rows = [header]
+    cells = [random, final, *(logged[k] for k in SUMMARY_METRICS)]
+    formats = ("{:.1f}", "{:.1f}", "{:.0f}", "{:.2f}", "{:.2f}")
+
+    def fmt(values, i):
+        return [f.format(v[i]) if np.isfinite(v[i]) else "-" for f, v in zip(formats, values, strict=True)]
+
+    rows += [(name, *fmt(cells, i)) for i, name in enumerate(names)]
+    means = [np.array([np.mean(v)]) for v in cells]  # NaN where any column's is undefined
+    rows.append(("mean", *fmt(means, 0)))
+    widths = [max(len(row[j]) for row in rows) for j in range(len(header))]
+    lines = [
+        "  ".join(
+            cell.ljust(w) if j == 0 else cell.rjust(w) for j, (cell, w) in enumerate(zip(row, widths, strict=True))
+        )
+        for row in rows
+    ]
+    return "\n".join(lines)
+
+
+def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> pathlib.Path | None:
+    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path."""
     if args.time_limit:
         # Runs split over time-limited calls have no time budgeted for compiling the clip.
         print(f"eval.gif skipped under --time-limit; render it with: python -m rebel_jax.video {run_dir}")
-        return
+        return None
     try:
         import imageio  # noqa: F401
     except ImportError:
         print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
-        return
+        return None
     params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
     policy = functools.partial(trainer.sac.act_deterministic, params)
     key = jax.random.PRNGKey(args.config.train.seed)
-    video.policy_video(trainer.env, policy, key, run_dir / "eval.gif", args.video_steps, 120)
+    path = run_dir / "eval.gif"
+    video.policy_video(trainer.env, policy, key, path, args.video_steps, 120)
+    return path
+
+
+def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path:
+    """Writes ``learning_curve.png``: the evaluation return of each group of seeds (lambda, teacher), and random's."""
+    cfg = args.config
+    steps, returns = plots.load_runs(run_dir)
+    runs = {}
+    for i in range(0, args.columns, args.seeds):
+        lam, teacher = args.grid()[i]
+        which = ([f"lambda {lam:g}"] if args.lam_grid else []) + ([f"teacher {teacher}"] if teacher else [])
+        runs[", ".join(which) or cfg.algo] = (steps, returns[:, i : i + args.seeds])
+    labels = f", {cfg.feedback.labels} labels" if cfg.preference and not args.host_teacher else ""
+    title = f"{cfg.algo} on {cfg.env.task} ({cfg.env.episode_length}-step episodes{labels})"
+    return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
 
 
 def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
@@ -489,7 +566,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                 which = ", ".join(names[i] for i in np.flatnonzero(diverged & ~ever_diverged))
                 ever_diverged |= diverged
                 if args.on_divergence == "stop":
-                    result = {**_final_result(np.full(args.columns, np.nan), ever_diverged, names), "round": r}
+                    nan = np.full(args.columns, np.nan)
+                    result = {**_final_result(nan, nan, ever_diverged, names), "round": r}
                     write_json(run_dir / "final.json", result)
                     last = ckpt.latest() if ckpt is not None else None
                     kept = f"its checkpoints resume at round {last}" if last is not None else "no checkpoint"
@@ -504,17 +582,28 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                     print(f"warning: round {r}: {which} diverged; going on (--on-divergence continue)", file=sys.stderr)
             if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
                 ckpt.save(r + 1, state)
-        final = np.asarray(evaluate(trainer.policy_params(state), keys))
-        result = _final_result(final, ever_diverged, names)
+        policy = trainer.policy_params(state)
+        final = np.asarray(evaluate(policy, keys))
+        random = np.asarray(evaluate(policy, keys, True))  # The same initial states.
+        result = _final_result(final, random, ever_diverged, names)
         write_json(run_dir / "final.json", result)
+        files = [_learning_curve(args, run_dir, random)]
         if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and cfg.algo != "drqv2":  # no pixel clip yet
-            _eval_clip(args, trainer, state, run_dir)
+            files.append(_eval_clip(args, trainer, state, run_dir))
     finally:
         if host is not None:
             host.close()
         logger.close()
         if ckpt is not None:
             ckpt.close()
+    print(
+        f"\n{cfg.algo} on {cfg.env.task}: evaluation returns ({cfg.train.eval_episodes} episodes of "
+        f"{cfg.env.episode_length} steps per seed, the same initial states for the random policy)"
+    )
+    print(summary_table(names, random, final, last_logged(run_dir, args.columns)))
+    for path in files:
+        if path is not None:
+            print(f"wrote {path}")
     for i in range(0, args.columns, args.seeds):
         part = final[i : i + args.seeds]
         lam, teacher = grid[i]

@@ -221,14 +221,19 @@ class PixelTrainer:
         summary["diverged"] = 1.0 - (finite & returns_ok[0] & returns_ok[1]).astype(jnp.float32)
         return ts, summary
 
-    def evaluate(self, policy: dict, key: jax.Array) -> jax.Array:
-        """Mean true return of ``eval_episodes`` episodes of the mean action of ``policy`` (:func:`policy_of`)."""
-        state = jax.vmap(self.env.reset)(jax.random.split(key, self.cfg.train.eval_episodes))
+    def evaluate(self, policy: dict, key: jax.Array, random_actions: bool | jax.Array = False) -> jax.Array:
+        """Mean true return of ``eval_episodes`` episodes of the mean action of ``policy`` (:func:`policy_of`),
+        or of uniform random actions on the same initial states (as :meth:`Trainer.evaluate`)."""
+        key_reset, key_actions = jax.random.split(key)
+        state = jax.vmap(self.env.reset)(jax.random.split(key_reset, self.cfg.train.eval_episodes))
 
-        def body(carry, _):
+        def body(carry, key):
             state, total = carry
-            state = jax.vmap(self.env.step)(state, self._mean_action(policy, state.obs))
+            uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
+            action = jnp.where(random_actions, uniform, self._mean_action(policy, state.obs))
+            state = jax.vmap(self.env.step)(state, action)
             return (state, total + state.reward), None
 
-        (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), length=self.episode_length)
+        keys = jax.random.split(key_actions, self.episode_length)
+        (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
         return total.mean()

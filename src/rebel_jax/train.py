@@ -572,16 +572,27 @@ class Trainer:
         return ts, {**summary, **session}
 
     # -- frozen-policy evaluation ----------------------------------------------------------
-    def evaluate(self, actor_params, key: jax.Array) -> jax.Array:
-        """Mean true return of ``eval_episodes`` deterministic episodes of a frozen policy."""
-        state = self.eval_envs.reset(key)
+    def evaluate(self, actor_params, key: jax.Array, random_actions: bool | jax.Array = False) -> jax.Array:
+        """Mean true return of ``eval_episodes`` episodes of a frozen deterministic policy or of random actions.
 
-        def body(carry, _):
+        Args:
+          actor_params: the policy's parameters (its mean action is taken).
+          key: fixes the episodes' initial states, the same for both kinds of actions, and the random actions.
+          random_actions: act uniformly at random in [-1, 1] instead (the random-policy baseline). A traced
+            value: both kinds share one compiled program.
+        """
+        key_reset, key_actions = jax.random.split(key)
+        state = self.eval_envs.reset(key_reset)
+
+        def body(carry, key):
             state, total = carry
-            state = self.eval_envs.step(state, self.sac.act_deterministic(actor_params, state.obs))
+            uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
+            action = jnp.where(random_actions, uniform, self.sac.act_deterministic(actor_params, state.obs))
+            state = self.eval_envs.step(state, action)
             return (state, total + state.reward), None
 
-        (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), length=self.env.episode_length)
+        keys = jax.random.split(key_actions, self.env.episode_length)
+        (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
         return total.mean()
 
 
@@ -627,13 +638,18 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
 
 
 def compiled(trainer: Trainer) -> tuple[Callable, Callable, Callable]:
-    """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys)``.
+    """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys, random_actions)``.
 
-    The round donates its input state so the replay buffer is updated in place.
+    The round donates its input state so the replay buffer is updated in place. ``random_actions``
+    (unbatched, default False) evaluates uniform random actions on the same initial states instead.
     """
     init = jax.jit(jax.vmap(trainer.init))
     round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate))
+    evaluate_seeds = jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None)))
+
+    def evaluate(actor_params, keys: jax.Array, random_actions: bool = False) -> jax.Array:
+        return evaluate_seeds(actor_params, keys, jnp.asarray(random_actions))
+
     return init, round_fn, evaluate
 
 
