@@ -1,7 +1,8 @@
 """The faithful-baseline table (issue 9) from the runs' logs: ``results/baselines.json``.
 
 Usage:
-  python experiments/baselines.py            # writes results/baselines.json and prints a Markdown table
+  python experiments/baselines.py     # writes results/baselines.json, results/baselines_walker_walk.png
+                                      # and prints a Markdown table
 
 Every setting in a row is read from that run's ``config.json`` and ``meta.json``; returns are read
 from its ``metrics.jsonl`` (per seed, the evaluation return logged at a step) or ``final.json``.
@@ -17,9 +18,11 @@ import pathlib
 import numpy as np
 from analysis import _per_seed, _records, bootstrap_ci, iqm
 
+from rebel_jax.plots import load_runs, plot_curves
+
 ROOT = pathlib.Path(__file__).parents[1]
 RESULTS = ROOT / "results"
-STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 500_000)
+STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000)
 """Steps at which every run's return is reported (where the run got that far)."""
 
 # (log directory under results/runs, the columns of a grid run that are this method, published
@@ -38,8 +41,15 @@ RUNS = [
         453,
         "3: + disagreement, torch init, complete-episode pool (10 envs), reset update",
     ),
+    (
+        "baselines/pebble_walker_100_utd1_stopped270k",
+        None,
+        453,
+        "4 (first try, stopped at 270k): + utd 1 (B-Pref's)",
+    ),
     ("baselines/pebble_walker_100_utd1", None, 453, "4: + utd 1 (B-Pref's)"),
-    ("baselines/surf_walker_100", None, 661, "SURF on rung 3"),
+    ("baselines/surf_walker_100", None, 661, "SURF on rung 3 (utd 0.3)"),
+    ("baselines/surf_walker_100_utd1", None, 661, "SURF on rung 4 (utd 1)"),
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
 ]
 
@@ -109,9 +119,43 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
     }
 
 
+FIGURE = {  # rung name in RUNS -> legend label of results/baselines_walker_walk.png
+    "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)": "PEBBLE, rung 0 (earlier protocol)",
+    "4: + utd 1 (B-Pref's)": "PEBBLE, rung 4 (B-Pref's protocol)",
+    "SURF on rung 4 (utd 1)": "PEBBLE+SURF, rung 4",
+}
+PUBLISHED = {"PEBBLE": 453, "PEBBLE+SURF": 661}
+"""The SURF paper's 500k walker_walk means at 100 labels (REFERENCE.md section 2)."""
+
+
+def figure(path: pathlib.Path) -> None:
+    """Mean +- std over seeds of the walker_walk runs of ``FIGURE``, with the published 500k means."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = {}
+    for log, select, _, rung in RUNS:
+        if rung in FIGURE:
+            steps, returns = load_runs(RESULTS / "runs" / log)
+            columns = _columns(json.loads((RESULTS / "runs" / log / "meta.json").read_text()), select)
+            curves[FIGURE[rung]] = (steps, returns[:, columns])
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot_curves(ax, curves)
+    for i, (name, value) in enumerate(PUBLISHED.items()):
+        ax.scatter([500_000], [value], marker="*", s=120, color=f"C{i + 3}", label=f"{name} published (500k)", zorder=3)
+    ax.legend(fontsize=8)
+    ax.set_title("walker_walk, 100 labels, oracle teacher")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> None:
     rows = [row(*spec) for spec in RUNS]
     (RESULTS / "baselines.json").write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+    figure(RESULTS / "baselines_walker_walk.png")
     print("| rung | env steps run | " + " | ".join(f"{s // 1000}k" for s in STEPS) + " | last eval, mean +- std |")
     print("|---|---:|" + "---:|" * len(STEPS) + "---:|")
     for r in rows:
