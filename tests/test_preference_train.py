@@ -101,6 +101,77 @@ def test_pebble_relabel_matches_the_reward_model(pebble_run):
     np.testing.assert_allclose(seed.buffer.learned_reward, expected, rtol=1e-5, atol=1e-6)
 
 
+def _numpy_member(params, x):
+    """One reward member in NumPy, B-Pref's ``gen_net``: LeakyReLU(0.01) hidden layers, tanh output."""
+    layers = [params["params"][f"Dense_{i}"] for i in range(len(params["params"]))]
+    for layer in layers[:-1]:
+        x = x @ np.asarray(layer["kernel"], np.float64) + np.asarray(layer["bias"], np.float64)
+        x = np.where(x > 0, x, 0.01 * x)
+    last = layers[-1]
+    return np.tanh(x @ np.asarray(last["kernel"], np.float64) + np.asarray(last["bias"], np.float64))[..., 0]
+
+
+def test_stored_pairs_labels_and_loss_equal_a_numpy_bpref_on_the_same_buffer(pebble_run):
+    """The path from stored transitions to the reward model's inputs, the teacher's labels and the
+    loss, end to end through the trainer's sessions, against plain NumPy on the run's own buffer:
+    B-Pref's ``get_queries`` (H consecutive steps of one env's episode), ``get_label`` (oracle:
+    ``1 * (sum r_1 < sum r_2)``) and ``train_reward``'s loss (cross-entropy over the logits
+    ``[sum r_hat_1, sum r_hat_2]``), rl-research/BPref reward_model.py."""
+    trainer, state, _ = pebble_run
+    cfg, horizon = trainer.reward_cfg, MICRO_PEBBLE.query.segment_length
+    for column in range(KEYS.shape[0]):
+        seed = jax.device_get(jax.tree.map(lambda x, c=column: x[c], state))
+        buffer, data = seed.buffer, seed.reward.data
+        obs, action, reward = np.asarray(buffer.obs), np.asarray(buffer.action), np.asarray(buffer.reward)
+        steps, count = np.asarray(buffer.episode_step), int(data.count)
+        assert count == MICRO_PEBBLE.feedback.labels
+        returns = {}
+        for side in ("a", "b"):
+            seg_obs, seg_act = np.asarray(getattr(data, f"obs_{side}")), np.asarray(getattr(data, f"act_{side}"))
+            sums = []
+            for i in range(count):
+                # Where the segment's first step is in the buffer, then the H steps from there.
+                rows, envs = np.nonzero(np.all(obs == seg_obs[i, 0], axis=-1))
+                matches = [
+                    (t, e)
+                    for t, e in zip(rows, envs, strict=True)
+                    if t + horizon <= obs.shape[0]
+                    and np.array_equal(obs[t : t + horizon, e], seg_obs[i])
+                    and np.array_equal(action[t : t + horizon, e], seg_act[i])
+                ]
+                assert len(matches) == 1, f"pair {i} side {side}: {len(matches)} places in the buffer"
+                t, e = matches[0]
+                one_episode = steps[t, e] + np.arange(horizon)
+                np.testing.assert_array_equal(steps[t : t + horizon, e], one_episode)
+                sums.append(reward[t : t + horizon, e].astype(np.float64).sum())
+            returns[side] = np.array(sums)
+        expected_labels = (returns["a"] < returns["b"]).astype(np.float32)  # B-Pref: 1 means segment 2.
+        np.testing.assert_array_equal(np.asarray(data.labels[:count]), expected_labels)
+
+        # The BT loss of every member on the stored pairs: ours against NumPy's cross-entropy.
+        members = jax.tree.leaves(seed.reward.params)[0].shape[0]
+        logits = []
+        for m in range(members):
+            params = jax.tree.map(lambda x, m=m: np.asarray(x[m]), seed.reward.params)
+            r_a = _numpy_member(params, np.concatenate([data.obs_a[:count], data.act_a[:count]], -1)).sum(-1)
+            r_b = _numpy_member(params, np.concatenate([data.obs_b[:count], data.act_b[:count]], -1)).sum(-1)
+            logits.append(np.stack([r_a, r_b], -1))
+        logits = np.stack(logits)  # (M, N, 2)
+        log_softmax = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+        target = expected_labels.astype(int)
+        numpy_loss = -np.take_along_axis(log_softmax, target[None, :, None], -1)[..., 0].mean(-1).sum()
+        batch = reward_model.PrefBatch(
+            obs_a=jnp.broadcast_to(data.obs_a[:count], (members, *data.obs_a[:count].shape)),
+            act_a=jnp.broadcast_to(data.act_a[:count], (members, *data.act_a[:count].shape)),
+            obs_b=jnp.broadcast_to(data.obs_b[:count], (members, *data.obs_b[:count].shape)),
+            act_b=jnp.broadcast_to(data.act_b[:count], (members, *data.act_b[:count].shape)),
+            labels=jnp.broadcast_to(data.labels[:count], (members, count)),
+            weight=jnp.ones((members, count)),
+        )
+        loss, _ = reward_model.bt_loss(cfg)(seed.reward.params, batch, None)
+        np.testing.assert_allclose(float(loss), numpy_loss, rtol=1e-4)
+
+
 def test_rebel_with_lambda_zero_is_pebble_bit_for_bit(pebble_run, rebel_runs):
     _, pebble, _ = pebble_run
     _, rebel, _ = rebel_runs
