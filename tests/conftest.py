@@ -73,7 +73,14 @@ def compiled_env():
 
 _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
 # The groups that take longest (mostly compiling MJX, cold cache), longest first.
-_SLOWEST_FIRST = ("envs", "test_cli_runs.py", "test_human_session.py", "test_preference_train.py", "test_train.py")
+_SLOWEST_FIRST = (
+    "envs",
+    "test_cli_runs.py",
+    "test_distributed.py",
+    "test_human_session.py",
+    "test_preference_train.py",
+    "test_train.py",
+)
 
 
 def _group(nodeid: str) -> str:

@@ -29,7 +29,6 @@ from rebel_jax import cli
 
 DEADLINE = 600
 """Seconds a launch of the training processes may take (a cold compile takes about a minute on 2 cores)."""
-STOP_AFTER_ROUND_0 = ("--time-limit", "1e-9")  # Checkpoints round 0 (step 1) and stops.
 
 # ``python -m rebel_jax.train`` that appends every file-system write it makes under AUDIT_RUN_DIR
 # (opened for writing, created, renamed onto, removed) to AUDIT_FILE as ``<operation> <relative path>``.
@@ -101,8 +100,9 @@ def _train(run_dir: pathlib.Path, processes: int, devices: int, *flags: str) -> 
         )
         if processes > 1:
             cmd_i = [*cmd, "--distributed"]
-            env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES=str(processes))
-            env.update(JAX_PROCESS_ID=str(i))
+            address = f"127.0.0.1:{port}"  # Process 0 listens there only (JAX's default: every interface).
+            env.update(JAX_COORDINATOR_ADDRESS=address, JAX_COORDINATOR_BIND_ADDRESS=address)
+            env.update(JAX_NUM_PROCESSES=str(processes), JAX_PROCESS_ID=str(i))
         else:
             cmd_i = cmd
         with open(logs[i], "w") as log:
@@ -155,11 +155,27 @@ def _assert_same_run(a: pathlib.Path, b: pathlib.Path) -> None:
         np.testing.assert_array_equal(saved_a[k], saved_b[k], err_msg=f"leaf {k}")
 
 
+def _killed_before_last_checkpoint(run_dir: pathlib.Path, copy: pathlib.Path) -> pathlib.Path:
+    """A copy of a whole run as a kill after logging its last round leaves it: no last checkpoint, no final.json."""
+    shutil.copytree(run_dir, copy)
+    shutil.rmtree(copy / "checkpoints" / str(ROUNDS))
+    (copy / "final.json").unlink()
+    return copy
+
+
 @pytest.fixture(scope="module")
 def two(tmp_path_factory) -> tuple[pathlib.Path, list[list[str]]]:
     """A whole run in 2 processes (1 device each), and what each process wrote in its directory."""
     run_dir = tmp_path_factory.mktemp("two") / "run"
     return run_dir, _train(run_dir, 2, 1)
+
+
+@pytest.fixture(scope="module")
+def same_devices(tmp_path_factory) -> pathlib.Path:
+    """The same run in 1 process with 2 devices."""
+    run_dir = tmp_path_factory.mktemp("same_devices") / "run"
+    _train(run_dir, 1, 2)
+    return run_dir
 
 
 @pytest.fixture(scope="module")
@@ -170,7 +186,8 @@ def one_device(tmp_path_factory) -> pathlib.Path:
     return run_dir
 
 
-def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, one_device, tmp_path):
+@pytest.mark.slow
+def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, same_devices, one_device):
     run_dir, (audit0, audit1) = two
     written = {line.split(" ", 1)[1] for line in audit0}
     assert {"config.json", "meta.json", "metrics.jsonl", "final.json"} <= written
@@ -181,8 +198,6 @@ def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, one
     assert sorted(int(p.name) for p in (run_dir / "checkpoints").iterdir()) == [ROUNDS - 1, ROUNDS]
 
     # One process with the same 2 devices: the same per-device program, so the same run.
-    same_devices = tmp_path / "one_process_two_devices"
-    _train(same_devices, 1, 2)
     _assert_same_run(run_dir, same_devices)
 
     # One device (every seed in one vmapped batch): within the sharded test's tolerance.
@@ -192,28 +207,25 @@ def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, one
     np.testing.assert_allclose(returns, reference, rtol=5e-2, atol=1e-3)
 
 
-def test_checkpoints_resume_across_process_and_device_counts(two, one_device, tmp_path):
+@pytest.mark.slow
+def test_checkpoints_resume_across_process_and_device_counts(two, same_devices, one_device, tmp_path):
     whole, _ = two
     # Saved by 2 processes, resumed by 1 process on the same 2 devices: the uninterrupted run.
-    two_then_one = tmp_path / "two_then_one"
-    _train(two_then_one, 2, 1, *STOP_AFTER_ROUND_0)
-    assert sorted(int(p.name) for p in (two_then_one / "checkpoints").iterdir()) == [1]
-    on_one_device = tmp_path / "two_then_one_device"
-    shutil.copytree(two_then_one, on_one_device)
+    two_then_one = _killed_before_last_checkpoint(whole, tmp_path / "two_then_one")
     _train(two_then_one, 1, 2, "--resume")
     _assert_same_run(whole, two_then_one)
-    assert json.loads((two_then_one / "meta.json").read_text())["resumed"][0]["from_round"] == 1
+    assert json.loads((two_then_one / "meta.json").read_text())["resumed"][0]["from_round"] == ROUNDS - 1
 
     # Saved by 1 process, resumed by 2: the uninterrupted run; only process 0 writes the logs.
-    one_then_two = tmp_path / "one_then_two"
-    _train(one_then_two, 1, 2, *STOP_AFTER_ROUND_0)
+    one_then_two = _killed_before_last_checkpoint(same_devices, tmp_path / "one_then_two")
     _, audit1 = _train(one_then_two, 2, 1, "--resume")
     _assert_same_run(whole, one_then_two)
     assert all(line.split(" ", 1)[1].startswith("checkpoints") for line in audit1), audit1
 
-    # Saved by 2 processes, resumed on 1 device (the arrays restored into another sharding):
-    # the 2-process round 0 as logged, then the 1-device run's tolerance.
+    # Saved by 2 processes, resumed on 1 device (the arrays restored into another sharding): the
+    # 2-process rounds as logged, then the last round within the 1-device run's tolerance.
+    on_one_device = _killed_before_last_checkpoint(whole, tmp_path / "two_then_one_device")
     cli.main([*MICRO_FLAGS, "--run-dir", str(on_one_device), "--resume"])
-    assert _metrics(on_one_device)[0] == _metrics(whole)[0]
+    assert _metrics(on_one_device)[: ROUNDS - 1] == _metrics(whole)[: ROUNDS - 1]
     assert [row["round"] for row in _metrics(on_one_device)] == list(range(ROUNDS))
     _assert_close_per_seed(_saved_arrays(on_one_device, ROUNDS), _saved_arrays(one_device, ROUNDS))
