@@ -447,8 +447,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
-    init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
+    init, round_fn, evaluate = compiled(trainer, sharding)
     keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
     keys = sweep.shard_seeds(keys, sharding)
     state = init(keys)

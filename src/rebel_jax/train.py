@@ -614,14 +614,22 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
-def compiled(trainer: Trainer) -> tuple[Callable, Callable, Callable]:
+def compiled(trainer: Trainer, sharding: jax.sharding.Sharding | None = None) -> tuple[Callable, Callable, Callable]:
     """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys)``.
 
     The round donates its input state so the replay buffer is updated in place.
+
+    Args:
+      trainer: the run's trainer.
+      sharding: where every output goes, by its leading seed axis (``sweep.seed_sharding``); None
+        leaves it to JAX. Without it, ``init`` on several devices returns the leaves that do not
+        depend on the key (the zeroed replay buffer, optimiser moments) replicated on every
+        device: every device would hold every seed's buffer.
     """
-    init = jax.jit(jax.vmap(trainer.init))
-    round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate))
+    placed = {} if sharding is None else {"out_shardings": sharding}
+    init = jax.jit(jax.vmap(trainer.init), **placed)
+    round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0, **placed)
+    evaluate = jax.jit(jax.vmap(trainer.evaluate), **placed)
     return init, round_fn, evaluate
 
 
