@@ -37,12 +37,14 @@ of a given policy (used for the final evaluation).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax.sharding import NamedSharding, PartitionSpec
 
 from rebel_jax import pretrain, queries, replay, reward_model, teachers
 from rebel_jax.config import Config
@@ -614,23 +616,32 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
-def compiled(trainer: Trainer, sharding: jax.sharding.Sharding | None = None) -> tuple[Callable, Callable, Callable]:
+def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[Callable, Callable, Callable]:
     """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys)``.
 
     The round donates its input state so the replay buffer is updated in place.
 
     Args:
       trainer: the run's trainer.
-      sharding: where every output goes, by its leading seed axis (``sweep.seed_sharding``); None
-        leaves it to JAX. Without it, ``init`` on several devices returns the leaves that do not
-        depend on the key (the zeroed replay buffer, optimiser moments) replicated on every
-        device: every device would hold every seed's buffer.
+      sharding: the seed axis's sharding over several devices (``sweep.seed_sharding``), or None
+        for one device. Each device then runs the vmapped program on its own seeds
+        (``shard_map``), with no communication between devices: left to XLA's partitioner, a
+        vmapped ``while_loop`` (the reward model's early stopping) reduces its condition over
+        every device at each iteration, the kNN reward's ``top_k`` gathered every seed's
+        distances on every device, and ``init`` returned its key-independent leaves (the
+        replay buffer) replicated on every device. Per seed the result is the same: under
+        ``vmap`` a seed whose loop has stopped is masked, whichever seeds share its batch.
     """
-    placed = {} if sharding is None else {"out_shardings": sharding}
-    init = jax.jit(jax.vmap(trainer.init), **placed)
-    round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0, **placed)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate), **placed)
-    return init, round_fn, evaluate
+    init = jax.vmap(trainer.init)
+    round_fn = jax.vmap(trainer.round, in_axes=(0, None))
+    evaluate = jax.vmap(trainer.evaluate)
+    if sharding is not None:
+        seeds, same = sharding.spec, PartitionSpec()
+        per_device = functools.partial(jax.shard_map, mesh=sharding.mesh, out_specs=seeds, check_vma=False)
+        init = per_device(init, in_specs=seeds)
+        round_fn = per_device(round_fn, in_specs=(seeds, same))
+        evaluate = per_device(evaluate, in_specs=(seeds, seeds))
+    return jax.jit(init), jax.jit(round_fn, donate_argnums=0), jax.jit(evaluate)
 
 
 if __name__ == "__main__":
