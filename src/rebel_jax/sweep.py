@@ -2,8 +2,9 @@
 
 One GPU runs many seeds by ``vmap``. With several devices (``jax.devices()``; with several
 processes after :func:`initialize`, every process's devices), the leading seed axis of every
-array in the run's state is split over a 1-D ``Mesh`` named ``seeds``; ``jit`` then runs each
-device's seeds where they live, with no communication.
+array in the run's state is split over a 1-D ``Mesh`` named ``seeds``;
+``train.compiled(trainer, sharding)`` then runs each device's seeds where they live
+(``shard_map``), with no communication.
 
 Several processes (hosts, or one process per GPU) run the same command with ``--distributed``
 (:func:`initialize`); each process holds its own devices' seeds. The host loop then needs the
