@@ -77,6 +77,7 @@ _SLOWEST_FIRST = (
     "test_demo.py",
     "envs",
     "test_cli_runs.py",
+    "test_distributed.py",
     "test_human_session.py",
     "test_preference_train.py",
     "test_train.py",

@@ -45,6 +45,7 @@ BAD = {
     "run-dir-empty": (["--run-dir", ""], ["run_dir=''", "allowed a directory path"]),
     "run-dir-proc": (["--run-dir", "/proc/rebel_jax_test/run"], ["run_dir='/proc/rebel_jax_test/run'", "writable"]),
     "resume-and-overwrite": (["--run-dir", "r", "--resume", "--overwrite"], ["overwrite", "--resume"]),
+    "distributed-without-run-dir": (["--distributed"], ["run_dir=None", "--distributed", "share"]),
 }
 
 
@@ -54,6 +55,16 @@ def test_a_bad_flag_is_one_line_naming_it_and_creates_nothing(tmp_path, monkeypa
     line = _refused(argv, capsys)
     for part in expected:
         assert part in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_distributed_with_a_process_count_that_is_no_number_is_refused(tmp_path, monkeypatch, capsys):
+    # Refused before jax.distributed.initialize, which would wait for the other processes.
+    monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "127.0.0.1:1")
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "two")
+    monkeypatch.setenv("JAX_PROCESS_ID", "0")
+    line = _refused(["--distributed", "--run-dir", str(tmp_path / "run")], capsys)
+    assert "JAX_NUM_PROCESSES" in line and "'two'" in line, line
     assert list(tmp_path.iterdir()) == []
 
 

@@ -177,12 +177,14 @@ SHARDED = textwrap.dedent(
     from rebel_jax.train import Trainer, compiled, seed_keys
     from tests.test_train import MICRO, SHARDED_SEEDS, SHARDED_ROUNDS
     assert len(jax.devices()) == SHARDED_SEEDS
-    init, round_fn, _ = compiled(Trainer(MICRO))
     sharding = sweep.seed_sharding(SHARDED_SEEDS)
-    state = sweep.shard_seeds(init(sweep.shard_seeds(seed_keys(11, SHARDED_SEEDS), sharding)), sharding)
+    init, round_fn, _ = compiled(Trainer(MICRO), sharding)  # as the CLI: each device runs its seeds
+    state = init(sweep.shard_seeds(seed_keys(11, SHARDED_SEEDS), sharding))
     for r in range(SHARDED_ROUNDS):
         state, _ = round_fn(state, jnp.int32(r))
-    assert len(state.sac.steps.sharding.device_set) == SHARDED_SEEDS
+    # Every leaf, the zeroed replay buffer included, holds one seed per device.
+    for x in jax.tree.leaves(state):
+        assert x.sharding.is_equivalent_to(sharding, x.ndim), x.sharding
     leaves = jax.device_get(jax.tree.leaves(state.sac))
     np.savez(sys.argv[1], *leaves)
     """

@@ -104,7 +104,11 @@ class Args:
     tensorboard: bool = True
     """Write TensorBoard event files."""
     distributed: bool = False
-    """Call ``jax.distributed.initialize()`` first (multi-host runs)."""
+    """Several processes (hosts, or one per GPU) run this same command: each calls
+    ``jax.distributed.initialize`` first, with ``JAX_COORDINATOR_ADDRESS`` (host:port of process 0),
+    ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` from the environment, or what JAX detects (SLURM).
+    The seeds are sharded over every process's devices; process 0 writes the logs, all write the
+    checkpoints (orbax), so ``--run-dir`` must be given and be on a file system they share."""
     lam_grid: tuple[float, ...] = ()
     """``--algo rebel`` only: run every seed with each of these lambdas in one vmapped program
     (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
@@ -315,6 +319,7 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
     meta = {
         "jax": jax.__version__,
         "devices": [d.device_kind for d in jax.devices()],
+        "processes": jax.process_count(),
         "backend": jax.default_backend(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "git_commit": _git_commit(),
@@ -463,8 +468,11 @@ def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logge
     return "\n".join(lines)
 
 
-def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> pathlib.Path | None:
-    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path."""
+def _eval_clip(args: Args, trainer: Trainer, actor_params, run_dir: pathlib.Path) -> pathlib.Path | None:
+    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path.
+
+    ``actor_params``: the actor's parameters of every column, on the host.
+    """
     if args.time_limit:
         # Runs split over time-limited calls have no time budgeted for compiling the clip.
         print(f"eval.gif skipped under --time-limit; render it with: python -m rebel_jax.video {run_dir}")
@@ -474,7 +482,7 @@ def _eval_clip(args: Args, trainer: Trainer, state, run_dir: pathlib.Path) -> pa
     except ImportError:
         print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
         return None
-    params = jax.tree.map(lambda x: x[0], state.sac.actor_params)
+    params = jax.tree.map(lambda x: jnp.asarray(x[0]), actor_params)
     policy = functools.partial(trainer.sac.act_deterministic, params)
     key = jax.random.PRNGKey(args.config.train.seed)
     path = run_dir / "eval.gif"
@@ -496,8 +504,16 @@ def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pa
     return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
 
 
-def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
+def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None = None) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
+
+    With several processes (``--distributed``) every process calls it: each runs its devices'
+    seeds and saves its part of each checkpoint; process 0 alone writes ``config.json``,
+    ``meta.json``, ``metrics.jsonl``, ``final.json``, TensorBoard files and the clip, and prints.
+
+    Args:
+      resuming: whether ``run_dir`` holds a run to resume; default ``--resume`` and a saved
+        ``config.json`` (with several processes, :func:`main` decides on process 0 and tells all).
 
     Returns:
       ``final.json``'s content, or ``{"stopped_at_round": r}`` after ``--time-limit``.
@@ -506,14 +522,17 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
       SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
     """
     cfg = args.config
+    primary = sweep.is_primary()
+    if resuming is None:
+        resuming = args.resume and (run_dir / "config.json").exists()
     if cfg.algo == "drqv2":
         trainer = PixelTrainer(cfg)
     else:
         trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
-    init, round_fn, evaluate = compiled(trainer)
     sharding = sweep.seed_sharding(args.columns)
+    init, round_fn, evaluate = compiled(trainer, sharding)
     keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
     keys = sweep.shard_seeds(keys, sharding)
     state = init(keys)
@@ -527,33 +546,39 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
     ckpt = Checkpointer(run_dir / "checkpoints") if use_ckpt else None
     start = 0
-    if args.resume and (run_dir / "config.json").exists():
+    if resuming:
         start, state = _restore(run_dir, ckpt, state, sharding)
-        keep_rounds_before(run_dir / "metrics.jsonl", start)
-        _record_resume(run_dir, args, command, start)
-    else:
+        if primary:
+            keep_rounds_before(run_dir / "metrics.jsonl", start)
+            _record_resume(run_dir, args, command, start)
+    elif primary:
         if args.resume:
             print(f"note: --resume: no run in {run_dir} yet; starting the run from scratch", file=sys.stderr)
         keep_rounds_before(run_dir / "metrics.jsonl", 0)
         _write_meta(run_dir, args, command)
     names = args.column_names()
     per_round = cfg.train.steps_per_round
-    logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
+    logger = None
+    if primary:
+        logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
     started, slowest = time.perf_counter(), 0.0
     ever_diverged = np.zeros(args.columns, bool)
     try:
         for r in range(start, cfg.train.num_rounds):
-            if args.time_limit and r > start and time.perf_counter() - started + 1.2 * slowest > args.time_limit:
+            # Process 0's clock decides for all (every process must run the same rounds).
+            out_of_time = time.perf_counter() - started + 1.2 * slowest > args.time_limit
+            if args.time_limit and r > start and sweep.from_primary(int(out_of_time)):
                 if ckpt is not None and ckpt.latest() != r:
                     ckpt.save(r, state)
-                print(f"--time-limit {args.time_limit:g} s: stopped after round {r - 1}; continue with --resume")
+                if primary:
+                    print(f"--time-limit {args.time_limit:g} s: stopped after round {r - 1}; continue with --resume")
                 return {"stopped_at_round": r}
             session = {}
             if host is not None:  # The human or replay teacher's session, between rounds.
                 state, session = host.before_round(state, r)
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
-            metrics = {**jax.device_get(metrics), **session}
+            metrics = {**sweep.to_host(metrics), **session}
             seconds = time.perf_counter() - t0
             slowest = max(slowest, seconds) if r > start else 0.0
             env_steps = (r + 1) * per_round
@@ -561,14 +586,16 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
                 metrics.pop("eval_return")
             diverged = np.asarray(metrics["diverged"], float).reshape(-1) > 0
             extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.columns / seconds}
-            logger.write(env_steps, metrics, extra)
+            if logger is not None:
+                logger.write(env_steps, metrics, extra)
             if diverged.any():
                 which = ", ".join(names[i] for i in np.flatnonzero(diverged & ~ever_diverged))
                 ever_diverged |= diverged
                 if args.on_divergence == "stop":
                     nan = np.full(args.columns, np.nan)
                     result = {**_final_result(nan, nan, ever_diverged, names), "round": r}
-                    write_json(run_dir / "final.json", result)
+                    if primary:
+                        write_json(run_dir / "final.json", result)
                     last = ckpt.latest() if ckpt is not None else None
                     kept = f"its checkpoints resume at round {last}" if last is not None else "no checkpoint"
                     print(
@@ -583,19 +610,26 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
             if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
                 ckpt.save(r + 1, state)
         policy = trainer.policy_params(state)
-        final = np.asarray(evaluate(policy, keys))
-        random = np.asarray(evaluate(policy, keys, True))  # The same initial states.
+        final = np.asarray(sweep.to_host(evaluate(policy, keys)))
+        random = np.asarray(sweep.to_host(evaluate(policy, keys, True)))  # The same initial states.
         result = _final_result(final, random, ever_diverged, names)
-        write_json(run_dir / "final.json", result)
-        files = [_learning_curve(args, run_dir, random)]
+        files = []
+        if primary:
+            write_json(run_dir / "final.json", result)
+            files.append(_learning_curve(args, run_dir, random))
         if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and cfg.algo != "drqv2":  # no pixel clip yet
-            files.append(_eval_clip(args, trainer, state, run_dir))
+            actor = sweep.to_host(state.sac.actor_params)  # Every process: a collective with several.
+            if primary:
+                files.append(_eval_clip(args, trainer, actor, run_dir))
     finally:
         if host is not None:
             host.close()
-        logger.close()
+        if logger is not None:
+            logger.close()
         if ckpt is not None:
             ckpt.close()
+    if not primary:
+        return result
     print(
         f"\n{cfg.algo} on {cfg.env.task}: evaluation returns ({cfg.train.eval_episodes} episodes of "
         f"{cfg.env.episode_length} steps per seed, the same initial states for the random policy)"
@@ -629,6 +663,11 @@ def _check_args(args: Args, preset: Config) -> None:
     cfg = args.config
     if args.seeds < 1:
         raise ConfigError(f"seeds={args.seeds!r} is invalid: allowed >= 1")
+    if args.distributed and args.run_dir is None:
+        raise ConfigError(
+            "run_dir=None is invalid with --distributed: allowed a directory on a file system every process"
+            " shares (the default name holds each process's own clock time)"
+        )
     if args.checkpoint_every < 0:
         raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
     if not (math.isfinite(args.time_limit) and args.time_limit >= 0):
@@ -729,14 +768,26 @@ def main(argv: list[str] | None = None) -> dict:
     avoid_cpu_deadlock()
     args = parse(argv)
     if args.distributed:
-        jax.distributed.initialize()
+        try:
+            sweep.initialize()
+        except ValueError as err:
+            raise _usage_error(err) from err
+    # Process 0 checks and prepares the run directory, then tells the others what it found.
+    status, resuming = 0, 0
+    run_dir = None if args.run_dir is None else pathlib.Path(args.run_dir)  # Set with --distributed.
+    if sweep.is_primary():
+        try:
+            check_devices(args, jax.device_count())
+            run_dir = prepare_run_dir(args)
+            resuming = int(args.resume and (run_dir / "config.json").exists())
+        except ConfigError as err:
+            print(f"error: {err}", file=sys.stderr)
+            status = EXIT_USAGE
+    status, resuming = sweep.from_primary((status, resuming))
+    if status:
+        raise SystemExit(status)
     try:
-        check_devices(args, jax.device_count())
-        run_dir = prepare_run_dir(args)
-    except ConfigError as err:
-        raise _usage_error(err) from err
-    try:
-        return run(args, run_dir, command_line(argv))
+        return run(args, run_dir, command_line(argv), bool(resuming))
     except HumanError as err:  # No OpenGL for the clips, a label file of another run, ...
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from err

@@ -1,25 +1,59 @@
-"""Seeds across devices: the seed axis of a vmapped run, sharded with ``jax.sharding``.
+"""Seeds across devices and processes: the seed axis of a vmapped run, sharded with ``jax.sharding``.
 
-One GPU runs many seeds by ``vmap``. With several devices (``jax.devices()``; on several
-hosts after ``jax.distributed.initialize()``, which makes every host's devices visible),
-the leading seed axis of every array in the run's state is split over a 1-D ``Mesh`` named
-``seeds``; ``jit`` then runs each device's seeds where they live, with no communication.
+One GPU runs many seeds by ``vmap``. With several devices (``jax.devices()``; with several
+processes after :func:`initialize`, every process's devices), the leading seed axis of every
+array in the run's state is split over a 1-D ``Mesh`` named ``seeds``;
+``train.compiled(trainer, sharding)`` then runs each device's seeds where they live
+(``shard_map``), with no communication.
 
-Multi-host: start the same command on every host with ``--distributed`` (which calls
-``jax.distributed.initialize()``; on SLURM or with ``JAX_COORDINATOR_ADDRESS``,
-``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` set it needs no arguments). The number of
-seeds must be a multiple of the total device count.
+Several processes (hosts, or one process per GPU) run the same command with ``--distributed``
+(:func:`initialize`); each process holds its own devices' seeds. The host loop then needs the
+few helpers below: :func:`to_host` gathers per-seed metrics from every process,
+:func:`from_primary` makes every process take process 0's decision (e.g. a time limit), and
+:func:`is_primary` says which process writes the run's files. Collectives between processes
+are used only by these helpers (on CPU through gloo, JAX's default CPU collectives).
 """
 
 from __future__ import annotations
 
+import os
+
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+DISTRIBUTED_ENV = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
+"""Where :func:`initialize` reads the coordinator's ``host:port``, the process count and this process's id."""
+
+
+def initialize(environ=os.environ) -> None:
+    """``jax.distributed.initialize`` with the settings of :data:`DISTRIBUTED_ENV`.
+
+    JAX itself reads only ``JAX_COORDINATOR_ADDRESS`` (0.10.2), so the count and the id are read
+    here. Settings left unset are detected by JAX (SLURM, Open MPI, Kubernetes, Cloud TPU).
+    Must run before any computation.
+
+    Raises:
+      ValueError: if ``JAX_NUM_PROCESSES`` or ``JAX_PROCESS_ID`` is not an integer, or JAX finds no
+        value for a setting left unset.
+    """
+    address, count, index = (environ.get(name) or None for name in DISTRIBUTED_ENV)
+    try:
+        count = None if count is None else int(count)
+        index = None if index is None else int(index)
+    except ValueError as err:
+        raise ValueError(f"JAX_NUM_PROCESSES and JAX_PROCESS_ID must be integers ({err})") from err
+    jax.distributed.initialize(coordinator_address=address, num_processes=count, process_id=index)
+
+
+def is_primary() -> bool:
+    """Whether this is process 0, the one that writes the run's logs (all processes write checkpoints)."""
+    return jax.process_index() == 0
 
 
 def seed_sharding(num_seeds: int, devices: list | None = None) -> NamedSharding | None:
-    """A sharding of the leading seed axis over ``devices`` (all by default); None for one device.
+    """A sharding of the leading seed axis over ``devices`` (all, of every process, by default); None for one device.
 
     Raises:
       ValueError: if ``num_seeds`` is not a multiple of the number of devices.
@@ -33,5 +67,35 @@ def seed_sharding(num_seeds: int, devices: list | None = None) -> NamedSharding 
 
 
 def shard_seeds(tree, sharding: NamedSharding | None):
-    """Places every leaf of ``tree`` (leading axis = seeds) according to ``sharding``."""
+    """Places every leaf of ``tree`` (leading axis = seeds) according to ``sharding``.
+
+    With several processes, every process passes the same whole ``tree`` and keeps its own devices' part.
+    """
     return tree if sharding is None else jax.device_put(tree, sharding)
+
+
+def to_host(tree):
+    """``tree`` as NumPy arrays, every seed included: a gather from all processes when there are several.
+
+    With several processes every process must call it (it is a collective), in the same order.
+    """
+    if jax.process_count() == 1:
+        return jax.device_get(tree)
+    return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def from_primary(tree):
+    """Process 0's value of ``tree`` (a pytree of int or float scalars), on every process, as Python scalars.
+
+    For host-side decisions that must agree across processes (a time limit read from each
+    process's clock). A collective with several processes, like :func:`to_host`.
+    """
+    if jax.process_count() == 1:
+        return tree
+    return jax.tree.map(lambda x: np.asarray(x).item(), multihost_utils.broadcast_one_to_all(tree))
+
+
+def barrier(name: str) -> None:
+    """Waits until every process reaches the barrier ``name`` (nothing to wait for with one process)."""
+    if jax.process_count() > 1:
+        multihost_utils.sync_global_devices(name)

@@ -37,12 +37,14 @@ of a given policy (used for the final evaluation).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax.sharding import NamedSharding, PartitionSpec
 
 from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
 from rebel_jax.config import Config
@@ -637,20 +639,38 @@ def seed_keys(seed: int, num_seeds: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
-def compiled(trainer: Trainer) -> tuple[Callable, Callable, Callable]:
+def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[Callable, Callable, Callable]:
     """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys, random_actions)``.
 
     The round donates its input state so the replay buffer is updated in place. ``random_actions``
     (unbatched, default False) evaluates uniform random actions on the same initial states instead.
+
+    Args:
+      trainer: the run's trainer.
+      sharding: the seed axis's sharding over several devices (``sweep.seed_sharding``), or None
+        for one device. Each device then runs the vmapped program on its own seeds
+        (``shard_map``), with no communication between devices: left to XLA's partitioner, a
+        vmapped ``while_loop`` (the reward model's early stopping) reduces its condition over
+        every device at each iteration, the kNN reward's ``top_k`` gathered every seed's
+        distances on every device, and ``init`` returned its key-independent leaves (the
+        replay buffer) replicated on every device. Per seed the result is the same: under
+        ``vmap`` a seed whose loop has stopped is masked, whichever seeds share its batch.
     """
-    init = jax.jit(jax.vmap(trainer.init))
-    round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0)
-    evaluate_seeds = jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None)))
+    init = jax.vmap(trainer.init)
+    round_fn = jax.vmap(trainer.round, in_axes=(0, None))
+    evaluate_seeds = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))
+    if sharding is not None:
+        seeds, same = sharding.spec, PartitionSpec()
+        per_device = functools.partial(jax.shard_map, mesh=sharding.mesh, out_specs=seeds, check_vma=False)
+        init = per_device(init, in_specs=seeds)
+        round_fn = per_device(round_fn, in_specs=(seeds, same))
+        evaluate_seeds = per_device(evaluate_seeds, in_specs=(seeds, seeds, same))
+    evaluate_seeds = jax.jit(evaluate_seeds)
 
     def evaluate(actor_params, keys: jax.Array, random_actions: bool = False) -> jax.Array:
         return evaluate_seeds(actor_params, keys, jnp.asarray(random_actions))
 
-    return init, round_fn, evaluate
+    return jax.jit(init), jax.jit(round_fn, donate_argnums=0), evaluate
 
 
 if __name__ == "__main__":  # ``python -m rebel_jax.train`` runs the package's entry point; train never imports cli.
