@@ -166,8 +166,8 @@ def _poison_seed_1_before_round(round_index: int):
     """A ``train.compiled`` whose round receives seed 1's actor parameters as NaN at ``round_index``."""
     from rebel_jax import train
 
-    def compiled(trainer):
-        init, round_fn, evaluate = train.compiled(trainer)
+    def compiled(trainer, sharding=None):
+        init, round_fn, evaluate = train.compiled(trainer, sharding)
 
         def poisoned_round(state, r):
             if int(r) == round_index:
