@@ -139,19 +139,7 @@ class PixelTrainer:
             truncated=truncated[:n],
             episode_step=(t % self.episode_length).astype(jnp.int32),
         )
-        running = ts.episodes.running + nxt.reward
-        done = nxt.done > 0
-
-        def finished_mean(part, last):
-            mask = done[part]
-            mean = jnp.sum(jnp.where(mask, running[part], 0.0)) / jnp.maximum(jnp.sum(mask), 1)
-            return jnp.where(jnp.any(mask), mean, last)
-
-        episodes = EpisodeStats(
-            running=jnp.where(done, 0.0, running),
-            train_return=finished_mean(slice(0, n), ts.episodes.train_return),
-            eval_return=finished_mean(slice(n, None), ts.episodes.eval_return),
-        )
+        episodes = ts.episodes.after_step(nxt.reward, nxt.done, n)
         return frame_replay.add(ts.buffer, step), episodes
 
     def _updates(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step: jax.Array):

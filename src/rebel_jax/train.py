@@ -102,6 +102,22 @@ class EpisodeStats:
     train_return: jax.Array
     eval_return: jax.Array
 
+    def after_step(self, reward: jax.Array, done: jax.Array, n: int) -> EpisodeStats:
+        """The statistics after one vector step of rewards and done flags, the first ``n`` envs training ones."""
+        running = self.running + reward
+        finished = done > 0
+
+        def finished_mean(part, last):
+            mask = finished[part]
+            mean = jnp.sum(jnp.where(mask, running[part], 0.0)) / jnp.maximum(jnp.sum(mask), 1)
+            return jnp.where(jnp.any(mask), mean, last)
+
+        return EpisodeStats(
+            running=jnp.where(finished, 0.0, running),
+            train_return=finished_mean(slice(0, n), self.train_return),
+            eval_return=finished_mean(slice(n, None), self.eval_return),
+        )
+
 
 @struct.dataclass
 class TrainState:
@@ -251,19 +267,7 @@ class Trainer:
             learned_reward=self._learned_reward(ts, ts.env.obs[:n], action[:n]) if self.preference else None,
             qpos=physics_positions(ts.env.pipeline_state)[:n] if self.host_teacher else None,
         )
-        running = ts.episodes.running + nxt.reward
-        done = nxt.done > 0
-
-        def finished_mean(part, last):
-            mask = done[part]
-            mean = jnp.sum(jnp.where(mask, running[part], 0.0)) / jnp.maximum(jnp.sum(mask), 1)
-            return jnp.where(jnp.any(mask), mean, last)
-
-        episodes = EpisodeStats(
-            running=jnp.where(done, 0.0, running),
-            train_return=finished_mean(slice(0, n), ts.episodes.train_return),
-            eval_return=finished_mean(slice(n, None), ts.episodes.eval_return),
-        )
+        episodes = ts.episodes.after_step(nxt.reward, nxt.done, n)
         return replay.add(ts.buffer, step), episodes
 
     def _learned_reward(self, ts: TrainState, obs: jax.Array, action: jax.Array) -> jax.Array:
