@@ -506,7 +506,9 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
       SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
     """
     cfg = args.config
-    if cfg.algo == "drqv2":
+    if cfg.pixels:  # DrQ-v2, or SURF's pixel PEBBLE on it
+        if args.host_teacher:
+            raise ConfigError("teacher human/replay is invalid on a pixel task: allowed only on state tasks")
         trainer = PixelTrainer(cfg)
     else:
         trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
@@ -588,7 +590,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
         result = _final_result(final, random, ever_diverged, names)
         write_json(run_dir / "final.json", result)
         files = [_learning_curve(args, run_dir, random)]
-        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and cfg.algo != "drqv2":  # no pixel clip yet
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and not cfg.pixels:  # no pixel clip yet
             files.append(_eval_clip(args, trainer, state, run_dir))
     finally:
         if host is not None:
