@@ -135,16 +135,7 @@ def main():
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     args = p.parse_args()
     results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    key = lambda r: (
-        r["device"],
-        r["what"],
-        r.get("algo"),
-        r.get("task"),
-        r["seeds"],
-        r["precision"],
-        r["num_envs"],
-        r.get("utd"),
-    )
+    key = lambda r: (r["device"], r["what"], r.get("algo"), r.get("task"), r["seeds"], r["precision"], r["num_envs"], r.get("utd"))
     for row in update_rows(args) if args.mode == "update" else run_rows(args):
         results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
         args.out.parent.mkdir(parents=True, exist_ok=True)
