@@ -279,13 +279,15 @@ def row_stacks(buffer: FrameBuffer, row: jax.Array, env: jax.Array) -> jax.Array
 
     Args:
         buffer: the buffer.
-        row, env: (...) int indices (a segment: ``(N, H)`` consecutive rows of one env).
+        row, env: int indices of shapes that broadcast together (a segment: ``(N, H)`` consecutive rows
+            of one env).
 
     Returns:
         (..., H, W, 3 * stack) uint8 stacks, rebuilt from the stored frames as :func:`gather` does.
     """
+    row, env = jnp.broadcast_arrays(row, env)
     shape = row.shape
-    row, env = row.reshape(-1), jnp.broadcast_to(env, shape).reshape(-1)
+    row, env = row.reshape(-1), env.reshape(-1)
     stacks = _stacks(buffer, buffer.frame_index[row], buffer.episode_step[row], env)
     return stacks.reshape(*shape, *stacks.shape[1:])
 
