@@ -416,7 +416,7 @@ def train(
 
 def candidate_bytes(num_pairs: int, horizon: int, height: int, width: int, stack: int = 3) -> int:
     """uint8 bytes of ``num_pairs`` pairs' frame stacks if gathered at once (what scoring by chunks avoids):
-    ``2 x pairs x H x height x width x 3 stack``; 10 x 10 candidates of 50 steps at 84x84: 423 MB."""
+    ``2 x pairs x H x height x width x 3 stack``; 10 x 10 candidates of 50 steps at 84x84: 635 MB."""
     return 2 * num_pairs * horizon * height * width * 3 * stack
 
 
