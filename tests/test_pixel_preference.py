@@ -3,12 +3,16 @@ NumPy, the oracle's labels against NumPy segment returns of the stored true rewa
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import frame_replay, pixel_reward
+from rebel_jax import agent_preference, frame_replay, pixel_reward
+from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
 from rebel_jax.drqv2 import DrQV2Config
@@ -178,12 +182,74 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
 
 
-def test_cli_takes_pixel_pebble_and_refuses_surf_and_rebel_there():
+REBEL = dataclasses.replace(
+    MICRO, algo="rebel", rebel=AgentPreferenceConfig(source="replay", num_segments=3, segment_length=4)
+)
+LAMS = (0.0, -1.0)
+
+
+@pytest.fixture(scope="module")
+def rebel_run():
+    trainer = PixelTrainer(REBEL)
+    init, round_fn, _ = compiled(trainer)
+    state = init(jnp.tile(seed_keys(0, SEEDS), (len(LAMS), 1)))  # columns: lambda, then seed
+    state = state.replace(lam=jnp.repeat(jnp.asarray(LAMS, jnp.float32), SEEDS))
+    for r in range(ROUNDS):
+        state, _ = round_fn(state, jnp.int32(r))
+    return trainer, jax.device_get(state)
+
+
+def test_value_term_on_pixels_matches_numpy_on_naive_stacks():
+    rng = np.random.default_rng(4)
+    buffer, stacks, _, _ = _filled_buffer(rng, 2 * LENGTH)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(5), (SIZE, SIZE, 3 * STACK), ACTIONS, 4)
+    horizon, n, gamma = 4, 3, 0.9
+    rows = rng.integers(0, 2, n) * LENGTH + rng.integers(0, LENGTH - horizon + 1, n)
+    envs = rng.integers(0, ENVS, n)
+    actions = rng.uniform(-1, 1, (n, horizon, ACTIONS)).astype(np.float32)
+    place = np.stack([rows[:, None] + np.arange(horizon), np.broadcast_to(envs[:, None], (n, horizon))], -1)
+
+    def predict_fn(params, where, action):
+        return pixel_reward.place_rewards(REWARD, params, buffer, where, action)
+
+    term = agent_preference.agent_value_term(
+        REWARD, -0.5, jnp.asarray(place), jnp.asarray(actions), gamma, "discounted", False, predict_fn
+    )
+    loss, metrics = term(state.params, None, jax.random.PRNGKey(0))
+    net = pixel_reward.network(REWARD)
+    values = []
+    for m in range(REWARD.ensemble_size):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        total = 0.0
+        for i in range(n):
+            r = np.asarray(net.apply(member, stacks[rows[i] : rows[i] + horizon, envs[i]], actions[i]))
+            total += sum(gamma**h * float(r[h]) for h in range(horizon))
+        values.append(total / n)
+    np.testing.assert_allclose(float(loss), -0.5 * sum(values), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-5, atol=1e-6)
+
+
+def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
+    trainer, state = rebel_run
+    _, _, pebble, _ = run
+    assert trainer.trace_count == 1
+    pebble = jax.device_get(pebble)
+    np.testing.assert_array_equal(state.reward.data.count, 12)
+    for path in ("reward.params", "buffer.reward", "sac.actor_params"):
+        get = lambda tree, path=path: functools.reduce(getattr, path.split("."), tree)  # noqa: E731
+        for ours, theirs in zip(jax.tree.leaves(get(state)), jax.tree.leaves(get(pebble)), strict=True):
+            np.testing.assert_array_equal(ours[:SEEDS], theirs, err_msg=path)  # lambda 0: PEBBLE, bit for bit
+            assert not np.allclose(ours[SEEDS:], theirs), path  # lambda -1 moves it
+
+
+def test_cli_takes_pixel_pebble_and_rebel_and_refuses_surf_there():
     flags = ["--algo", "pebble", "--task", "walker_walk_pixels", "--seed-steps", "2000", "--pixel-reward.lr", "1e-4"]
     args = parse(["--preset", "tiny", *flags])
     cfg = args.config
     assert cfg.preference and cfg.pixels and cfg.pixel_reward.lr == 1e-4
     assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
-    for algo in ("surf", "rebel", "sac"):
-        with pytest.raises(ConfigError, match="drqv2 or pebble"):
+    for algo in ("surf", "sac"):
+        with pytest.raises(ConfigError, match="drqv2, pebble or rebel"):
             Config(algo=algo, env=EnvConfig(task="probe_point_pixels")).validate()
+    with pytest.raises(ConfigError, match="replay on a pixel task"):
+        dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(source="onpolicy")).validate()

@@ -268,12 +268,17 @@ class Config:
         self.train.validate(self.env.num_envs)
         pixels = self.pixels
         if self.algo == "drqv2" or pixels:
-            allowed = f"drqv2 or pebble with the pixel task {self.env.task!r}"
-            _check(self.algo in ("drqv2", "pebble"), "algo", self.algo, allowed)
+            allowed = f"drqv2, pebble or rebel with the pixel task {self.env.task!r}"
+            _check(self.algo in ("drqv2", "pebble", "rebel"), "algo", self.algo, allowed)
             _check(pixels, "env.task", self.env.task, "a pixel task (<task>_pixels) with --algo drqv2")
             self.drqv2.validate()
             if self.preference:
                 self.pixel_reward.validate()
+            if self.algo == "rebel":  # On pixels: V on replay segments, the literal lower bound, not normalised.
+                rebel = self.rebel
+                _check(rebel.source == "replay", "rebel.source", rebel.source, "replay on a pixel task")
+                _check(rebel.form == "lower_bound", "rebel.form", rebel.form, "lower_bound on a pixel task")
+                _check(not rebel.normalize, "rebel.normalize", rebel.normalize, "False on a pixel task")
             every, envs = self.drqv2.update_every, self.env.num_envs
             _check(
                 envs % every == 0 or every % envs == 0,
@@ -292,7 +297,7 @@ class Config:
                 length = self.rebel.segment_length
                 if self.rebel.source == "replay":
                     _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
-                else:
+                elif not pixels:
                     self._check_complete_episode("rebel.source='onpolicy'", "V's episodes", "--rebel.source replay")
             if self.query.pool == "episodes" and not pixels:  # PixelTrainer checks in agent steps
                 self._check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")

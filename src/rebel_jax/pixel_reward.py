@@ -32,6 +32,7 @@ moments still move them); the candidates of disagreement sampling are scored a c
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import flax.linen as nn
@@ -194,6 +195,13 @@ def ensemble_returns(
     return jnp.moveaxis(returns, 1, 0).reshape(cfg.ensemble_size, -1)[:, :n]
 
 
+def place_rewards(cfg: PixelRewardConfig, params: Any, buffer: frame_replay.FrameBuffer, place, action) -> jax.Array:
+    """(M, ...) members' rewards at replay places ``place`` (..., 2) = (row, env) with actions ``action`` (..., A):
+    the ``predict_fn`` of REBEL's value term on pixels (the stacks are gathered here, not carried)."""
+    obs = frame_replay.row_stacks(buffer, place[..., 0], place[..., 1])
+    return predict(cfg, params, obs, action)
+
+
 def true_returns(buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int) -> jax.Array:
     """(N, H) the stored task rewards of the segments (what the teacher reads)."""
     rows = segment_rows(seg.row, horizon)
@@ -343,13 +351,21 @@ class _Carry:
 
 
 def train_epoch(
-    cfg: PixelRewardConfig, state: PixelRewardState, buffer: frame_replay.FrameBuffer, key: jax.Array, horizon: int
+    cfg: PixelRewardConfig,
+    state: PixelRewardState,
+    buffer: frame_replay.FrameBuffer,
+    key: jax.Array,
+    horizon: int,
+    terms: Sequence[Callable] = (),
 ) -> tuple[PixelRewardState, dict]:
     """One epoch: per-member permutations of the stored labels in minibatches of ``batch_size``.
 
     SURF's ``train_reward`` (pixel_reward_model.py:835-923): ``ceil(count / 16)`` minibatches, member m
     reading slots ``perm_m[i B : (i + 1) B]``; the accuracy counts each minibatch's hard labels right
     before its step, over all stored labels (0.5 labels do not count).
+
+    ``terms`` are further loss terms ``(params, key) -> (loss, metrics)`` added to the BT term at every
+    step (REBEL's ``lambda * V``, :func:`rebel_jax.agent_preference.agent_value_term` with pixel rewards).
 
     Returns:
         The state and ``{"accuracy", "loss"}`` (mean loss over the minibatches).
@@ -359,10 +375,20 @@ def train_epoch(
     b = cfg.batch_size
     num_batches = (data.count + b - 1) // b
     padded = -(-capacity // b) * b
-    noise = jnp.where(jnp.arange(capacity) < data.count, jax.random.uniform(key, (cfg.ensemble_size, capacity)), 2.0)
+    key_order, key_terms = jax.random.split(key)
+    uniform = jax.random.uniform(key_order, (cfg.ensemble_size, capacity))
+    noise = jnp.where(jnp.arange(capacity) < data.count, uniform, 2.0)
     order = jnp.pad(jnp.argsort(noise, axis=1).astype(jnp.int32), ((0, 0), (0, padded - capacity)))
     optimizer = optax.adam(cfg.lr)
-    grad_fn = jax.grad(lambda p, *args: bt_loss(cfg, p, buffer, *args, horizon), has_aux=True)
+
+    def loss_fn(params, seg_a, seg_b, labels, weight, step_key):
+        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon)
+        for i, term in enumerate(terms):
+            term_loss, _ = term(params, jax.random.fold_in(step_key, i))
+            loss = loss + term_loss
+        return loss, dict(metrics, loss=loss)
+
+    grad_fn = jax.grad(loss_fn, has_aux=True)
 
     def body(carry: _Carry) -> _Carry:
         start = carry.step * b
@@ -371,7 +397,8 @@ def train_epoch(
         seg_a = SegmentPlaces(data.row_a[slots], data.env_a[slots])
         seg_b = SegmentPlaces(data.row_b[slots], data.env_b[slots])
         labels = data.labels[slots]
-        grads, metrics = grad_fn(carry.params, seg_a, seg_b, labels, weight)
+        step_key = jax.random.fold_in(key_terms, carry.step)
+        grads, metrics = grad_fn(carry.params, seg_a, seg_b, labels, weight, step_key)
         correct = ((metrics["logits"] > 0) == (labels > 0.5)) & (labels != 0.5)
         updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
         return _Carry(
@@ -379,7 +406,7 @@ def train_epoch(
             opt_state=opt_state,
             step=carry.step + 1,
             correct=carry.correct + jnp.sum(correct * weight, axis=1),
-            loss=carry.loss + metrics["bt_loss"],
+            loss=carry.loss + metrics["loss"],
         )
 
     start = _Carry(state.params, state.opt_state, jnp.zeros((), jnp.int32), jnp.zeros(cfg.ensemble_size), jnp.zeros(()))
@@ -390,7 +417,12 @@ def train_epoch(
 
 
 def train(
-    cfg: PixelRewardConfig, state: PixelRewardState, buffer: frame_replay.FrameBuffer, key: jax.Array, horizon: int
+    cfg: PixelRewardConfig,
+    state: PixelRewardState,
+    buffer: frame_replay.FrameBuffer,
+    key: jax.Array,
+    horizon: int,
+    terms: Sequence[Callable] = (),
 ) -> tuple[PixelRewardState, dict]:
     """A session: epochs (``fold_in(key, e)``) until ``max_epochs`` or accuracy > ``stop_accuracy``
     (pixel_train_PEBBLE.py:267-278); nothing while no label is stored.
@@ -405,7 +437,7 @@ def train(
 
     def body(carry):
         st, epoch, _, _ = carry
-        st, metrics = train_epoch(cfg, st, buffer, jax.random.fold_in(key, epoch), horizon)
+        st, metrics = train_epoch(cfg, st, buffer, jax.random.fold_in(key, epoch), horizon, terms)
         return st, epoch + 1, metrics["accuracy"], metrics["loss"]
 
     st, epochs, accuracy, loss = jax.lax.while_loop(

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import frame_replay, pixel_reward, teachers
+from rebel_jax import agent_preference, frame_replay, pixel_reward, teachers
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
@@ -90,6 +90,7 @@ class PixelTrainState:
         each episode start.
       reward: the pixel reward ensemble and its labels (``--algo pebble``; None for drqv2).
       teacher: the scripted teacher's knobs (``teachers.knobs``), traced (None for drqv2).
+      lam: () REBEL's signed lambda, traced so that a sweep can vmap over it (None unless rebel).
     """
 
     sac: DrQV2State
@@ -100,6 +101,7 @@ class PixelTrainState:
     eval_policy: Any
     reward: pixel_reward.PixelRewardState | None = None
     teacher: dict | None = None
+    lam: jax.Array | None = None
 
 
 def policy_of(agent_state: DrQV2State) -> dict:
@@ -112,7 +114,7 @@ class PixelTrainer:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg.validate()
-        if cfg.algo not in ("drqv2", "pebble") or not cfg.pixels:
+        if cfg.algo not in ("drqv2", "pebble", "rebel") or not cfg.pixels:
             raise ValueError(f"PixelTrainer runs drqv2 or pebble on a pixel task, not {cfg.algo!r} on {cfg.env.task!r}")
         self.env = make_env(cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length)
         self.agent = DrQV2(cfg.drqv2, self.env.observation_shape, self.env.action_size)
@@ -128,9 +130,11 @@ class PixelTrainer:
             self.capacity = cfg.train.capacity
             self.horizon = cfg.query.segment_length
             ok = self.horizon <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
+            ok = ok and (cfg.algo != "rebel" or cfg.rebel.segment_length <= self.episode_length)
             if not ok:
                 raise ValueError(
-                    f"pixel pebble needs query.segment_length={self.horizon} <= {self.episode_length} agent steps per "
+                    f"pixel {cfg.algo} needs query.segment_length={self.horizon} (and rebel.segment_length) <= "
+                    f"{self.episode_length} agent steps per "
                     f"episode and a complete episode before the first session (train.seed_steps / num_envs = "
                     f"{cfg.feedback_start // self.num_train} vector steps)"
                 )
@@ -169,7 +173,8 @@ class PixelTrainer:
         key, key_reward = jax.random.split(key)
         shape, labels = self.env.observation_shape, self.cfg.feedback.labels
         reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, self.env.action_size, labels)
-        return ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher))
+        lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
+        return ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -301,7 +306,7 @@ class PixelTrainer:
 
     def learn(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, agent_step):
         """Stores the answers, trains the ensemble, relabels the replay; resets the critic at the first session."""
-        key_train, key_critic = jax.random.split(key)
+        key_train, key_critic, key_value = jax.random.split(key, 3)
         rcfg, h = self.cfg.pixel_reward, self.horizon
         returns = pixel_reward.ensemble_returns(
             rcfg, ts.reward.params, ts.buffer, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), seg_a, seg_b), h
@@ -313,7 +318,8 @@ class PixelTrainer:
         accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
         kept = jnp.sum(mask)
         stored = pixel_reward.add_labels(ts.reward, seg_a, seg_b, labels, mask)
-        trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h)
+        terms = self._value_terms(ts, key_value, agent_step) if self.cfg.algo == "rebel" else ()
+        trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
@@ -330,6 +336,46 @@ class PixelTrainer:
         metrics["session_labels"] = kept
         metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
         return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
+
+    def _value_terms(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array) -> tuple:
+        """REBEL's ``lambda * V`` on pixels, through :func:`rebel_jax.agent_preference.agent_value_term`.
+
+        V's trajectories are ``rebel.num_segments`` replay segments of ``rebel.segment_length`` steps
+        (``rebel.source replay``), drawn once per session from the query pool, with actions redrawn once
+        from the current DrQ-v2 policy (its exploration noise at ``agent_step``) and held fixed. The
+        term carries their places; the frames are gathered from the replay in every step of the
+        session (``pixel_reward.place_rewards``), so the term costs ``num_segments x segment_length``
+        stacks per step: keep ``rebel.num_segments`` small on pixels.
+        """
+        rebel = self.cfg.rebel
+        key_segments, key_actions = jax.random.split(key)
+        places = pixel_reward.sample_segments(
+            key_segments,
+            ts.buffer,
+            rebel.num_segments,
+            rebel.segment_length,
+            self.episode_length,
+            self.cfg.query.recent_episodes,
+        )
+        rows = pixel_reward.segment_rows(places.row, rebel.segment_length)
+        envs = jnp.broadcast_to(places.env[:, None], rows.shape)
+
+        def act(inputs):
+            row, env, key = inputs
+            return self.agent.act(ts.sac, frame_replay.row_stacks(ts.buffer, row, env), key, agent_step)
+
+        keys = jax.random.split(key_actions, rebel.num_segments)
+        actions = jax.lax.map(act, (rows, envs, keys))  # one segment's stacks at a time
+        where = jnp.stack([rows, envs], axis=-1)
+        rcfg, buffer = self.cfg.pixel_reward, ts.buffer
+
+        def predict_fn(params, place, action):
+            return pixel_reward.place_rewards(rcfg, params, buffer, place, action)
+
+        term = agent_preference.agent_value_term(
+            rcfg, ts.lam, where, actions, rebel.gamma, rebel.estimator, False, predict_fn
+        )
+        return (lambda params, key: term(params, None, key),)
 
     def _reset_critic(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step):
         """A fresh critic, then ``pretrain.reset_updates`` DrQ-v2 updates (pixel_train_PEBBLE.py:413-420)."""
