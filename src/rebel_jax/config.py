@@ -268,8 +268,8 @@ class Config:
         self.train.validate(self.env.num_envs)
         pixels = self.pixels
         if self.algo == "drqv2" or pixels:
-            allowed = f"drqv2, pebble or rebel with the pixel task {self.env.task!r}"
-            _check(self.algo in ("drqv2", "pebble", "rebel"), "algo", self.algo, allowed)
+            allowed = f"drqv2, pebble, surf or rebel with the pixel task {self.env.task!r}"
+            _check(self.algo in ("drqv2", "pebble", "surf", "rebel"), "algo", self.algo, allowed)
             _check(pixels, "env.task", self.env.task, "a pixel task (<task>_pixels) with --algo drqv2")
             self.drqv2.validate()
             if self.preference:

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from rebel_jax import frame_replay, queries, reward_model
+from rebel_jax import frame_replay, queries, reward_model, surf
 from rebel_jax.errors import check as _check
 from rebel_jax.networks import Encoder, dense_kwargs
 
@@ -125,6 +125,8 @@ class PixelRewardState:
     params: Any
     opt_state: Any
     data: PixelLabels
+    pool: PixelLabels | None = None
+    """SURF's unlabelled pairs (places; ``labels`` unused), or None."""
 
 
 @flax.struct.dataclass
@@ -148,10 +150,14 @@ def init(
     keys = jax.random.split(key, cfg.ensemble_size)
     obs, action = jnp.zeros((1, *obs_shape), jnp.uint8), jnp.zeros((1, action_size))
     params = jax.vmap(network(cfg).init, in_axes=(0, None, None))(keys, obs, action)
+    return PixelRewardState(params=params, opt_state=optax.adam(cfg.lr).init(params), data=empty_places(capacity))
+
+
+def empty_places(capacity: int) -> PixelLabels:
+    """An empty store of ``capacity`` pairs."""
     zeros = jnp.zeros((capacity,), jnp.int32)
     scalar = jnp.zeros((), jnp.int32)
-    data = PixelLabels(zeros, zeros, zeros, zeros, jnp.zeros((capacity,)), scalar, scalar)
-    return PixelRewardState(params=params, opt_state=optax.adam(cfg.lr).init(params), data=data)
+    return PixelLabels(zeros, zeros, zeros, zeros, jnp.zeros((capacity,)), scalar, scalar)
 
 
 def predict(cfg: PixelRewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -169,14 +175,21 @@ def segment_rows(start: jax.Array, horizon: int) -> jax.Array:
     return start[..., None] + jnp.arange(horizon)
 
 
+def member_step_rewards(
+    cfg: PixelRewardConfig, member_params: Any, buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int
+) -> jax.Array:
+    """(N, H) one member's learned rewards ``r(s_h, a_h)`` on segments gathered from the replay."""
+    rows = segment_rows(seg.row, horizon)
+    env = jnp.broadcast_to(seg.env[:, None], rows.shape)
+    obs = frame_replay.row_stacks(buffer, rows, env)
+    return network(cfg).apply(member_params, obs, buffer.action[rows, env])
+
+
 def member_returns(
     cfg: PixelRewardConfig, member_params: Any, buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int
 ) -> jax.Array:
     """(N,) one member's learned returns ``sum_h r(s_h, a_h)`` of segments gathered from the replay."""
-    rows = segment_rows(seg.row, horizon)
-    env = jnp.broadcast_to(seg.env[:, None], rows.shape)
-    obs = frame_replay.row_stacks(buffer, rows, env)
-    return jnp.sum(network(cfg).apply(member_params, obs, buffer.action[rows, env]), axis=-1)
+    return jnp.sum(member_step_rewards(cfg, member_params, buffer, seg, horizon), axis=-1)
 
 
 def ensemble_returns(
@@ -278,7 +291,13 @@ def add_labels(
     state: PixelRewardState, seg_a: SegmentPlaces, seg_b: SegmentPlaces, labels: jax.Array, mask: jax.Array
 ) -> PixelRewardState:
     """Appends the kept pairs (mask 1) at ``ptr`` (SURF's ``put_queries``, pixel_reward_model.py:554-575)."""
-    data = state.data
+    return state.replace(data=append_places(state.data, seg_a, seg_b, labels, mask))
+
+
+def append_places(
+    data: PixelLabels, seg_a: SegmentPlaces, seg_b: SegmentPlaces, labels: jax.Array, mask: jax.Array
+) -> PixelLabels:
+    """``data`` with the pairs of mask 1 written at ``ptr`` onwards (wrapping)."""
     capacity = data.labels.shape[0]
     keep = mask > 0
     slot = jnp.where(keep, (data.ptr + jnp.cumsum(keep.astype(jnp.int32)) - 1) % capacity, capacity)
@@ -287,7 +306,7 @@ def add_labels(
     def write(store, new):
         return store.at[slot].set(new.astype(store.dtype), mode="drop")
 
-    data = data.replace(
+    return data.replace(
         row_a=write(data.row_a, seg_a.row),
         env_a=write(data.env_a, seg_a.env),
         row_b=write(data.row_b, seg_b.row),
@@ -296,7 +315,6 @@ def add_labels(
         ptr=(data.ptr + kept) % capacity,
         count=jnp.minimum(data.count + kept, capacity),
     )
-    return state.replace(data=data)
 
 
 def member_logits(
@@ -326,8 +344,14 @@ def bt_loss(
     labels: jax.Array,
     weight: jax.Array,
     horizon: int,
+    crop: int = 0,
+    key: jax.Array | None = None,
 ) -> tuple[jax.Array, dict]:
     """The BT term: the sum over members of each member's weighted mean cross-entropy on its pairs.
+
+    With ``crop > 0`` (SURF) the segments are ``horizon = H + 2 crop`` long and each member sums its
+    rewards over fresh random crops (:func:`rebel_jax.surf.crop_masks`, drawn from ``key``), SURF's
+    ``get_cropping_mask`` (pixel_reward_model.py:822-833, applied at :901-904).
 
     SURF's ``CrossEntropyLoss(r_hat, labels)`` over ``[G(a), G(b)]`` per member (pixel_reward_model.py:908-911),
     summed over members (SURF steps them one after another). ``labels`` and ``weight`` are (M, B).
@@ -335,7 +359,17 @@ def bt_loss(
     Returns:
         The loss and ``{"bt_loss", "bt_accuracy", "logits"}``.
     """
-    logits = member_logits(cfg, params, buffer, seg_a, seg_b, horizon)
+    if crop:
+        mask_a, mask_b = surf.crop_masks(key, labels.shape, horizon, crop)
+
+        def one(member_params, a, b, m_a, m_b):
+            reward_a = member_step_rewards(cfg, member_params, buffer, a, horizon)
+            reward_b = member_step_rewards(cfg, member_params, buffer, b, horizon)
+            return jnp.sum(reward_b * m_b, -1) - jnp.sum(reward_a * m_a, -1)
+
+        logits = jax.vmap(one)(params, seg_a, seg_b, mask_a, mask_b)
+    else:
+        logits = member_logits(cfg, params, buffer, seg_a, seg_b, horizon)
     batch = reward_model.PrefBatch(None, None, None, None, labels=labels, weight=weight)
     loss, metrics = reward_model.bt_term(logits, batch)
     return loss, dict(metrics, logits=logits)
@@ -357,6 +391,7 @@ def train_epoch(
     key: jax.Array,
     horizon: int,
     terms: Sequence[Callable] = (),
+    crop: int = 0,
 ) -> tuple[PixelRewardState, dict]:
     """One epoch: per-member permutations of the stored labels in minibatches of ``batch_size``.
 
@@ -382,9 +417,10 @@ def train_epoch(
     optimizer = optax.adam(cfg.lr)
 
     def loss_fn(params, seg_a, seg_b, labels, weight, step_key):
-        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon)
+        key_crop, key_terms = jax.random.split(step_key)
+        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon, crop, key_crop)
         for i, term in enumerate(terms):
-            term_loss, _ = term(params, jax.random.fold_in(step_key, i))
+            term_loss, _ = term(params, jax.random.fold_in(key_terms, i))
             loss = loss + term_loss
         return loss, dict(metrics, loss=loss)
 
@@ -423,6 +459,9 @@ def train(
     key: jax.Array,
     horizon: int,
     terms: Sequence[Callable] = (),
+    crop: int = 0,
+    max_epochs: int | None = None,
+    stop_accuracy: float | None = None,
 ) -> tuple[PixelRewardState, dict]:
     """A session: epochs (``fold_in(key, e)``) until ``max_epochs`` or accuracy > ``stop_accuracy``
     (pixel_train_PEBBLE.py:267-278); nothing while no label is stored.
@@ -431,13 +470,16 @@ def train(
         The state and ``{"epochs", "train_accuracy", "loss"}`` of the last epoch.
     """
 
+    epochs_most = cfg.max_epochs if max_epochs is None else max_epochs
+    stop = cfg.stop_accuracy if stop_accuracy is None else stop_accuracy
+
     def cond(carry):
         _, epoch, accuracy, _ = carry
-        return (epoch < cfg.max_epochs) & (accuracy <= cfg.stop_accuracy) & (state.data.count > 0)
+        return (epoch < epochs_most) & (accuracy <= stop) & (state.data.count > 0)
 
     def body(carry):
         st, epoch, _, _ = carry
-        st, metrics = train_epoch(cfg, st, buffer, jax.random.fold_in(key, epoch), horizon, terms)
+        st, metrics = train_epoch(cfg, st, buffer, jax.random.fold_in(key, epoch), horizon, terms, crop)
         return st, epoch + 1, metrics["accuracy"], metrics["loss"]
 
     st, epochs, accuracy, loss = jax.lax.while_loop(
@@ -455,3 +497,49 @@ def candidate_bytes(num_pairs: int, horizon: int, height: int, width: int, stack
 def frame_bytes(height: int, width: int) -> int:
     """One stored RGB frame."""
     return height * width * 3
+
+
+def pseudo_label_term(
+    cfg: PixelRewardConfig,
+    surf_cfg: surf.SURFConfig,
+    buffer: frame_replay.FrameBuffer,
+    pool: PixelLabels,
+    horizon: int,
+) -> Callable:
+    """SURF's pseudo-label term on the unlabelled pool (places), as :func:`rebel_jax.surf.pseudo_label_term`.
+
+    Each step every member draws ``surf.ratio x batch_size`` pool pairs (SURF's ``mu``, 1 in its pixel
+    config, cfgs/config_pebble_semi.yaml:67), labels them from its own sums over the central ``H``
+    steps without gradient, and is trained on fresh crops with weight ``surf.weight`` (``lambda_u``)
+    on the pairs at or above ``surf.threshold`` (pixel_reward_model_semi.py:291-301).
+
+    Returns:
+        ``(params, key) -> (loss, metrics)``.
+    """
+    c = surf_cfg.crop
+    central = slice(c, horizon - c)
+
+    def loss_fn(params, key):
+        shape = (cfg.ensemble_size, surf_cfg.ratio * cfg.batch_size)
+        key_index, key_crop = jax.random.split(key)
+        index = jax.random.randint(key_index, shape, 0, jnp.maximum(pool.count, 1))
+        mask_a, mask_b = surf.crop_masks(key_crop, shape, horizon, c)
+
+        def one(member_params, idx, m_a, m_b):
+            reward_a = member_step_rewards(
+                cfg, member_params, buffer, SegmentPlaces(pool.row_a[idx], pool.env_a[idx]), horizon
+            )
+            reward_b = member_step_rewards(
+                cfg, member_params, buffer, SegmentPlaces(pool.row_b[idx], pool.env_b[idx]), horizon
+            )
+            logits = jnp.sum(reward_b * m_b, -1) - jnp.sum(reward_a * m_a, -1)
+            central_logits = jnp.sum(reward_b[:, central], -1) - jnp.sum(reward_a[:, central], -1)
+            return logits, jax.lax.stop_gradient(central_logits)
+
+        logits, central_logits = jax.vmap(one)(params, index, mask_a, mask_b)
+        labels, confident = surf.pseudo_labels(central_logits, surf_cfg.threshold)
+        per_member = jnp.mean(reward_model.bt_cross_entropy(logits, labels) * confident, axis=1)
+        loss = surf_cfg.weight * jnp.sum(per_member)
+        return loss, {"pseudo_loss": loss, "pseudo_fraction": jnp.mean(confident)}
+
+    return loss_fn

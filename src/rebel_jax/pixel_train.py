@@ -114,7 +114,7 @@ class PixelTrainer:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg.validate()
-        if cfg.algo not in ("drqv2", "pebble", "rebel") or not cfg.pixels:
+        if cfg.algo not in ("drqv2", "pebble", "surf", "rebel") or not cfg.pixels:
             raise ValueError(f"PixelTrainer runs drqv2 or pebble on a pixel task, not {cfg.algo!r} on {cfg.env.task!r}")
         self.env = make_env(cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length)
         self.agent = DrQV2(cfg.drqv2, self.env.observation_shape, self.env.action_size)
@@ -129,12 +129,16 @@ class PixelTrainer:
         if self.preference:  # Labels point into the replay: it holds the whole run (Config.validate checks).
             self.capacity = cfg.train.capacity
             self.horizon = cfg.query.segment_length
-            ok = self.horizon <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
+            self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
+            self.stored = self.horizon + 2 * self.crop  # SURF stores H + 2 c steps (size_segment, :195)
+            sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
+            self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0
+            ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
             ok = ok and (cfg.algo != "rebel" or cfg.rebel.segment_length <= self.episode_length)
             if not ok:
                 raise ValueError(
-                    f"pixel {cfg.algo} needs query.segment_length={self.horizon} (and rebel.segment_length) <= "
-                    f"{self.episode_length} agent steps per "
+                    f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
+                    f"rebel.segment_length) <= {self.episode_length} agent steps per "
                     f"episode and a complete episode before the first session (train.seed_steps / num_envs = "
                     f"{cfg.feedback_start // self.num_train} vector steps)"
                 )
@@ -173,6 +177,8 @@ class PixelTrainer:
         key, key_reward = jax.random.split(key)
         shape, labels = self.env.observation_shape, self.cfg.feedback.labels
         reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, self.env.action_size, labels)
+        if self.pool_capacity:
+            reward = reward.replace(pool=pixel_reward.empty_places(self.pool_capacity))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         return ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
 
@@ -281,7 +287,7 @@ class PixelTrainer:
             ts.reward.params,
             ts.buffer,
             cfg.feedback.queries,
-            self.horizon,
+            self.stored,
             self.episode_length,
             cfg.query.recent_episodes,
             cfg.query.sampling,
@@ -298,19 +304,23 @@ class PixelTrainer:
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None]
         count = jnp.maximum(jnp.sum(written) * buffer.num_envs, 1)
         margin = self.horizon * jnp.sum(jnp.where(written, buffer.true_reward, 0.0)) / count
+        # The central H steps of SURF's H + 2c (get_label, pixel_reward_model.py:578-580).
+        seg_a, seg_b = self._central(seg_a), self._central(seg_b)
         true_a = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_a, self.horizon))
         true_b = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_b, self.horizon))
         labels, mask, _ = teachers.label(teachers.TeacherConfig(**ts.teacher), key, true_a, true_b, margin)
         remaining = self.cfg.feedback.labels - ts.reward.data.count
         return labels, mask * (jnp.cumsum(mask) <= remaining)
 
+    def _central(self, seg: pixel_reward.SegmentPlaces) -> pixel_reward.SegmentPlaces:
+        return seg.replace(row=seg.row + self.crop)
+
     def learn(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, agent_step):
         """Stores the answers, trains the ensemble, relabels the replay; resets the critic at the first session."""
         key_train, key_critic, key_value = jax.random.split(key, 3)
         rcfg, h = self.cfg.pixel_reward, self.horizon
-        returns = pixel_reward.ensemble_returns(
-            rcfg, ts.reward.params, ts.buffer, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), seg_a, seg_b), h
-        )
+        both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
+        returns = pixel_reward.ensemble_returns(rcfg, ts.reward.params, ts.buffer, both, h)
         n = labels.shape[0]
         new_logits = returns[:, n:] - returns[:, :n]
         hard = (labels != 0.5) * mask
@@ -318,8 +328,31 @@ class PixelTrainer:
         accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
         kept = jnp.sum(mask)
         stored = pixel_reward.add_labels(ts.reward, seg_a, seg_b, labels, mask)
-        terms = self._value_terms(ts, key_value, agent_step) if self.cfg.algo == "rebel" else ()
-        trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
+        if (
+            self.cfg.algo == "surf"
+        ):  # Grow the pool, then reward_update passes, no early stop (pixel_train_PEBBLE_semi.py:275-281).
+            scfg = self.cfg.surf
+            pool = pixel_reward.sample_segments(
+                key_value,
+                ts.buffer,
+                2 * scfg.pool_size,
+                self.stored,
+                self.episode_length,
+                self.cfg.query.recent_episodes,
+            )
+            pool_a, pool_b = (
+                jax.tree.map(lambda x: x[: scfg.pool_size], pool),
+                jax.tree.map(lambda x: x[scfg.pool_size :], pool),
+            )
+            ones = jnp.full((scfg.pool_size,), (kept > 0).astype(jnp.float32))
+            stored = stored.replace(pool=pixel_reward.append_places(stored.pool, pool_a, pool_b, ones * 0, ones))
+            terms = (pixel_reward.pseudo_label_term(rcfg, scfg, ts.buffer, stored.pool, self.stored),)
+            trained, train_metrics = pixel_reward.train(
+                rcfg, stored, ts.buffer, key_train, self.stored, terms, self.crop, scfg.reward_update, float("inf")
+            )
+        else:
+            terms = self._value_terms(ts, key_value, agent_step) if self.cfg.algo == "rebel" else ()
+            trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
