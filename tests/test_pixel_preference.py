@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import agent_preference, frame_replay, pixel_reward
+from rebel_jax import agent_preference, frame_replay, pixel_reward, surf
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
@@ -20,6 +20,7 @@ from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
+from rebel_jax.surf import SURFConfig
 from rebel_jax.train import compiled, seed_keys
 
 STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2
@@ -56,7 +57,8 @@ def _filled_buffer(rng, steps: int):
     return buffer, np.stack(stacks), np.stack(actions), np.stack(true)
 
 
-def test_bt_loss_matches_numpy_on_naive_stacks():
+@pytest.mark.parametrize("crop", [0, 1])
+def test_bt_loss_matches_numpy_on_naive_stacks(crop):
     rng = np.random.default_rng(0)
     buffer, stacks, actions, _ = _filled_buffer(rng, 3 * LENGTH)
     horizon, batch = 4, 5
@@ -71,9 +73,14 @@ def test_bt_loss_matches_numpy_on_naive_stacks():
     weight[:, 0] = 1.0
     seg_a = SegmentPlaces(jnp.asarray(rows[0], jnp.int32), jnp.asarray(envs[0], jnp.int32))
     seg_b = SegmentPlaces(jnp.asarray(rows[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
+    key = jax.random.PRNGKey(7)
     loss, metrics = pixel_reward.bt_loss(
-        REWARD, state.params, buffer, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), horizon
+        REWARD, state.params, buffer, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), horizon, crop, key
     )
+    masks = np.ones((2, members, batch, horizon), np.float32)
+    if crop:  # SURF's crops, drawn from the same key: every member sums over its own masked steps
+        masks = np.stack(surf.crop_masks(key, (members, batch), horizon, crop))
+        assert np.all(masks.sum(-1)[0] == masks.sum(-1)[1]) and np.any(masks.sum(-1) != horizon)
 
     net = pixel_reward.network(REWARD)
     expected = 0.0
@@ -85,7 +92,8 @@ def test_bt_loss_matches_numpy_on_naive_stacks():
             for side in range(2):
                 r, e = rows[side, m, i], envs[side, m, i]
                 obs = stacks[r : r + horizon, e]  # the environment's own stacks, stored whole
-                returns.append(float(np.sum(np.asarray(net.apply(member, obs, actions[r : r + horizon, e])))))
+                rewards = np.asarray(net.apply(member, obs, actions[r : r + horizon, e]))
+                returns.append(float(np.sum(rewards * masks[side, m, i])))
             z = np.float64(returns[1] - returns[0])
             y = labels[m, i]
             ce = -(y * np.log(1 / (1 + np.exp(-z))) + (1 - y) * np.log(1 / (1 + np.exp(z))))
@@ -245,14 +253,46 @@ def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
         assert any(moved), path  # lambda -1 changes the reward, the relabelled buffer and the policy
 
 
-def test_cli_takes_pixel_pebble_and_rebel_and_refuses_surf_there():
+SURF_MICRO = dataclasses.replace(
+    MICRO, algo="surf", surf=SURFConfig(crop=1, pool_size=6, reward_update=2, ratio=1, threshold=0.6)
+)
+
+
+def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
+    trainer = PixelTrainer(SURF_MICRO)
+    init, round_fn, _ = compiled(trainer)
+    state = init(seed_keys(0, SEEDS))
+    start = jax.device_get(state.reward.params)
+    for r in range(ROUNDS):
+        state, m = round_fn(state, jnp.int32(r))
+    assert trainer.trace_count == 1
+    state, m = jax.device_get((state, m))
+    np.testing.assert_array_equal(m["diverged"], 0.0)
+    np.testing.assert_array_equal(m["reward_epochs"], SURF_MICRO.surf.reward_update)  # no early stop
+    np.testing.assert_array_equal(state.reward.pool.count, 3 * SURF_MICRO.surf.pool_size)  # 3 sessions
+    true, crop, horizon = state.buffer.true_reward, SURF_MICRO.surf.crop, SURF_MICRO.query.segment_length
+    data = state.reward.data
+    for seed in range(SEEDS):
+        assert int(data.count[seed]) == 12
+        for i in range(12):
+            returns = [  # the teacher sees the central H of the stored H + 2c steps
+                sum(float(true[seed, int(row[seed, i]) + crop + h, int(env[seed, i])]) for h in range(horizon))
+                for row, env in ((data.row_a, data.env_a), (data.row_b, data.env_b))
+            ]
+            assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
+    leaves = zip(jax.tree.leaves(start), jax.tree.leaves(state.reward.params), strict=True)
+    moved = [not np.allclose(a, b) for a, b in leaves]
+    assert all(moved)
+
+
+def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     flags = ["--algo", "pebble", "--task", "walker_walk_pixels", "--seed-steps", "2000", "--pixel-reward.lr", "1e-4"]
     args = parse(["--preset", "tiny", *flags])
     cfg = args.config
     assert cfg.preference and cfg.pixels and cfg.pixel_reward.lr == 1e-4
     assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
-    for algo in ("surf", "sac"):
-        with pytest.raises(ConfigError, match="drqv2, pebble or rebel"):
+    for algo in ("sac",):
+        with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
             Config(algo=algo, env=EnvConfig(task="probe_point_pixels")).validate()
     with pytest.raises(ConfigError, match="replay on a pixel task"):
         dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(source="onpolicy")).validate()
