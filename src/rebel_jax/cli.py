@@ -506,9 +506,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str) -> dict:
       SystemExit: with :data:`EXIT_DIVERGED` if a seed diverged and ``--on-divergence stop``.
     """
     cfg = args.config
-    if cfg.pixels:  # DrQ-v2, or SURF's pixel PEBBLE on it
-        if args.host_teacher:
-            raise ConfigError("teacher human/replay is invalid on a pixel task: allowed only on state tasks")
+    if cfg.pixels:  # DrQ-v2, or the preference methods on it
         trainer = PixelTrainer(cfg)
     else:
         trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
@@ -711,6 +709,8 @@ def _check_host_teacher(args: Args) -> None:
     teacher = f"--teacher {args.host_teacher}"
     if not args.config.preference:
         raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference algo")
+    if args.config.pixels:
+        raise ConfigError(f"{teacher} is invalid on the pixel task {args.config.env.task!r}: allowed on state tasks")
     if args.columns != 1:
         raise ConfigError(f"{teacher} labels one run: seeds={args.seeds}, lam_grid and teacher_grid must give 1 column")
     if not 0 <= args.human.port < 65536:
