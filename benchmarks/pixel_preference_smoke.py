@@ -1,6 +1,9 @@
 """A short pixel PEBBLE run at 84x84 on one GPU: compile time, round times with and without a feedback
 session, and the device's peak memory (a smoke test of the sizes, not a learning result).
 
+Not yet run to the end (2026-11-24): no device time was left, and on the 2-core CPU its first round
+(compilation, then 500 vector steps of DrQ-v2 updates of 256) did not finish in 400 s.
+
     python benchmarks/pixel_preference_smoke.py --algo pebble --task walker_walk_pixels
 """
 
