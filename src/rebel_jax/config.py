@@ -55,7 +55,7 @@ class EnvConfig:
     task: str = "walker_walk"
     """Task name: walker_stand, walker_walk, walker_run or cheetah_run (or ``probe_point``, a pure-JAX
     point mass that compiles in seconds, for tests of the training loop); ``<task>_pixels`` (and
-    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``."""
+    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``, ``pebble``, ``surf`` and ``rebel``."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 10
@@ -210,7 +210,8 @@ class Config:
     """A whole run."""
 
     algo: Algo = "sac"
-    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward)."""
+    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward);
+    on a pixel task the preference methods train DrQ-v2 on the learned reward."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
     sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
