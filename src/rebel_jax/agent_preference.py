@@ -19,7 +19,9 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from typing import Any, Literal
 
 import jax
@@ -88,7 +90,13 @@ class AgentPreferenceConfig:
 
 
 def agent_value(
-    cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array, gamma: float | jax.Array, estimator: str
+    cfg: RewardConfig,
+    params: Any,
+    obs: jax.Array,
+    action: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str,
+    predict_fn: Callable | None = None,
 ) -> jax.Array:
     """Each member's value V_m of the current policy under its learned reward.
 
@@ -100,12 +108,15 @@ def agent_value(
       gamma: discount (a float or a traced scalar).
       estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
         ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
+      predict_fn: ``(params, obs, action) -> (M, N, H)`` members' rewards; default the state ensemble's
+        ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are replay places (row, env)
+        that it turns into frame stacks (:mod:`rebel_jax.pixel_reward`).
 
     Returns:
       (M,) values ``V_m``.
     """
     _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-    rewards = predict(cfg, params, obs, action)  # (M, N, H)
+    rewards = (predict_fn or functools.partial(predict, cfg))(params, obs, action)  # (M, N, H)
     if estimator == "mean":
         return jnp.mean(rewards, axis=(1, 2)) / (1.0 - gamma)
     discounts = jnp.asarray(gamma, rewards.dtype) ** jnp.arange(rewards.shape[-1], dtype=rewards.dtype)
@@ -134,6 +145,7 @@ def agent_value_term(
     gamma: float | jax.Array,
     estimator: str = "discounted",
     normalize: bool = False,
+    predict_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
 
@@ -156,6 +168,7 @@ def agent_value_term(
         labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
         BT loss fixes the reward's scale only up to what the labels demand, so with it one
         lambda weighs V alike on tasks whose learned rewards spread differently.
+      predict_fn: as :func:`agent_value` (``normalize`` needs the state ensemble).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
@@ -168,7 +181,8 @@ def agent_value_term(
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
-        values = agent_value(cfg, params, jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action), gamma, estimator)
+        obs_fixed, action_fixed = jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action)
+        values = agent_value(cfg, params, obs_fixed, action_fixed, gamma, estimator, predict_fn)
         if normalize:
             values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
         loss = lam * jnp.sum(values)

@@ -525,7 +525,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     primary = sweep.is_primary()
     if resuming is None:
         resuming = args.resume and (run_dir / "config.json").exists()
-    if cfg.algo == "drqv2":
+    if cfg.pixels:  # DrQ-v2, or the preference methods on it
         trainer = PixelTrainer(cfg)
     else:
         trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
@@ -617,7 +617,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         if primary:
             write_json(run_dir / "final.json", result)
             files.append(_learning_curve(args, run_dir, random))
-        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and cfg.algo != "drqv2":  # no pixel clip yet
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and not cfg.pixels:  # no pixel clip yet
             actor = sweep.to_host(state.sac.actor_params)  # Every process: a collective with several.
             if primary:
                 files.append(_eval_clip(args, trainer, actor, run_dir))
@@ -748,6 +748,8 @@ def _check_host_teacher(args: Args) -> None:
     teacher = f"--teacher {args.host_teacher}"
     if not args.config.preference:
         raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference algo")
+    if args.config.pixels:
+        raise ConfigError(f"{teacher} is invalid on the pixel task {args.config.env.task!r}: allowed on state tasks")
     if args.columns != 1:
         raise ConfigError(f"{teacher} labels one run: seeds={args.seeds}, lam_grid and teacher_grid must give 1 column")
     if not 0 <= args.human.port < 65536:

@@ -17,6 +17,7 @@ from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
+from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
@@ -54,7 +55,7 @@ class EnvConfig:
     task: str = "walker_walk"
     """Task name: walker_stand, walker_walk, walker_run or cheetah_run (or ``probe_point``, a pure-JAX
     point mass that compiles in seconds, for tests of the training loop); ``<task>_pixels`` (and
-    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``."""
+    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``, ``pebble``, ``surf`` and ``rebel``."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 10
@@ -209,7 +210,8 @@ class Config:
     """A whole run."""
 
     algo: Algo = "sac"
-    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward)."""
+    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward);
+    on a pixel task the preference methods train DrQ-v2 on the learned reward."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
     sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
@@ -224,8 +226,11 @@ class Config:
     rebel: AgentPreferenceConfig = AgentPreferenceConfig()
     """REBEL's agent-preference term; used by ``--algo rebel`` only."""
     drqv2: DrQV2Config = DrQV2Config()
-    """DrQ-v2's settings; used by ``--algo drqv2`` only. The defaults are DrQ-v2's cheetah_run ones; walker's are
-    ``--drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000`` (``drqv2.task_config``)."""
+    """DrQ-v2's settings; used on pixel tasks (``--algo drqv2``, and the agent of ``--algo pebble`` there). The
+    defaults are DrQ-v2's cheetah_run ones; walker's are ``--drqv2.nstep 1 --drqv2.batch-size 512
+    --drqv2.std-steps 100000`` (``drqv2.task_config``)."""
+    pixel_reward: PixelRewardConfig = PixelRewardConfig()
+    """SURF's pixel reward ensemble; used by ``--algo pebble`` on a pixel task (``reward`` is for state tasks)."""
 
     @property
     def preference(self) -> bool:
@@ -233,9 +238,17 @@ class Config:
         return self.algo in PREFERENCE_ALGOS
 
     @property
+    def pixels(self) -> bool:
+        """Whether the task observes frame stacks (``<task>_pixels``)."""
+        return self.env.task.endswith("_pixels")
+
+    @property
     def feedback_start(self) -> int:
-        """Env step of the first feedback session (= end of pre-training)."""
-        return self.train.seed_steps + self.pretrain.steps
+        """Env step of the first feedback session (= end of pre-training).
+
+        Pixel tasks have no unsupervised phase: SURF's pixel runs set ``num_unsup_frames=0`` (alinlab/SURF
+        branch ``pixel``, README.md:22, :32), so their first session comes after the seed steps."""
+        return self.train.seed_steps + (0 if self.pixels else self.pretrain.steps)
 
     def _check_complete_episode(self, setting: str, what: str, alternative: str) -> None:
         """``setting`` draws ``what`` from complete episodes: the first session must find one."""
@@ -254,11 +267,19 @@ class Config:
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
-        pixels = self.env.task.endswith("_pixels")
+        pixels = self.pixels
         if self.algo == "drqv2" or pixels:
-            _check(self.algo == "drqv2", "algo", self.algo, f"drqv2 with the pixel task {self.env.task!r}")
+            allowed = f"drqv2, pebble, surf or rebel with the pixel task {self.env.task!r}"
+            _check(self.algo in ("drqv2", "pebble", "surf", "rebel"), "algo", self.algo, allowed)
             _check(pixels, "env.task", self.env.task, "a pixel task (<task>_pixels) with --algo drqv2")
             self.drqv2.validate()
+            if self.preference:
+                self.pixel_reward.validate()
+            if self.algo == "rebel":  # On pixels: V on replay segments, the literal lower bound, not normalised.
+                rebel = self.rebel
+                _check(rebel.source == "replay", "rebel.source", rebel.source, "replay on a pixel task")
+                _check(rebel.form == "lower_bound", "rebel.form", rebel.form, "lower_bound on a pixel task")
+                _check(not rebel.normalize, "rebel.normalize", rebel.normalize, "False on a pixel task")
             every, envs = self.drqv2.update_every, self.env.num_envs
             _check(
                 envs % every == 0 or every % envs == 0,
@@ -277,9 +298,9 @@ class Config:
                 length = self.rebel.segment_length
                 if self.rebel.source == "replay":
                     _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
-                else:
+                elif not pixels:
                     self._check_complete_episode("rebel.source='onpolicy'", "V's episodes", "--rebel.source replay")
-            if self.query.pool == "episodes":
+            if self.query.pool == "episodes" and not pixels:  # PixelTrainer checks in agent steps
                 self._check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)

@@ -48,6 +48,8 @@ class FrameStep:
         truncated: (E,) 1.0 where the time limit cut the episode at ``next_obs``.
         episode_step: () int32 agent step of ``obs`` in its episode, the same for every environment;
             0 starts an episode (the first step added must be 0).
+        true_reward: (E,) the task's reward, kept for the teacher when ``reward`` is a learned one
+            (a buffer made with ``true_reward=True``), else None.
     """
 
     obs: jax.Array
@@ -57,6 +59,7 @@ class FrameStep:
     terminal: jax.Array
     truncated: jax.Array
     episode_step: jax.Array
+    true_reward: jax.Array | None = None
 
 
 @flax.struct.dataclass
@@ -72,6 +75,7 @@ class FrameBuffer:
         terminal, truncated: (T, E) float 0/1.
         ptr: () int32 next transition row; size: () rows filled (at most T).
         frame_ptr: () int32 next frame row.
+        true_reward: (T, E) float32 the task's reward (preference runs: ``reward`` is the learned one), or None.
         stack: frames per observation (static).
     """
 
@@ -85,6 +89,7 @@ class FrameBuffer:
     ptr: jax.Array
     size: jax.Array
     frame_ptr: jax.Array
+    true_reward: jax.Array | None = None
     stack: int = flax.struct.field(pytree_node=False, default=3)
 
     @property
@@ -115,6 +120,7 @@ def init(
     action_size: int,
     episode_length: int,
     stack: int = 3,
+    true_reward: bool = False,
 ) -> FrameBuffer:
     """An empty buffer of ``capacity // num_envs`` transition rows.
 
@@ -125,6 +131,7 @@ def init(
         action_size: action dimension.
         episode_length: agent steps per episode (sizes the reset frames; shorter episodes need more).
         stack: frames per observation.
+        true_reward: also keep the task's reward beside ``reward`` (which then holds a learned reward).
 
     Returns:
         A zero-filled :class:`FrameBuffer`.
@@ -146,6 +153,7 @@ def init(
         ptr=jnp.zeros((), jnp.int32),
         size=jnp.zeros((), jnp.int32),
         frame_ptr=jnp.zeros((), jnp.int32),
+        true_reward=jnp.zeros((rows, num_envs), jnp.float32) if true_reward else None,
         stack=stack,
     )
 
@@ -188,6 +196,7 @@ def add(buffer: FrameBuffer, step: FrameStep) -> FrameBuffer:
         reward=write(buffer.reward, step.reward),
         terminal=write(buffer.terminal, step.terminal),
         truncated=write(buffer.truncated, step.truncated),
+        true_reward=None if buffer.true_reward is None else write(buffer.true_reward, step.true_reward),
         ptr=(buffer.ptr + 1) % buffer.rows,
         size=jnp.minimum(buffer.size + 1, buffer.rows),
         frame_ptr=(buffer.frame_ptr + first + 1) % f,
@@ -263,3 +272,42 @@ def sample(buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gam
     row = jnp.searchsorted(cumulative, draw, side="right").astype(jnp.int32)  # the (draw+1)-th valid row
     env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
     return gather(buffer, jnp.minimum(row, buffer.rows - 1), env, nstep, gamma)
+
+
+def row_stacks(buffer: FrameBuffer, row: jax.Array, env: jax.Array) -> jax.Array:
+    """The ``obs`` frame stacks of rows ``row`` of environments ``env`` (any equal shapes).
+
+    Args:
+        buffer: the buffer.
+        row, env: int indices of shapes that broadcast together (a segment: ``(N, H)`` consecutive rows
+            of one env).
+
+    Returns:
+        (..., H, W, 3 * stack) uint8 stacks, rebuilt from the stored frames as :func:`gather` does.
+    """
+    row, env = jnp.broadcast_arrays(row, env)
+    shape = row.shape
+    row, env = row.reshape(-1), env.reshape(-1)
+    stacks = _stacks(buffer, buffer.frame_index[row], buffer.episode_step[row], env)
+    return stacks.reshape(*shape, *stacks.shape[1:])
+
+
+def relabel(buffer: FrameBuffer, reward_fn, chunk_rows: int = 64) -> FrameBuffer:
+    """Recomputes ``reward`` of every row with ``reward_fn(obs stacks (n, E, H, W, C), action (n, E, A)) -> (n, E)``.
+
+    Rows go ``chunk_rows`` at a time through a ``lax.map``, so only one chunk's stacks exist at once
+    (SURF's ``relabel_with_predictor`` goes 100 steps at a time, replay_buffer_drqv2.py:80-117).
+    Unwritten rows are relabelled too; nothing samples them.
+    """
+    rows = buffer.rows
+    chunks = -(-rows // chunk_rows)
+    envs = jnp.arange(buffer.num_envs)
+
+    def chunk(i):
+        row = jnp.minimum(i * chunk_rows + jnp.arange(chunk_rows), rows - 1)
+        grid = jnp.broadcast_to(row[:, None], (chunk_rows, buffer.num_envs))
+        obs = row_stacks(buffer, grid, jnp.broadcast_to(envs, grid.shape))
+        return reward_fn(obs, buffer.action[row])
+
+    reward = jax.lax.map(chunk, jnp.arange(chunks)).reshape(chunks * chunk_rows, buffer.num_envs)[:rows]
+    return buffer.replace(reward=reward.astype(buffer.reward.dtype))

@@ -1,4 +1,5 @@
-"""DrQ-v2 on a pixel task in the scanned round: ``--algo drqv2`` (true reward, no preferences yet).
+"""DrQ-v2 on a pixel task in the scanned round: ``--algo drqv2`` (true reward) and ``--algo pebble``
+(SURF's pixel PEBBLE: the reward learned from preferences by :mod:`rebel_jax.pixel_reward`).
 
 The same shape as :class:`rebel_jax.train.Trainer`: ``init(key)``, ``round(state, r)`` (one
 ``lax.scan`` over vector steps, the round index unbatched) and ``evaluate(policy, key)``, so
@@ -18,6 +19,25 @@ pixel_train_drqv2.py the same), counted in agent steps per seed (one transition,
 
 Transitions go to :mod:`rebel_jax.frame_replay` (each frame once); updates sample DrQ-v2's n-step
 transitions from it.
+
+``--algo pebble`` on a pixel task follows SURF's ``pixel_train_PEBBLE.py`` (alinlab/SURF 866630a,
+branch ``pixel``):
+
+- no unsupervised phase (README's ``num_unsup_frames=0``): the first feedback session comes right
+  after the seed steps (pixel_train_PEBBLE.py:383), then one every ``feedback.interval`` agent steps
+  (SURF's ``num_interact`` frames, :428), as a ``lax.cond`` on the unbatched round index at the start
+  of a round (as :class:`rebel_jax.train.Trainer`);
+- the buffer's ``reward`` is the learned one: each step stores the ensemble mean of the new
+  transition (pixel_train_PEBBLE.py:493-514), and each session relabels every row
+  (``relabel_with_predictor``, :399, :445). The task's reward is kept beside it (``true_reward``,
+  as SURF's episodes keep ``true_reward``, :513) for the teacher; DrQ-v2's n-step returns read the
+  learned one. Relabelling once per session, not at sampling, fits the frame replay: a sample would
+  otherwise run the 3 encoders on every one of its ``batch_size x 2`` stacks at every update;
+- at the first session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
+  follow (``agent.reset_critic()``, ``update_after_reset(gradient_update=reset_update)``, :413-420);
+- the label store holds segment places, and sessions gather frames from the replay, so the replay
+  must hold the whole run (``train.buffer_capacity`` 0 = ``train.total_steps``: 21,168 bytes per
+  84x84 frame and environment-step, about 10.6 GB per seed at 500k agent steps).
 """
 
 from __future__ import annotations
@@ -28,11 +48,26 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import frame_replay
+from rebel_jax import agent_preference, frame_replay, pixel_reward, teachers
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
+from rebel_jax.queries import Segments
 from rebel_jax.train import EpisodeStats, _all_finite
+
+PIXEL_SESSION_METRICS = (
+    "session",
+    "labels_used",
+    "session_labels",
+    "reward_accuracy_new",
+    "reward_accuracy_all",
+    "reward_epochs",
+    "reward_loss",
+    "reward_correlation",
+)
+"""Per-round metrics of a pixel feedback session (NaN in rounds without one, except ``labels_used``).
+``reward_correlation`` is the Pearson correlation of the relabelled (learned) and the true reward over
+every written row of the replay, per step."""
 
 METRICS = ("critic_loss", "actor_loss", "q", "target_q", "std")
 
@@ -53,6 +88,9 @@ class PixelTrainState:
       key: the PRNG key of the run.
       eval_policy: ``{"encoder": ..., "actor": ...}`` the evaluation environments follow, frozen at
         each episode start.
+      reward: the pixel reward ensemble and its labels (``--algo pebble``; None for drqv2).
+      teacher: the scripted teacher's knobs (``teachers.knobs``), traced (None for drqv2).
+      lam: () REBEL's signed lambda, traced so that a sweep can vmap over it (None unless rebel).
     """
 
     sac: DrQV2State
@@ -61,6 +99,9 @@ class PixelTrainState:
     episodes: EpisodeStats
     key: jax.Array
     eval_policy: Any
+    reward: pixel_reward.PixelRewardState | None = None
+    teacher: dict | None = None
+    lam: jax.Array | None = None
 
 
 def policy_of(agent_state: DrQV2State) -> dict:
@@ -73,8 +114,8 @@ class PixelTrainer:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg.validate()
-        if cfg.algo != "drqv2":
-            raise ValueError(f"PixelTrainer runs --algo drqv2, not {cfg.algo!r}")
+        if cfg.algo not in ("drqv2", "pebble", "surf", "rebel") or not cfg.pixels:
+            raise ValueError(f"PixelTrainer runs drqv2 or pebble on a pixel task, not {cfg.algo!r} on {cfg.env.task!r}")
         self.env = make_env(cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length)
         self.agent = DrQV2(cfg.drqv2, self.env.observation_shape, self.env.action_size)
         self.num_train = cfg.env.num_envs
@@ -84,7 +125,25 @@ class PixelTrainer:
         every = cfg.drqv2.update_every
         self.updates_per_step = max(1, self.num_train // every)
         self.update_period = max(1, every // self.num_train)  # vector steps between updates
-        self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
+        self.preference = cfg.preference
+        if self.preference:  # Labels point into the replay: it holds the whole run (Config.validate checks).
+            self.capacity = cfg.train.capacity
+            self.horizon = cfg.query.segment_length
+            self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
+            self.stored = self.horizon + 2 * self.crop  # SURF stores H + 2 c steps (size_segment, :195)
+            sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
+            self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0
+            ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
+            ok = ok and (cfg.algo != "rebel" or cfg.rebel.segment_length <= self.episode_length)
+            if not ok:
+                raise ValueError(
+                    f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
+                    f"rebel.segment_length) <= {self.episode_length} agent steps per "
+                    f"episode and a complete episode before the first session (train.seed_steps / num_envs = "
+                    f"{cfg.feedback_start // self.num_train} vector steps)"
+                )
+        else:
+            self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
         self.trace_count = 0
 
     def policy_params(self, ts: PixelTrainState) -> dict:
@@ -103,8 +162,9 @@ class PixelTrainer:
             self.env.action_size,
             self.episode_length,
             self.env.frames,
+            true_reward=self.preference,
         )
-        return PixelTrainState(
+        ts = PixelTrainState(
             sac=agent,
             buffer=buffer,
             env=self._reset_envs(key_env),
@@ -112,6 +172,15 @@ class PixelTrainer:
             key=key,
             eval_policy=policy_of(agent),
         )
+        if not self.preference:
+            return ts
+        key, key_reward = jax.random.split(key)
+        shape, labels = self.env.observation_shape, self.cfg.feedback.labels
+        reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, self.env.action_size, labels)
+        if self.pool_capacity:
+            reward = reward.replace(pool=pixel_reward.empty_places(self.pool_capacity))
+        lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
+        return ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -130,14 +199,18 @@ class PixelTrainer:
     def _record(self, ts: PixelTrainState, nxt: State, action: jax.Array, t: jax.Array):
         n = self.num_train
         truncated = nxt.info["truncation"]
+        reward, true_reward = nxt.reward[:n], None
+        if self.preference:  # SURF stores r_hat(stack, action), keeps the true reward (pixel_train_PEBBLE.py:493-514).
+            reward, true_reward = self._learned_reward(ts.reward.params, ts.env.obs[:n], action[:n]), reward
         step = frame_replay.FrameStep(
             obs=ts.env.obs[:n],
             action=action[:n],
             next_obs=nxt.obs[:n],
-            reward=nxt.reward[:n],
+            reward=reward,
             terminal=(nxt.done - truncated)[:n],
             truncated=truncated[:n],
             episode_step=(t % self.episode_length).astype(jnp.int32),
+            true_reward=true_reward,
         )
         episodes = ts.episodes.after_step(nxt.reward, nxt.done, n)
         return frame_replay.add(ts.buffer, step), episodes
@@ -182,14 +255,197 @@ class PixelTrainer:
         ts = ts.replace(sac=agent, buffer=buffer, env=nxt, episodes=episodes)
         return ts, dict(metrics, learning=learning.astype(jnp.float32))
 
+    # -- feedback session (--algo pebble) --------------------------------------------------
+    def _learned_reward(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
+        return pixel_reward.mean_reward(self.cfg.pixel_reward, params, obs, action)
+
+    def session_due(self, round_index: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Whether round ``round_index`` starts with a feedback session, and whether it is the first."""
+        step = round_index * self.cfg.train.steps_per_round
+        start = self.cfg.feedback_start
+        due = (step >= start) & ((step - start) % self.cfg.feedback.interval == 0)
+        return due, step == start
+
+    def select(self, ts: PixelTrainState, key: jax.Array, first: jax.Array):
+        """The session's query pairs as segment places (uniform at the first session)."""
+        cfg = self.cfg
+        return pixel_reward.select(
+            cfg.pixel_reward,
+            key,
+            ts.reward.params,
+            ts.buffer,
+            cfg.feedback.queries,
+            self.stored,
+            self.episode_length,
+            cfg.query.recent_episodes,
+            cfg.query.sampling,
+            cfg.query.candidate_factor,
+            first,
+        )
+
+    def teach(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b):
+        """The scripted teacher on the stored true rewards of the segments, masked to the remaining budget.
+
+        The margin (skip / equal thresholds) is ``H x`` the mean true reward of the written rows.
+        """
+        buffer = ts.buffer
+        written = (jnp.arange(buffer.rows) < buffer.size)[:, None]
+        count = jnp.maximum(jnp.sum(written) * buffer.num_envs, 1)
+        margin = self.horizon * jnp.sum(jnp.where(written, buffer.true_reward, 0.0)) / count
+        # The central H steps of SURF's H + 2c (get_label, pixel_reward_model.py:578-580).
+        seg_a, seg_b = self._central(seg_a), self._central(seg_b)
+        true_a = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_a, self.horizon))
+        true_b = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_b, self.horizon))
+        labels, mask, _ = teachers.label(teachers.TeacherConfig(**ts.teacher), key, true_a, true_b, margin)
+        remaining = self.cfg.feedback.labels - ts.reward.data.count
+        return labels, mask * (jnp.cumsum(mask) <= remaining)
+
+    def _central(self, seg: pixel_reward.SegmentPlaces) -> pixel_reward.SegmentPlaces:
+        return seg.replace(row=seg.row + self.crop)
+
+    def learn(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, agent_step):
+        """Stores the answers, trains the ensemble, relabels the replay; resets the critic at the first session."""
+        key_train, key_critic, key_value = jax.random.split(key, 3)
+        rcfg, h = self.cfg.pixel_reward, self.horizon
+        both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
+        returns = pixel_reward.ensemble_returns(rcfg, ts.reward.params, ts.buffer, both, h)
+        n = labels.shape[0]
+        new_logits = returns[:, n:] - returns[:, :n]
+        hard = (labels != 0.5) * mask
+        correct = ((new_logits > 0) == (labels > 0.5)) * hard
+        accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
+        kept = jnp.sum(mask)
+        stored = pixel_reward.add_labels(ts.reward, seg_a, seg_b, labels, mask)
+        if (
+            self.cfg.algo == "surf"
+        ):  # Grow the pool, then reward_update passes, no early stop (pixel_train_PEBBLE_semi.py:275-281).
+            scfg = self.cfg.surf
+            pool = pixel_reward.sample_segments(
+                key_value,
+                ts.buffer,
+                2 * scfg.pool_size,
+                self.stored,
+                self.episode_length,
+                self.cfg.query.recent_episodes,
+            )
+            pool_a, pool_b = (
+                jax.tree.map(lambda x: x[: scfg.pool_size], pool),
+                jax.tree.map(lambda x: x[scfg.pool_size :], pool),
+            )
+            ones = jnp.full((scfg.pool_size,), (kept > 0).astype(jnp.float32))
+            stored = stored.replace(pool=pixel_reward.append_places(stored.pool, pool_a, pool_b, ones * 0, ones))
+            terms = (pixel_reward.pseudo_label_term(rcfg, scfg, ts.buffer, stored.pool, self.stored),)
+            trained, train_metrics = pixel_reward.train(
+                rcfg, stored, ts.buffer, key_train, self.stored, terms, self.crop, scfg.reward_update, float("inf")
+            )
+        else:
+            terms = self._value_terms(ts, key_value, agent_step) if self.cfg.algo == "rebel" else ()
+            trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
+        reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
+        buffer = frame_replay.relabel(
+            ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
+        )
+        agent = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic, agent_step), lambda: ts.sac)
+        written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
+        training = {
+            "reward_accuracy_new": accuracy_new,
+            "reward_accuracy_all": train_metrics["train_accuracy"],
+            "reward_epochs": train_metrics["epochs"],
+            "reward_loss": train_metrics["loss"],
+        }
+        metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
+        metrics["session_labels"] = kept
+        metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
+        return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
+
+    def _value_terms(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array) -> tuple:
+        """REBEL's ``lambda * V`` on pixels, through :func:`rebel_jax.agent_preference.agent_value_term`.
+
+        V's trajectories are ``rebel.num_segments`` replay segments of ``rebel.segment_length`` steps
+        (``rebel.source replay``), drawn once per session from the query pool, with actions redrawn once
+        from the current DrQ-v2 policy (its exploration noise at ``agent_step``) and held fixed. The
+        term carries their places; the frames are gathered from the replay in every step of the
+        session (``pixel_reward.place_rewards``), so the term costs ``num_segments x segment_length``
+        stacks per step: keep ``rebel.num_segments`` small on pixels.
+        """
+        rebel = self.cfg.rebel
+        key_segments, key_actions = jax.random.split(key)
+        places = pixel_reward.sample_segments(
+            key_segments,
+            ts.buffer,
+            rebel.num_segments,
+            rebel.segment_length,
+            self.episode_length,
+            self.cfg.query.recent_episodes,
+        )
+        rows = pixel_reward.segment_rows(places.row, rebel.segment_length)
+        envs = jnp.broadcast_to(places.env[:, None], rows.shape)
+
+        def act(inputs):
+            row, env, key = inputs
+            return self.agent.act(ts.sac, frame_replay.row_stacks(ts.buffer, row, env), key, agent_step)
+
+        keys = jax.random.split(key_actions, rebel.num_segments)
+        actions = jax.lax.map(act, (rows, envs, keys))  # one segment's stacks at a time
+        where = jnp.stack([rows, envs], axis=-1)
+        rcfg, buffer = self.cfg.pixel_reward, ts.buffer
+
+        def predict_fn(params, place, action):
+            return pixel_reward.place_rewards(rcfg, params, buffer, place, action)
+
+        term = agent_preference.agent_value_term(
+            rcfg, ts.lam, where, actions, rebel.gamma, rebel.estimator, False, predict_fn
+        )
+        return (lambda params, key: term(params, None, key),)
+
+    def _reset_critic(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step):
+        """A fresh critic, then ``pretrain.reset_updates`` DrQ-v2 updates (pixel_train_PEBBLE.py:413-420)."""
+        cfg = self.cfg.drqv2
+        key_reset, key_updates = jax.random.split(key)
+        agent = self.agent.reset_critic(agent, key_reset)
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            return self.agent.update(state, batch, key_update, agent_step)[0], None
+
+        return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
+
+    def feedback_session(self, ts: PixelTrainState, first: jax.Array, agent_step: jax.Array):
+        """select -> teach -> learn, with :data:`PIXEL_SESSION_METRICS`."""
+        key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
+        ts = ts.replace(key=key)
+        seg_a, seg_b = self.select(ts, key_select, first)
+        labels, mask = self.teach(ts, key_teach, seg_a, seg_b)
+        ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first, agent_step)
+        return ts, self._session_summary(ts, dict(metrics, session=1.0))
+
+    def _session_summary(self, ts: PixelTrainState, metrics: dict) -> dict:
+        nan = jnp.full((), jnp.nan, jnp.float32)
+        out = {k: jnp.asarray(metrics.get(k, nan), jnp.float32) for k in PIXEL_SESSION_METRICS}
+        out["labels_used"] = ts.reward.data.count.astype(jnp.float32)
+        return out
+
+    # -- the round ------------------------------------------------------------------------
     def round(self, ts: PixelTrainState, round_index: jax.Array) -> tuple[PixelTrainState, dict]:
-        """``steps_per_round`` agent steps per seed with their updates, as one ``lax.scan``.
+        """``steps_per_round`` agent steps per seed with their updates, as one ``lax.scan``; with
+        ``--algo pebble`` a round on the feedback schedule starts with a session.
 
         Returns:
           The new state and the round's metrics: DrQ-v2's losses averaged over the round's updates,
-          the last finished training and evaluation returns, and ``diverged``.
+          the last finished training and evaluation returns, ``diverged`` and (pebble) the session's metrics.
         """
         self.trace_count += 1  # Python side effect: counts traces, not calls.
+        session = {}
+        if self.preference:
+            due, first = self.session_due(round_index)
+            agent_step = round_index * self.cfg.train.steps_per_round
+            ts, session = jax.lax.cond(
+                due,
+                lambda ts: self.feedback_session(ts, first, agent_step),
+                lambda ts: (ts, self._session_summary(ts, {})),
+                ts,
+            )
         before = ts.episodes
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
@@ -205,9 +461,9 @@ class PixelTrainer:
                 (ts.episodes.eval_return, before.eval_return),
             )
         ]
-        finite = _all_finite(({k: summary[k] for k in METRICS}, ts.sac, ts.episodes.running))
+        finite = _all_finite(({k: summary[k] for k in METRICS}, ts.sac, ts.episodes.running, ts.reward))
         summary["diverged"] = 1.0 - (finite & returns_ok[0] & returns_ok[1]).astype(jnp.float32)
-        return ts, summary
+        return ts, {**summary, **session}
 
     def evaluate(self, policy: dict, key: jax.Array, random_actions: bool | jax.Array = False) -> jax.Array:
         """Mean true return of ``eval_episodes`` episodes of the mean action of ``policy`` (:func:`policy_of`),
@@ -225,3 +481,11 @@ class PixelTrainer:
         keys = jax.random.split(key_actions, self.episode_length)
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
         return total.mean()
+
+
+def weighted_pearson(x: jax.Array, y: jax.Array, weight: jax.Array) -> jax.Array:
+    """Pearson correlation of ``x`` and ``y`` over the entries of weight 1 (NaN if either is constant there)."""
+    total = jnp.maximum(jnp.sum(weight), 1.0)
+    mx, my = jnp.sum(weight * x) / total, jnp.sum(weight * y) / total
+    cov = jnp.sum(weight * (x - mx) * (y - my))
+    return cov / jnp.sqrt(jnp.sum(weight * (x - mx) ** 2) * jnp.sum(weight * (y - my) ** 2))

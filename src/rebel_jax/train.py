@@ -167,8 +167,8 @@ class Trainer:
             teachers): the round leaves them out and the buffer stores physics positions for clips.
         """
         self.cfg = cfg.validate()
-        if cfg.algo == "drqv2":
-            raise ValueError("--algo drqv2 runs in rebel_jax.pixel_train.PixelTrainer, not Trainer")
+        if cfg.pixels:
+            raise ValueError("pixel tasks run in rebel_jax.pixel_train.PixelTrainer, not Trainer")
         if host_teacher and not cfg.preference:
             raise ValueError(f"host_teacher needs a preference algo, not {cfg.algo!r}")
         self.host_teacher = host_teacher

@@ -1,0 +1,298 @@
+"""Pixel PEBBLE (``--algo pebble`` on ``probe_point_pixels``): the pixel reward ensemble's BT loss against
+NumPy, the oracle's labels against NumPy segment returns of the stored true rewards, and a short run."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rebel_jax import agent_preference, frame_replay, pixel_reward, surf
+from rebel_jax.agent_preference import AgentPreferenceConfig
+from rebel_jax.cli import parse
+from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
+from rebel_jax.drqv2 import DrQV2Config
+from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
+from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.pretrain import PretrainConfig
+from rebel_jax.queries import QueryConfig
+from rebel_jax.surf import SURFConfig
+from rebel_jax.train import compiled, seed_keys
+
+STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2
+REWARD = PixelRewardConfig(hidden=8, batch_size=4, max_epochs=3, lr=1e-3, chunk=3)
+
+
+def _filled_buffer(rng, steps: int):
+    """A frame replay of ``steps`` vector steps of synchronised simulated pixel envs, and the naive stacks."""
+    buffer = frame_replay.init(steps * ENVS, ENVS, (SIZE, SIZE, 3), ACTIONS, LENGTH, STACK, true_reward=True)
+    stacks, actions, true = [], [], []
+    stack = None
+    for t in range(steps):
+        if t % LENGTH == 0:
+            reset = rng.integers(0, 256, (ENVS, SIZE, SIZE, 3), dtype=np.uint8)
+            stack = np.concatenate([reset] * STACK, axis=-1)
+        nxt = np.concatenate([stack[..., 3:], rng.integers(0, 256, (ENVS, SIZE, SIZE, 3), dtype=np.uint8)], axis=-1)
+        action = rng.uniform(-1, 1, (ENVS, ACTIONS)).astype(np.float32)
+        reward = rng.normal(size=ENVS).astype(np.float32)
+        step = frame_replay.FrameStep(
+            obs=jnp.asarray(stack),
+            action=jnp.asarray(action),
+            next_obs=jnp.asarray(nxt),
+            reward=jnp.zeros(ENVS),
+            terminal=jnp.zeros(ENVS),
+            truncated=jnp.full(ENVS, float(t % LENGTH == LENGTH - 1)),
+            episode_step=jnp.int32(t % LENGTH),
+            true_reward=jnp.asarray(reward),
+        )
+        buffer = frame_replay.add(buffer, step)
+        stacks.append(stack)
+        actions.append(action)
+        true.append(reward)
+        stack = nxt
+    return buffer, np.stack(stacks), np.stack(actions), np.stack(true)
+
+
+@pytest.mark.parametrize("crop", [0, 1])
+def test_bt_loss_matches_numpy_on_naive_stacks(crop):
+    rng = np.random.default_rng(0)
+    buffer, stacks, actions, _ = _filled_buffer(rng, 3 * LENGTH)
+    horizon, batch = 4, 5
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(1), (SIZE, SIZE, 3 * STACK), ACTIONS, 8)
+    members = REWARD.ensemble_size
+    # Starts inside one episode (episode b, offset <= L - H), per member its own pairs.
+    episode = rng.integers(0, 3, (2, members, batch))
+    rows = episode * LENGTH + rng.integers(0, LENGTH - horizon + 1, (2, members, batch))
+    envs = rng.integers(0, ENVS, (2, members, batch))
+    labels = rng.choice([0.0, 0.5, 1.0], (members, batch)).astype(np.float32)
+    weight = (rng.uniform(size=(members, batch)) < 0.8).astype(np.float32)
+    weight[:, 0] = 1.0
+    seg_a = SegmentPlaces(jnp.asarray(rows[0], jnp.int32), jnp.asarray(envs[0], jnp.int32))
+    seg_b = SegmentPlaces(jnp.asarray(rows[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
+    key = jax.random.PRNGKey(7)
+    loss, metrics = pixel_reward.bt_loss(
+        REWARD, state.params, buffer, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), horizon, crop, key
+    )
+    masks = np.ones((2, members, batch, horizon), np.float32)
+    if crop:  # SURF's crops, drawn from the same key: every member sums over its own masked steps
+        masks = np.stack(surf.crop_masks(key, (members, batch), horizon, crop))
+        assert np.all(masks.sum(-1)[0] == masks.sum(-1)[1]) and np.any(masks.sum(-1) != horizon)
+
+    net = pixel_reward.network(REWARD)
+    expected = 0.0
+    for m in range(members):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        total, count = 0.0, 0.0
+        for i in range(batch):
+            returns = []
+            for side in range(2):
+                r, e = rows[side, m, i], envs[side, m, i]
+                obs = stacks[r : r + horizon, e]  # the environment's own stacks, stored whole
+                rewards = np.asarray(net.apply(member, obs, actions[r : r + horizon, e]))
+                returns.append(float(np.sum(rewards * masks[side, m, i])))
+            z = np.float64(returns[1] - returns[0])
+            y = labels[m, i]
+            ce = -(y * np.log(1 / (1 + np.exp(-z))) + (1 - y) * np.log(1 / (1 + np.exp(z))))
+            total += weight[m, i] * ce
+            count += weight[m, i]
+        expected += total / count
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5, atol=1e-6)
+    assert metrics["logits"].shape == (members, batch)
+
+
+def test_relabel_and_row_stacks_match_naive_stacks():
+    rng = np.random.default_rng(2)
+    buffer, stacks, actions, _ = _filled_buffer(rng, 2 * LENGTH)
+    np.testing.assert_array_equal(
+        frame_replay.row_stacks(buffer, jnp.arange(2 * LENGTH)[:, None], jnp.arange(ENVS)[None]), stacks
+    )
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4)
+    relabelled = frame_replay.relabel(
+        buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=5
+    )
+    expected = pixel_reward.mean_reward(REWARD, state.params, jnp.asarray(stacks), jnp.asarray(actions))
+    np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
+
+
+# Episodes of 20 frames = 10 agent steps, rounds of one episode; sessions at the starts of rounds 1, 2, 3.
+MICRO = Config(
+    algo="pebble",
+    env=EnvConfig(task="probe_point_pixels", num_envs=2, episode_length=20),
+    drqv2=DrQV2Config(feature_dim=8, hidden=16, batch_size=16, nstep=3, std_steps=40),
+    train=TrainConfig(total_steps=80, seed_steps=20, steps_per_round=20, eval_every=20, eval_episodes=1),
+    feedback=FeedbackConfig(labels=12, per_session=4, interval=20),
+    query=QueryConfig(segment_length=4, sampling="disagreement", candidate_factor=2),
+    pixel_reward=REWARD,
+    pretrain=PretrainConfig(reset_updates=2),
+)
+ROUNDS, SEEDS = 4, 2
+
+
+@pytest.fixture(scope="module")
+def run():
+    trainer = PixelTrainer(MICRO)
+    init, round_fn, _ = compiled(trainer)
+    state = init(seed_keys(0, SEEDS))
+    start = jax.device_get(state)  # the round donates its input
+    metrics = []
+    for r in range(ROUNDS):
+        state, m = round_fn(state, jnp.int32(r))
+        metrics.append(jax.device_get(m))
+    return trainer, start, state, metrics
+
+
+def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
+    trainer, start, state, metrics = run
+    assert trainer.trace_count == 1
+    used = [float(m["labels_used"][0]) for m in metrics]
+    assert used == [0.0, 4.0, 8.0, 12.0]  # 4 pairs per session, none skipped by the oracle
+    assert np.all(np.isnan(metrics[0]["reward_loss"]))  # no session before the seed steps are done
+    for m in metrics[1:]:
+        for key in ("reward_loss", "reward_accuracy_all", "reward_correlation", "critic_loss"):
+            assert np.all(np.isfinite(m[key])), key
+        np.testing.assert_array_equal(m["diverged"], 0.0)
+    before, after = jax.tree.leaves(start.reward.params), jax.tree.leaves(state.reward.params)
+    assert all(not np.allclose(a, b) for a, b in zip(before, after, strict=True))
+    # The replay's reward is the final ensemble's mean on every written row (relabelled, then stored at add).
+    for seed in range(SEEDS):
+        buffer = jax.tree.map(lambda x, s=seed: x[s], state.buffer)
+        params = jax.tree.map(lambda x, s=seed: x[s], state.reward.params)
+        rows = jnp.arange(int(buffer.size))[:, None]
+        obs = frame_replay.row_stacks(buffer, rows, jnp.arange(buffer.num_envs)[None])
+        expected = pixel_reward.mean_reward(MICRO.pixel_reward, params, obs, buffer.action[: int(buffer.size)])
+        np.testing.assert_allclose(buffer.reward[: int(buffer.size)], expected, rtol=1e-4, atol=1e-5)
+        assert not np.allclose(buffer.reward[: int(buffer.size)], buffer.true_reward[: int(buffer.size)])
+
+
+def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run):
+    trainer, _, state, metrics = run
+    horizon, length = MICRO.query.segment_length, trainer.episode_length
+    true = np.asarray(state.buffer.true_reward)
+    # The stored true reward is the environment's: each round ends one training episode, whose mean return
+    # over the environments the round reports.
+    for r, m in enumerate(metrics):
+        episode = true[:, r * length : (r + 1) * length].sum(axis=1).mean(axis=-1)
+        np.testing.assert_allclose(m["train_return"], episode, rtol=1e-5, atol=1e-5)
+    data = jax.device_get(state.reward.data)
+    for seed in range(SEEDS):
+        count = int(data.count[seed])
+        assert count == 12
+        for i in range(count):
+            returns = []
+            for row, env in ((data.row_a, data.env_a), (data.row_b, data.env_b)):
+                start, e = int(row[seed, i]), int(env[seed, i])
+                assert start % length <= length - horizon  # inside one episode
+                returns.append(sum(float(true[seed, start + h, e]) for h in range(horizon)))
+            assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
+
+
+REBEL = dataclasses.replace(
+    MICRO, algo="rebel", rebel=AgentPreferenceConfig(source="replay", num_segments=3, segment_length=4)
+)
+LAMS = (0.0, -1.0)
+
+
+@pytest.fixture(scope="module")
+def rebel_run():
+    trainer = PixelTrainer(REBEL)
+    init, round_fn, _ = compiled(trainer)
+    state = init(jnp.tile(seed_keys(0, SEEDS), (len(LAMS), 1)))  # columns: lambda, then seed
+    state = state.replace(lam=jnp.repeat(jnp.asarray(LAMS, jnp.float32), SEEDS))
+    for r in range(ROUNDS):
+        state, _ = round_fn(state, jnp.int32(r))
+    return trainer, jax.device_get(state)
+
+
+def test_value_term_on_pixels_matches_numpy_on_naive_stacks():
+    rng = np.random.default_rng(4)
+    buffer, stacks, _, _ = _filled_buffer(rng, 2 * LENGTH)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(5), (SIZE, SIZE, 3 * STACK), ACTIONS, 4)
+    horizon, n, gamma = 4, 3, 0.9
+    rows = rng.integers(0, 2, n) * LENGTH + rng.integers(0, LENGTH - horizon + 1, n)
+    envs = rng.integers(0, ENVS, n)
+    actions = rng.uniform(-1, 1, (n, horizon, ACTIONS)).astype(np.float32)
+    place = np.stack([rows[:, None] + np.arange(horizon), np.broadcast_to(envs[:, None], (n, horizon))], -1)
+
+    def predict_fn(params, where, action):
+        return pixel_reward.place_rewards(REWARD, params, buffer, where, action)
+
+    term = agent_preference.agent_value_term(
+        REWARD, -0.5, jnp.asarray(place), jnp.asarray(actions), gamma, "discounted", False, predict_fn
+    )
+    loss, metrics = term(state.params, None, jax.random.PRNGKey(0))
+    net = pixel_reward.network(REWARD)
+    values = []
+    for m in range(REWARD.ensemble_size):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        total = 0.0
+        for i in range(n):
+            r = np.asarray(net.apply(member, stacks[rows[i] : rows[i] + horizon, envs[i]], actions[i]))
+            total += sum(gamma**h * float(r[h]) for h in range(horizon))
+        values.append(total / n)
+    np.testing.assert_allclose(float(loss), -0.5 * sum(values), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-5, atol=1e-6)
+
+
+def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
+    trainer, state = rebel_run
+    _, _, pebble, _ = run
+    assert trainer.trace_count == 1
+    pebble = jax.device_get(pebble)
+    np.testing.assert_array_equal(state.reward.data.count, 12)
+    for path in ("reward.params", "buffer.reward", "sac.actor_params"):
+        get = lambda tree, path=path: functools.reduce(getattr, path.split("."), tree)  # noqa: E731
+        moved = []
+        for ours, theirs in zip(jax.tree.leaves(get(state)), jax.tree.leaves(get(pebble)), strict=True):
+            # lambda 0 is PEBBLE up to float rounding: another program (4 columns, not 2) rounds differently.
+            np.testing.assert_allclose(ours[:SEEDS], theirs, rtol=1e-4, atol=1e-6, err_msg=path)
+            moved.append(not np.allclose(ours[SEEDS:], theirs, rtol=1e-2, atol=1e-4))
+        assert any(moved), path  # lambda -1 changes the reward, the relabelled buffer and the policy
+
+
+SURF_MICRO = dataclasses.replace(
+    MICRO, algo="surf", surf=SURFConfig(crop=1, pool_size=6, reward_update=2, ratio=1, threshold=0.6)
+)
+
+
+def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
+    trainer = PixelTrainer(SURF_MICRO)
+    init, round_fn, _ = compiled(trainer)
+    state = init(seed_keys(0, SEEDS))
+    start = jax.device_get(state.reward.params)
+    for r in range(ROUNDS):
+        state, m = round_fn(state, jnp.int32(r))
+    assert trainer.trace_count == 1
+    state, m = jax.device_get((state, m))
+    np.testing.assert_array_equal(m["diverged"], 0.0)
+    np.testing.assert_array_equal(m["reward_epochs"], SURF_MICRO.surf.reward_update)  # no early stop
+    np.testing.assert_array_equal(state.reward.pool.count, 3 * SURF_MICRO.surf.pool_size)  # 3 sessions
+    true, crop, horizon = state.buffer.true_reward, SURF_MICRO.surf.crop, SURF_MICRO.query.segment_length
+    data = state.reward.data
+    for seed in range(SEEDS):
+        assert int(data.count[seed]) == 12
+        for i in range(12):
+            returns = [  # the teacher sees the central H of the stored H + 2c steps
+                sum(float(true[seed, int(row[seed, i]) + crop + h, int(env[seed, i])]) for h in range(horizon))
+                for row, env in ((data.row_a, data.env_a), (data.row_b, data.env_b))
+            ]
+            assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
+    leaves = zip(jax.tree.leaves(start), jax.tree.leaves(state.reward.params), strict=True)
+    moved = [not np.allclose(a, b) for a, b in leaves]
+    assert all(moved)
+
+
+def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
+    flags = ["--algo", "pebble", "--task", "walker_walk_pixels", "--seed-steps", "2000", "--pixel-reward.lr", "1e-4"]
+    args = parse(["--preset", "tiny", *flags])
+    cfg = args.config
+    assert cfg.preference and cfg.pixels and cfg.pixel_reward.lr == 1e-4
+    assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
+    for algo in ("sac",):
+        with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
+            Config(algo=algo, env=EnvConfig(task="probe_point_pixels")).validate()
+    with pytest.raises(ConfigError, match="replay on a pixel task"):
+        dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(source="onpolicy")).validate()
