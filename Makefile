@@ -17,7 +17,7 @@ PYTEST_ARGS ?=
 # fidelity test of the pure-JAX camera, MUJOCO_GL=egl). Where that is impossible those tests skip and say why.
 SYSTEM_PACKAGES ?= chromium chromium-driver libegl1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: train test lint clean system-deps
+.PHONY: train test test-heavy lint clean system-deps
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -51,7 +51,12 @@ system-deps:
 	fi
 
 test: lint system-deps
-	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n 2 --dist loadgroup -m "not heavy" $(PYTEST_ARGS)
+
+# The minutes-long end-to-end runs `make test` leaves out (pytest marker `heavy`): the command
+# `make train` runs, checked to learn, and the pixel PEBBLE, REBEL and SURF runs.
+test-heavy: $(VENV)/.test
+	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) .jax_cache runs

@@ -59,6 +59,7 @@ def _table_row(stdout: str, name: str) -> list[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_make_train_learns_well_above_the_random_policy(tmp_path):
     run_dir = tmp_path / "run"
     cmd = make_train_command(run_dir)

@@ -145,6 +145,7 @@ def run():
     return trainer, start, state, metrics
 
 
+@pytest.mark.heavy
 def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
     trainer, start, state, metrics = run
     assert trainer.trace_count == 1
@@ -168,6 +169,7 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
         assert not np.allclose(buffer.reward[: int(buffer.size)], buffer.true_reward[: int(buffer.size)])
 
 
+@pytest.mark.heavy
 def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run):
     trainer, _, state, metrics = run
     horizon, length = MICRO.query.segment_length, trainer.episode_length
@@ -237,6 +239,7 @@ def test_value_term_on_pixels_matches_numpy_on_naive_stacks():
     np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.heavy
 def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
     trainer, state = rebel_run
     _, _, pebble, _ = run
@@ -258,6 +261,7 @@ SURF_MICRO = dataclasses.replace(
 )
 
 
+@pytest.mark.heavy
 def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
     trainer = PixelTrainer(SURF_MICRO)
     init, round_fn, _ = compiled(trainer)
