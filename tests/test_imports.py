@@ -37,6 +37,22 @@ def _resolve(module: str, is_package: bool, level: int, target: str | None) -> s
     return ".".join(base + ([target] if target else []))
 
 
+def _parse(path: pathlib.Path) -> ast.Module:
+    """``ast.parse``, tried again after CPython 3.11's "AST constructor recursion depth mismatch".
+
+    That SystemError comes from a recursion counter CPython 3.11 shares between threads
+    (python/cpython gh-106905); in the test workers other threads (orbax's, asyncio's) are alive.
+    It says nothing about the file, so a second parse is the fair answer.
+    """
+    for attempt in range(3):
+        try:
+            return ast.parse(path.read_text(), str(path))
+        except SystemError:
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")
+
+
 def import_graph(root: pathlib.Path, package: str) -> dict[str, set[str]]:
     """Module -> the package's modules it imports (anywhere in its source)."""
     modules = module_files(root, package)
@@ -44,7 +60,7 @@ def import_graph(root: pathlib.Path, package: str) -> dict[str, set[str]]:
     for name, path in modules.items():
         is_package = path.name == "__init__.py"
         edges = set()
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in ast.walk(_parse(path)):
             if isinstance(node, ast.Import):
                 targets = [alias.name for alias in node.names]
             elif isinstance(node, ast.ImportFrom):
