@@ -53,7 +53,7 @@ from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
 from rebel_jax.queries import Segments
-from rebel_jax.train import EpisodeStats, _all_finite
+from rebel_jax.train import EpisodeStats, _all_finite, reward_training_metrics
 
 PIXEL_SESSION_METRICS = (
     "session",
@@ -347,14 +347,7 @@ class PixelTrainer:
         )
         agent = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic, agent_step), lambda: ts.sac)
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
-        training = {
-            "reward_accuracy_new": accuracy_new,
-            "reward_accuracy_all": train_metrics["train_accuracy"],
-            "reward_epochs": train_metrics["epochs"],
-            "reward_loss": train_metrics["loss"],
-        }
-        metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
-        metrics["session_labels"] = kept
+        metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
         return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
 

@@ -461,14 +461,7 @@ class Trainer:
             sac_state = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic), lambda: ts.sac)
         fresh = self._sample_segments(buffer, key_fresh, 64, self.horizon)
         learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
-        training = {  # NaN where no answer was kept: that training was discarded.
-            "reward_accuracy_new": accuracy_new,
-            "reward_accuracy_all": train_metrics["train_accuracy"],
-            "reward_epochs": train_metrics["epochs"],
-            "reward_loss": train_metrics["loss"],
-        }
-        metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
-        metrics["session_labels"] = kept
+        metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
         metrics["reward_correlation_return"] = _pearson(learned.sum(-1), fresh.true_reward.sum(-1))
         queried = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
@@ -629,6 +622,22 @@ def physics_positions(pipeline_state) -> jax.Array:
     """The positions a clip is drawn from: MJX's ``qpos``, or the probe's ``pos``."""
     qpos = getattr(pipeline_state, "qpos", None)
     return pipeline_state.pos if qpos is None else qpos
+
+
+def reward_training_metrics(accuracy_new: jax.Array, train_metrics: dict, kept: jax.Array) -> dict[str, jax.Array]:
+    """A session's reward-training metrics and its label count ``session_labels``.
+
+    NaN where no answer was kept (``kept`` 0): that session's training was discarded.
+    """
+    training = {
+        "reward_accuracy_new": accuracy_new,
+        "reward_accuracy_all": train_metrics["train_accuracy"],
+        "reward_epochs": train_metrics["epochs"],
+        "reward_loss": train_metrics["loss"],
+    }
+    metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
+    metrics["session_labels"] = kept
+    return metrics
 
 
 def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:
