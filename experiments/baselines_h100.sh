@@ -9,6 +9,8 @@
 #   SET "utd1" (2026-11-24, first session): PEBBLE at B-Pref's utd 1 alone (stopped at 270k);
 #   SET "pebble500" (second session): the same PEBBLE job, run to 500k over several calls;
 #   SET "surf500": PEBBLE+SURF at utd 1, likewise.
+#   SET "surf500bf16" (third session): the "surf500" job in bf16 (same seeds), to 500k;
+#   SET "pebble500bf16": the "pebble500" job in bf16 on five new seeds (--seed 1).
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
@@ -34,6 +36,12 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   surf500)
     launch surf_walker_100_utd1 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5
+    wait; finish; exit 0 ;;
+  surf500bf16)
+    launch surf_walker_100_utd1_bf16 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5 --precision bf16
+    wait; finish; exit 0 ;;
+  pebble500bf16)
+    launch pebble_walker_100_utd1_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1
     wait; finish; exit 0 ;;
 esac
 export XLA_PYTHON_CLIENT_MEM_FRACTION=0.3
