@@ -39,6 +39,7 @@ visible geom type raises ``ValueError``.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -56,54 +57,98 @@ _VISIBLE_GROUPS = 3  # mjv_defaultOption shows geom groups 0, 1 and 2.
 _EPS = 1e-4
 
 
-def _row_times(vec: jax.Array, mat: jax.Array) -> jax.Array:
-    """``vec[..., k] @ mat[..., k, :]`` (vector times matrix, broadcasting), as elementwise products.
+class _Vec(NamedTuple):
+    """A 3-vector as three arrays of one shape (or scalars), so that vector algebra stays elementwise.
 
-    Written out so that XLA fuses it into the intersection arithmetic instead of emitting a
-    batched matrix product whose (pixels, geoms, 3) result goes through memory.
+    The camera's per-pixel arithmetic is written on components rather than on (..., 3) arrays:
+    XLA then fuses a whole ray's intersection and shading into few loops over pixels, with no
+    reduction over a size-3 axis and no (pixels, geoms, 3) intermediate going through memory.
     """
-    return vec[..., 0:1] * mat[..., 0, :] + vec[..., 1:2] * mat[..., 1, :] + vec[..., 2:3] * mat[..., 2, :]
+
+    x: jax.Array
+    y: jax.Array
+    z: jax.Array
+
+    @staticmethod
+    def of(a) -> _Vec:
+        """Components of an array (..., 3)."""
+        return _Vec(a[..., 0], a[..., 1], a[..., 2])
+
+    def __add__(self, o: _Vec) -> _Vec:  # type: ignore[override]
+        return _Vec(self.x + o.x, self.y + o.y, self.z + o.z)
+
+    def __sub__(self, o: _Vec) -> _Vec:
+        return _Vec(self.x - o.x, self.y - o.y, self.z - o.z)
+
+    def __neg__(self) -> _Vec:
+        return _Vec(-self.x, -self.y, -self.z)
+
+    def __mul__(self, s) -> _Vec:  # type: ignore[override]
+        """Times a scalar (array) ``s``, or componentwise times another :class:`_Vec`."""
+        if isinstance(s, _Vec):
+            return _Vec(self.x * s.x, self.y * s.y, self.z * s.z)
+        return _Vec(self.x * s, self.y * s, self.z * s)
+
+    def dot(self, o: _Vec) -> jax.Array:
+        return self.x * o.x + self.y * o.y + self.z * o.z
+
+    def normalized(self, floor: float) -> _Vec:
+        return self * (1.0 / jnp.maximum(jnp.sqrt(self.dot(self)), floor))
+
+    def map(self, f) -> _Vec:
+        return _Vec(f(self.x), f(self.y), f(self.z))
+
+    def stack(self) -> jax.Array:
+        return jnp.stack(jnp.broadcast_arrays(self.x, self.y, self.z), -1)
 
 
-def _hit_planes(o: jax.Array, v: jax.Array, size: np.ndarray, gtype: np.ndarray) -> jax.Array:
-    """Distance along rays ``o + t v`` (local frames, (P, G, 3)) to the front of planes (inf: none).
+def _where(cond: jax.Array, a: _Vec, b: _Vec) -> _Vec:
+    return _Vec(jnp.where(cond, a.x, b.x), jnp.where(cond, a.y, b.y), jnp.where(cond, a.z, b.z))
+
+
+def _pick(idx: jax.Array, values, cands) -> jax.Array | _Vec:
+    """``values[idx]`` for ``idx`` among geoms ``cands``, as a chain of selects (no gather).
+
+    ``values``: one entry (scalar, array or :class:`_Vec`) per rendered geom. Equal Python or
+    NumPy constants over ``cands`` come back as that constant.
+    """
+    vals = [values[g] for g in cands]
+    if not isinstance(vals[0], (_Vec, jax.Array)) and all(np.array_equal(v, vals[0]) for v in vals):
+        return vals[0]
+    out = vals[0]
+    for g, v in zip(cands[1:], vals[1:], strict=True):
+        out = _where(idx == g, v, out) if isinstance(v, _Vec) else jnp.where(idx == g, v, out)
+    return out
+
+
+class _Frame(NamedTuple):
+    """A rendered geom's pose in one state: position and the columns of its rotation (local x, y, z)."""
+
+    pos: _Vec
+    ax: tuple[_Vec, _Vec, _Vec]
+
+    def local(self, p: _Vec) -> _Vec:
+        """World point ``p`` in the geom's frame."""
+        d = p - self.pos
+        return _Vec(d.dot(self.ax[0]), d.dot(self.ax[1]), d.dot(self.ax[2]))
+
+    def rotate_in(self, v: _Vec) -> _Vec:
+        """World direction ``v`` in the geom's frame."""
+        return _Vec(v.dot(self.ax[0]), v.dot(self.ax[1]), v.dot(self.ax[2]))
+
+
+def _hit_plane(o: _Vec, v: _Vec, size: np.ndarray) -> jax.Array:
+    """Distance along the ray ``o + t v`` (plane frame) to the front of a plane (inf: none).
 
     A plane of size (x, y) > 0 is a rectangle, as MuJoCo renders it; it is seen from the front only.
     """
-    del gtype  # Unused.
-    front = v[..., 2] < -1e-9
-    t = -o[..., 2] / jnp.where(front, v[..., 2], -1.0)
-    p = o[..., :2] + t[..., None] * v[..., :2]
-    inside = np.all(size[:, :2] <= 0, axis=-1) | jnp.all((size[:, :2] <= 0) | (jnp.abs(p) <= size[:, :2]), axis=-1)
-    return jnp.where(front & (t > _EPS) & inside, t, jnp.inf)
-
-
-def _hit_rounds(o: jax.Array, v: jax.Array, size: np.ndarray, gtype: np.ndarray) -> jax.Array:
-    """Distance along rays ``o + t v`` (local frames, (P, G, 3)) to spheres and capsules (inf: none).
-
-    The entry point of a convex capsule is the nearest of its cylinder side and its two outer
-    half-spheres (a sphere is a capsule of half-length 0). Rays that start inside miss.
-    """
-    r = size[:, 0]
-    capsule = gtype == _CAPSULE
-    half = np.where(capsule, size[:, 1], 0.0)
-    # Cylinder side: |o_xy + t v_xy| = r, between the end caps.
-    a = jnp.sum(v[..., :2] ** 2, -1)
-    b = jnp.sum(o[..., :2] * v[..., :2], -1)
-    c = jnp.sum(o[..., :2] ** 2, -1) - r**2
-    disc = b * b - a * c
-    side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(a > 1e-12, a, 1.0)
-    ok = capsule & (a > 1e-12) & (disc > 0) & (side > _EPS) & (jnp.abs(o[..., 2] + side * v[..., 2]) <= half)
-    t = jnp.where(ok, side, jnp.inf)
-    # End spheres: |o - (0, 0, s h) + t v| = r, on the outer half (s z >= h).
-    for sign in (1.0, -1.0):
-        oz = o[..., 2] - sign * half
-        b = jnp.sum(o[..., :2] * v[..., :2], -1) + oz * v[..., 2]
-        disc = b * b - (jnp.sum(o[..., :2] ** 2, -1) + oz**2 - r**2)
-        cap = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
-        ok = (disc > 0) & (cap > _EPS) & (sign * (o[..., 2] + cap * v[..., 2]) >= half)
-        t = jnp.minimum(t, jnp.where(ok, cap, jnp.inf))
-    return t
+    front = v.z < -1e-9
+    t = -o.z / jnp.where(front, v.z, -1.0)
+    ok = front & (t > _EPS)
+    for half, oc, vc in ((size[0], o.x, v.x), (size[1], o.y, v.y)):
+        if half > 0:
+            ok = ok & (jnp.abs(oc + t * vc) <= half)
+    return jnp.where(ok, t, jnp.inf)
 
 
 def _geom_type_name(t: int) -> str:
@@ -174,155 +219,240 @@ class Camera:
         xmat = d.xmat[self.cam_body]
         return d.xpos[self.cam_body] + xmat @ self.cam_pos, xmat @ self.cam_mat
 
-    def _lights(self, d, eye, forward):
-        pos, direction = [], []
+    def _lights(self, d, eye, forward) -> list[tuple[_Vec, _Vec]]:
+        """Each light's world position and unit direction (scalars of the state)."""
+        lights = []
         for i in range(len(self.light_mode)):
             mode, body = int(self.light_mode[i]), int(self.light_body[i])
             if mode < 0:  # headlight
-                pos.append(eye), direction.append(forward)
+                pos, direction = eye, forward
             elif mode == int(mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM):
-                pos.append(d.subtree_com[body] + self.light_pos[i]), direction.append(jnp.asarray(self.light_dir[i]))
+                pos, direction = d.subtree_com[body] + self.light_pos[i], jnp.asarray(self.light_dir[i])
             elif mode == int(mujoco.mjtCamLight.mjCAMLIGHT_TRACK):
-                pos.append(d.xpos[body] + self.light_pos[i]), direction.append(jnp.asarray(self.light_dir[i]))
+                pos, direction = d.xpos[body] + self.light_pos[i], jnp.asarray(self.light_dir[i])
             else:
-                pos.append(d.xpos[body] + d.xmat[body] @ self.light_pos[i])
-                direction.append(d.xmat[body] @ self.light_dir[i])
-        direction = jnp.stack(direction)
-        return jnp.stack(pos), direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
+                pos, direction = d.xpos[body] + d.xmat[body] @ self.light_pos[i], d.xmat[body] @ self.light_dir[i]
+            lights.append((_Vec.of(pos), _Vec.of(direction / jnp.linalg.norm(direction))))
+        return lights
 
-    def _intersect(self, gpos, gmat, origin, dirs, skip: int = -1):
-        """Nearest hit of rays ``origin`` (P, 3) or (3,) + t * ``dirs`` (P, 3): (t, rendered geom index).
-
-        ``t`` is ``inf`` where nothing is hit. Geom ``skip`` (an index into the rendered geoms) is ignored.
-        """
-        origin = jnp.broadcast_to(origin, dirs.shape)
-        keep = np.arange(len(self.geom_type)) != skip
-        planes = np.flatnonzero(keep & (self.geom_type == _PLANE))
-        rounds = np.flatnonzero(keep & ((self.geom_type == _SPHERE) | (self.geom_type == _CAPSULE)))
-        ts = []
-        for ids, hit in ((planes, _hit_planes), (rounds, _hit_rounds)):
-            if ids.size:
-                # Rays in each geom's frame: (P, G, 3).
-                o = _row_times(origin[:, None, :] - gpos[ids][None], gmat[ids][None])
-                v = _row_times(dirs[:, None, :], gmat[ids][None])
-                ts.append(hit(o, v, self.geom_size[ids], self.geom_type[ids]))
-        if not ts:
-            return jnp.full(dirs.shape[:1], jnp.inf), jnp.zeros(dirs.shape[:1], jnp.int32)
-        t = jnp.concatenate(ts, axis=-1)
-        k = jnp.argmin(t, axis=-1)
-        order = jnp.asarray(np.concatenate([planes, rounds]).astype(np.int32))
-        return jnp.take_along_axis(t, k[:, None], -1)[:, 0], order[k]
-
-    def _normal_and_local(self, gpos, gmat, idx, points):
-        """World normal at ``points`` on geoms ``idx``, and the points in the geoms' frames."""
-        local = _row_times(points - gpos[idx], gmat[idx])
-        half = jnp.asarray(np.where(self.geom_type == _CAPSULE, self.geom_size[:, 1], 0.0))[idx]
-        axis_z = jnp.clip(local[:, 2], -half, half)
-        round_n = local - jnp.stack([jnp.zeros_like(axis_z), jnp.zeros_like(axis_z), axis_z], -1)
-        is_plane = jnp.asarray(self.geom_type == _PLANE)[idx]
-        n_local = jnp.where(is_plane[:, None], jnp.array([0.0, 0.0, 1.0]), round_n)
-        n = _row_times(n_local, jnp.swapaxes(gmat[idx], -1, -2))
-        return n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-12), local
-
-    def _texture(self, idx, local):
-        """Texture colour (P, 3) at plane-local points ``local`` of geoms ``idx`` (white if untextured)."""
-        if self.textures.shape[0] == 0:
-            return jnp.ones_like(local)
-        tex = jnp.asarray(self.geom_tex)[idx]
-        size = jnp.asarray(self.geom_size)[idx]
-        scale = jnp.asarray(self.geom_texscale)[idx]
-        # makePlane's texture coordinates, then settexture's scaling.
-        u = (local[:, 0] + size[:, 0]) / (2 * size[:, 0]) * scale[:, 0]
-        v = (1 - (local[:, 1] + size[:, 1]) / (2 * size[:, 1])) * scale[:, 1]
-        res = self.textures.shape[1]
-        x, y = u * res - 0.5, v * res - 0.5
-        x0, y0 = jnp.floor(x), jnp.floor(y)
-        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-        x0, y0 = x0.astype(jnp.int32) % res, y0.astype(jnp.int32) % res
-        x1, y1 = (x0 + 1) % res, (y0 + 1) % res
-        texs = jnp.asarray(self.textures)
-        t = jnp.maximum(tex, 0)
-        c = (texs[t, y0, x0] * (1 - fx) * (1 - fy) + texs[t, y0, x1] * fx * (1 - fy)
-             + texs[t, y1, x0] * (1 - fx) * fy + texs[t, y1, x1] * fx * fy)  # fmt: skip
-        return jnp.where((tex >= 0)[:, None], c, 1.0)
-
-    def _light_terms(self, lpos, ldir, points, normals, view, rgb, idx):
-        """Each light's fixed-function contribution, (L, P, 3), before shadowing."""
-        spec = jnp.asarray(self.geom_specular)[idx][None, :, None]
-        shin = jnp.asarray(self.geom_shininess)[idx][None, :]
-        directional = jnp.asarray(self.light_directional)[:, None]
-        to_light = lpos[:, None, :] - points[None]
-        dist = jnp.linalg.norm(to_light, axis=-1)
-        L = jnp.where(directional[..., None], -ldir[:, None, :], to_light / jnp.maximum(dist, 1e-9)[..., None])
-        att_c = jnp.asarray(self.light_attenuation)
-        att = 1.0 / (att_c[:, 0:1] + att_c[:, 1:2] * dist + att_c[:, 2:3] * dist**2)
-        cos_spot = jnp.sum(-L * ldir[:, None, :], -1)
-        spot = jnp.where(
-            cos_spot >= jnp.asarray(self.light_cos_cutoff)[:, None],
-            jnp.maximum(cos_spot, 0.0) ** jnp.asarray(self.light_exponent)[:, None],
-            0.0,
-        )
-        factor = jnp.where(directional, 1.0, att * spot)
-        ndotl = jnp.sum(normals[None] * L, -1)
-        H = L + view[None]
-        H = H / jnp.maximum(jnp.linalg.norm(H, axis=-1, keepdims=True), 1e-9)
-        ndoth = jnp.maximum(jnp.sum(normals[None] * H, -1), 0.0)
-        specular = jnp.where(ndotl > 0, jnp.where(ndoth > 0, ndoth**shin, 0.0), 0.0)
-        amb = jnp.asarray(self.light_ambient)[:, None, :]
-        dif = jnp.asarray(self.light_diffuse)[:, None, :]
-        spc = jnp.asarray(self.light_specular)[:, None, :]
-        color = (
-            amb * rgb[None] + jnp.maximum(ndotl, 0.0)[..., None] * dif * rgb[None] + specular[..., None] * spc * spec
-        )
-        return factor[..., None] * color, dist
-
-    def _shade(self, gpos, gmat, lpos, ldir, points, dirs, idx, rgb_scale: float = 1.0, shadows: bool = False):
-        """Colour of hits at ``points`` on geoms ``idx`` seen along ``dirs``, as MuJoCo's passes sum it."""
-        normals, local = self._normal_and_local(gpos, gmat, idx, points)
-        rgb = jnp.asarray(self.geom_rgb)[idx] * rgb_scale
-        terms, dist = self._light_terms(lpos, ldir, points, normals, -dirs, rgb, idx)
-        emission = jnp.asarray(self.geom_emission)[idx][:, None] * rgb + self.global_ambient * rgb
-        tex = self._texture(idx, local)
-        cast = jnp.asarray(self.light_shadow)
-        if not shadows:
-            return jnp.clip(emission + terms.sum(0), 0.0, 1.0) * tex
-        # Regular pass: lights without shadows; then one additive pass per shadow-casting light.
-        main = jnp.clip(emission + jnp.where(cast[:, None, None], 0.0, terms).sum(0), 0.0, 1.0) * tex
-        for i in np.flatnonzero(self.light_shadow):
-            to_light = lpos[i][None] - points
-            if self.light_directional[i]:
-                shadow_dirs, limit = -jnp.broadcast_to(ldir[i], points.shape), jnp.inf
-            else:
-                shadow_dirs, limit = to_light / dist[i][:, None], dist[i]
-            t, _ = self._intersect(gpos, gmat, points + 1e-3 * normals, shadow_dirs)
-            in_map = jnp.sum(-shadow_dirs * ldir[i], -1) >= self.light_cos_shadow[i]
-            lit = (t >= limit) | ~in_map
-            main = main + jnp.clip(terms[i], 0.0, 1.0) * tex * lit[:, None]
-        return main
-
-    def _sky(self, dirs):
-        el = jnp.arcsin(jnp.clip(dirs[:, 2], -1.0, 1.0)) / (np.pi / 2)
-        x = (el + 1) / 2 * (self.sky.shape[0] - 1)
-        i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, self.sky.shape[0] - 2)
-        f = (x - i0)[:, None]
-        sky = jnp.asarray(self.sky)
-        return sky[i0] * (1 - f) + sky[i0 + 1] * f
-
-    def _geoms(self, d):
+    def _geom_arrays(self, d) -> tuple[jax.Array, jax.Array]:
         ids = jnp.asarray(self.geom_ids)
         return d.geom_xpos[ids], d.geom_xmat[ids]
 
-    def _rays(self, d):
+    def _geoms(self, d) -> list[_Frame]:
+        gpos, gmat = self._geom_arrays(d)
+        return [
+            _Frame(_Vec.of(gpos[g]), tuple(_Vec.of(gmat[g][:, k]) for k in range(3))) for g in range(len(self.geom_ids))
+        ]
+
+    def _order(self, skip: int = -1) -> list[int]:
+        """Rendered geoms a ray is tested against, planes first (ties go to the first)."""
+        keep = np.arange(len(self.geom_type)) != skip
+        planes = np.flatnonzero(keep & (self.geom_type == _PLANE))
+        rounds = np.flatnonzero(keep & ((self.geom_type == _SPHERE) | (self.geom_type == _CAPSULE)))
+        return [int(g) for g in np.concatenate([planes, rounds])]
+
+    def _hit_rounds(self, gpos, gmat, ids: np.ndarray, origin: _Vec, dirs: _Vec) -> jax.Array:
+        """Distances (..., G) along rays ``origin + t * dirs`` to the round geoms ``ids`` (inf: none).
+
+        Vectorised over the geoms on a trailing axis, so that the nearest hit is one reduction whose
+        input XLA fuses (the (pixels, G) distances need not go through memory). Terms of a shared
+        origin (the camera's eye) are computed once per frame.
+        """
+        pos, mat = gpos[ids], gmat[ids]  # (G, 3), (G, 3, 3)
+        rel = [c[..., None] - pos[:, j] for j, c in enumerate(origin)]
+        d = [c[..., None] for c in dirs]
+        o = _Vec(*(sum(rel[j] * mat[:, j, k] for j in range(3)) for k in range(3)))
+        v = _Vec(*(sum(d[j] * mat[:, j, k] for j in range(3)) for k in range(3)))
+        capsule = self.geom_type[ids] == _CAPSULE
+        radius, half = self.geom_size[ids, 0], np.where(capsule, self.geom_size[ids, 1], 0.0).astype(np.float32)
+        oxy2 = o.x * o.x + o.y * o.y
+        bxy = o.x * v.x + o.y * v.y
+        # Cylinder side: |o_xy + t v_xy| = r, between the end caps.
+        a = v.x * v.x + v.y * v.y
+        disc = bxy * bxy - a * (oxy2 - radius**2)
+        side = (-bxy - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(a > 1e-12, a, 1.0)
+        ok = capsule & (a > 1e-12) & (disc > 0) & (side > _EPS) & (jnp.abs(o.z + side * v.z) <= half)
+        t = jnp.where(ok, side, jnp.inf)
+        # End spheres: |o - (0, 0, s h) + t v| = r, on the outer half (s z >= h).
+        for sign in (1.0, -1.0):
+            oz = o.z - sign * half
+            b = bxy + oz * v.z
+            disc = b * b - (oxy2 + oz * oz - radius**2)
+            cap = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+            ok = (disc > 0) & (cap > _EPS) & (sign * (o.z + cap * v.z) >= half)
+            t = jnp.minimum(t, jnp.where(ok, cap, jnp.inf))
+        return t
+
+    def _intersect(self, frames, gpos, gmat, origin: _Vec, dirs: _Vec, skip: int = -1, index: bool = True):
+        """Nearest hit of rays ``origin + t * dirs``: (t, rendered geom index, or None if not ``index``).
+
+        ``t`` is ``inf`` where nothing is hit. Geom ``skip`` (an index into the rendered geoms) is ignored.
+        Planes one at a time, round geoms in one reduction; ties go to planes, then to the first geom.
+        """
+        keep = np.arange(len(self.geom_type)) != skip
+        planes = np.flatnonzero(keep & (self.geom_type == _PLANE))
+        rounds = np.flatnonzero(keep & ((self.geom_type == _SPHERE) | (self.geom_type == _CAPSULE)))
+        shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in (*origin, *dirs)))
+        t = jnp.full(shape, jnp.inf)
+        first = int(planes[0]) if planes.size else int(rounds[0]) if rounds.size else 0
+        idx = jnp.full(shape, first, jnp.int32)
+        for g in planes:
+            frame = frames[g]
+            tg = _hit_plane(frame.local(origin), frame.rotate_in(dirs), self.geom_size[g])
+            closer = tg < t
+            t = jnp.where(closer, tg, t)
+            idx = jnp.where(closer, int(g), idx) if index else idx
+        if rounds.size:
+            tr = self._hit_rounds(gpos, gmat, rounds, origin, dirs)
+            if index:
+                ids = jnp.broadcast_to(jnp.asarray(rounds.astype(np.int32)), tr.shape)
+
+                def nearer(x, y):
+                    pick = (y[0] < x[0]) | ((y[0] == x[0]) & (y[1] < x[1]))
+                    return jnp.where(pick, y[0], x[0]), jnp.where(pick, y[1], x[1])
+
+                big = np.int32(np.iinfo(np.int32).max)
+                tr, ir = jax.lax.reduce((tr, ids), (np.float32(np.inf), big), nearer, (tr.ndim - 1,))
+                closer = tr < t
+                idx = jnp.where(closer, ir, idx)
+            else:
+                tr = jnp.min(tr, axis=-1)
+                closer = tr < t
+            t = jnp.where(closer, tr, t)
+        return t, idx if index else None
+
+    def _normal(self, frames, idx, cands, points: _Vec) -> _Vec:
+        """Unit world normal at ``points`` on geoms ``idx`` (among ``cands``)."""
+        pos = _pick(idx, [f.pos for f in frames], cands)
+        axis = _pick(idx, [f.ax[2] for f in frames], cands)
+        half = _pick(idx, np.where(self.geom_type == _CAPSULE, self.geom_size[:, 1], 0.0).tolist(), cands)
+        rel = points - pos
+        # Round geoms: from the nearest point of the axis segment; planes: the local z axis.
+        zc = jnp.clip(rel.dot(axis), -half, half)
+        n = _where(_pick(idx, (self.geom_type == _PLANE).tolist(), cands), axis, rel - axis * zc)
+        return n.normalized(1e-12)
+
+    def _texture(self, frames, idx, points: _Vec) -> _Vec | float:
+        """Texture colour at ``points`` of geoms ``idx`` (1 where untextured): each textured plane samples its own."""
+        color = 1.0
+        res = self.textures.shape[1]
+        # One flat table per channel: (tex, row, col) -> value.
+        tables = [jnp.asarray(self.textures[..., k].reshape(-1)) for k in range(3)]
+        for g in np.flatnonzero(self.geom_tex >= 0):
+            size, scale, frame = self.geom_size[g], self.geom_texscale[g], frames[g]
+            rel = points - frame.pos
+            lx, ly = rel.dot(frame.ax[0]), rel.dot(frame.ax[1])
+            # makePlane's texture coordinates, then settexture's scaling.
+            u = (lx + size[0]) / (2 * size[0]) * scale[0]
+            v = (1 - (ly + size[1]) / (2 * size[1])) * scale[1]
+            x, y = u * res - 0.5, v * res - 0.5
+            x0, y0 = jnp.floor(x), jnp.floor(y)
+            fx, fy = x - x0, y - y0
+            x0, y0 = x0.astype(jnp.int32) % res, y0.astype(jnp.int32) % res
+            x1, y1 = (x0 + 1) % res, (y0 + 1) % res
+            base = int(self.geom_tex[g]) * res * res
+            taps = [(y0, x0, (1 - fx) * (1 - fy)), (y0, x1, fx * (1 - fy)), (y1, x0, (1 - fx) * fy), (y1, x1, fx * fy)]
+            c = _Vec(*(sum(tab[base + r * res + q] * w for r, q, w in taps) for tab in tables))
+            color = _where(idx == g, c, color if isinstance(color, _Vec) else _Vec(1.0, 1.0, 1.0))
+        return color
+
+    def _light_term(self, i: int, light, points: _Vec, normals: _Vec, view: _Vec, rgb: _Vec, spec, shin):
+        """Light ``i``'s fixed-function contribution before shadowing, and the distance to it."""
+        lpos, ldir = light
+        to_light = lpos - points
+        dist = jnp.sqrt(to_light.dot(to_light))
+        if self.light_directional[i]:
+            L, factor = -ldir, 1.0
+        else:
+            L = to_light * (1.0 / jnp.maximum(dist, 1e-9))
+            a0, a1, a2 = (float(a) for a in self.light_attenuation[i])
+            cos_spot = -L.dot(ldir)
+            spot = jnp.where(
+                cos_spot >= self.light_cos_cutoff[i], jnp.maximum(cos_spot, 0.0) ** self.light_exponent[i], 0.0
+            )
+            factor = spot / (a0 + a1 * dist + a2 * dist * dist)
+        ndotl = normals.dot(L)
+        ndoth = jnp.maximum(normals.dot((L + view).normalized(1e-9)), 0.0)
+        specular = jnp.where((ndotl > 0) & (ndoth > 0), ndoth**shin, 0.0)
+        amb, dif, spc = (
+            _Vec(*(float(c) for c in a[i])) for a in (self.light_ambient, self.light_diffuse, self.light_specular)
+        )
+        color = rgb * (amb + dif * jnp.maximum(ndotl, 0.0)) + spc * (specular * spec)
+        return color * factor, dist
+
+    def _shade(
+        self,
+        frames,
+        gpos,
+        gmat,
+        lights,
+        points: _Vec,
+        dirs: _Vec,
+        idx,
+        cands,
+        rgb_scale: float = 1.0,
+        shadows: bool = False,
+    ):
+        """Colour of hits at ``points`` on geoms ``idx`` (among ``cands``) along ``dirs``, as MuJoCo's passes sum it.
+
+        ``gpos`` and ``gmat`` are the rendered geoms' positions and rotations, for shadow rays.
+        """
+        normals = self._normal(frames, idx, cands, points)
+        rgb = _pick(idx, [_Vec(*(float(c) * rgb_scale for c in x)) for x in self.geom_rgb], cands)
+        spec = _pick(idx, self.geom_specular.tolist(), cands)
+        shin = _pick(idx, self.geom_shininess.tolist(), cands)
+        emission = _pick(idx, self.geom_emission.tolist(), cands)
+        tex = self._texture(frames, idx, points)
+        if not isinstance(tex, _Vec):
+            tex = _Vec(tex, tex, tex)
+        terms = [self._light_term(i, light, points, normals, -dirs, rgb, spec, shin) for i, light in enumerate(lights)]
+        clip = lambda c: c.map(lambda x: jnp.clip(x, 0.0, 1.0))  # noqa: E731
+        # Regular pass: lights without shadows; then one additive pass per shadow-casting light.
+        cast = self.light_shadow if shadows else np.zeros_like(self.light_shadow)
+        main = rgb * (emission + self.global_ambient)
+        for i in np.flatnonzero(~cast):
+            main = main + terms[i][0]
+        main = clip(main) * tex
+        for i in np.flatnonzero(cast):
+            term, dist = terms[i]
+            lpos, ldir = lights[i]
+            if self.light_directional[i]:
+                shadow_dirs, limit = -ldir, jnp.inf
+            else:
+                shadow_dirs, limit = (lpos - points) * (1.0 / dist), dist
+            t, _ = self._intersect(frames, gpos, gmat, points + normals * 1e-3, shadow_dirs, index=False)
+            in_map = -shadow_dirs.dot(ldir) >= self.light_cos_shadow[i]
+            lit = (t >= limit) | ~in_map
+            main = main + clip(term) * tex * jnp.where(lit, 1.0, 0.0)
+        return main
+
+    def _sky(self, dirs: _Vec) -> _Vec:
+        el = jnp.arcsin(jnp.clip(dirs.z, -1.0, 1.0)) / (np.pi / 2)
+        x = (el + 1) / 2 * (self.sky.shape[0] - 1)
+        i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, self.sky.shape[0] - 2)
+        f = x - i0
+        tabs = [jnp.asarray(self.sky[:, k]) for k in range(3)]
+        return _Vec(*(tab[i0] * (1 - f) + tab[i0 + 1] * f for tab in tabs))
+
+    def _rays(self, d, rays: np.ndarray | None = None) -> tuple[jax.Array, jax.Array, _Vec]:
+        """Eye, camera rotation and unit world directions of the rays ``ray_dirs[rays]`` (all by default)."""
         eye, rot = self._frame(d)
-        dirs = jnp.asarray(self.ray_dirs) @ rot.T
-        return eye, rot, dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+        cam = self.ray_dirs if rays is None else self.ray_dirs[rays]
+        if self.cam_mode == int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED):
+            dirs = jnp.asarray(cam) @ rot.T
+            return eye, rot, _Vec.of(dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True))
+        # A tracking camera keeps its rotation: the directions are constants of the camera.
+        dirs = cam.astype(np.float64) @ self.cam_mat.astype(np.float64).T
+        dirs = (dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).astype(np.float32)
+        return eye, rot, _Vec.of(jnp.asarray(dirs))
 
     def segment(self, d) -> tuple[jax.Array, jax.Array]:
         """Per-pixel model geom id (-1 for none) and distance along the ray, at pixel centres: (H, W) each."""
-        gpos, gmat = self._geoms(d)
-        eye, _, dirs = self._rays(d)
+        frames = self._geoms(d)
         # Pixel centres only (the first ray of each pixel is at its centre when supersample is odd).
-        t, idx = self._intersect(gpos, gmat, eye, dirs[self._centre_rays()])
+        eye, _, dirs = self._rays(d, self._centre_rays())
+        t, idx = self._intersect(frames, *self._geom_arrays(d), _Vec.of(eye), dirs)
         gid = jnp.where(jnp.isfinite(t), jnp.asarray(self.geom_ids)[idx], -1)
         return gid.reshape(self.height, self.width), t.reshape(self.height, self.width)
 
@@ -334,26 +464,31 @@ class Camera:
 
     def render_float(self, d) -> jax.Array:
         """RGB in [0, 1], float32, (H, W, 3)."""
-        gpos, gmat = self._geoms(d)
+        frames, (gpos, gmat) = self._geoms(d), self._geom_arrays(d)
         eye, rot, dirs = self._rays(d)
-        lpos, ldir = self._lights(d, eye, -rot[:, 2])
-        t, idx = self._intersect(gpos, gmat, eye, dirs)
+        lights = self._lights(d, eye, -rot[:, 2])
+        eye = _Vec.of(eye)
+        t, idx = self._intersect(frames, gpos, gmat, eye, dirs)
         hit = jnp.isfinite(t)
-        points = eye + jnp.where(hit, t, 0.0)[:, None] * dirs
-        color = self._shade(gpos, gmat, lpos, ldir, points, dirs, idx, shadows=self.shadows)
+        points = eye + dirs * jnp.where(hit, t, 0.0)
+        everything = self._order()
+        color = self._shade(frames, gpos, gmat, lights, points, dirs, idx, everything, shadows=self.shadows)
         if self.reflections and self.reflective >= 0:
             on_mirror = hit & (idx == self.reflective)
-            n = gmat[self.reflective][:, 2]
-            rdirs = dirs - 2 * jnp.sum(dirs * n, -1, keepdims=True) * n
-            rt, ridx = self._intersect(gpos, gmat, points, rdirs, skip=self.reflective)
+            n = frames[self.reflective].ax[2]
+            rdirs = dirs - n * (2 * dirs.dot(n))
+            rt, ridx = self._intersect(frames, gpos, gmat, points, rdirs, skip=self.reflective)
             rhit = on_mirror & jnp.isfinite(rt)
-            rpoints = points + jnp.where(rhit, rt, 0.0)[:, None] * rdirs
-            refl = self._shade(gpos, gmat, lpos, ldir, rpoints, rdirs, ridx, rgb_scale=self.reflectance)
-            color = color + jnp.where(rhit[:, None], refl, 0.0)
-        color = jnp.where(hit[:, None], jnp.clip(color, 0.0, 1.0), self._sky(dirs))
+            rpoints = points + rdirs * jnp.where(rhit, rt, 0.0)
+            others = self._order(self.reflective)
+            if others:
+                refl = self._shade(frames, gpos, gmat, lights, rpoints, rdirs, ridx, others, rgb_scale=self.reflectance)
+                color = color + refl * jnp.where(rhit, 1.0, 0.0)
+        color = _where(hit, color.map(lambda x: jnp.clip(x, 0.0, 1.0)), self._sky(dirs)).stack()
         s = self.supersample
-        color = color.reshape(self.height, s, self.width, s, 3).mean(axis=(1, 3))
-        return color
+        if s == 1:
+            return color.reshape(self.height, self.width, 3)
+        return color.reshape(self.height, s, self.width, s, 3).mean(axis=(1, 3))
 
     def render(self, d) -> jax.Array:
         """RGB frame of ``mjx.Data`` ``d``: uint8, (height, width, 3), row 0 at the top."""
