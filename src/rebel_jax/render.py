@@ -271,9 +271,10 @@ class Camera:
         # Cylinder side: |o_xy + t v_xy| = r, between the end caps.
         a = v.x * v.x + v.y * v.y
         disc = bxy * bxy - a * (oxy2 - radius**2)
-        side = (-bxy - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(a > 1e-12, a, 1.0)
-        ok = capsule & (a > 1e-12) & (disc > 0) & (side > _EPS) & (jnp.abs(o.z + side * v.z) <= half)
-        t = jnp.where(ok, side, jnp.inf)
+        # The entry at num / a, tested before the division so that the quotient has one use.
+        num = -bxy - jnp.sqrt(jnp.maximum(disc, 0.0))
+        ok = capsule & (a > 1e-12) & (disc > 0) & (num > _EPS * a) & (jnp.abs(o.z * a + num * v.z) <= half * a)
+        t = jnp.where(ok, num / jnp.where(a > 1e-12, a, 1.0), jnp.inf)
         # End spheres: |o - (0, 0, s h) + t v| = r, on the outer half (s z >= h).
         for sign in (1.0, -1.0):
             oz = o.z - sign * half
