@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import pathlib
 import statistics
 import sys
@@ -123,6 +124,7 @@ def rows(args):
                 "frames_per_s": batch / sec,
                 "ms_per_call": sec * 1e3,
                 "what": what,
+                "commit": os.environ.get("REBEL_JAX_GIT_COMMIT"),
             }
             print(json.dumps(row), flush=True)
             yield row
@@ -139,14 +141,17 @@ def main(argv=None):
                         choices=["render", "env_step", "physics"])  # fmt: skip
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS)
     args = parser.parse_args(argv)
-    new = list(rows(args))
     old = json.loads(args.out.read_text())["rows"] if args.out.exists() else []
-    # Replace rows of the same device, task, size, batch and kind; keep the rest.
-    key = lambda r: (r["device"], r["task"], r["size"], r["batch"], r["what"])
-    fresh = {key(r) for r in new}
-    merged = [r for r in old if key(r) not in fresh] + new
+    # Replace rows of the same device, code, task, size, batch and kind; keep the rest. Written after
+    # every row, so a call stopped at its time limit keeps what it measured.
+    key = lambda r: (r["device"], r.get("commit"), r["task"], r["size"], r["batch"], r["what"])
+    new = []
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"rows": merged}, indent=1) + "\n")
+    for row in rows(args):
+        new.append(row)
+        fresh = {key(r) for r in new}
+        merged = [r for r in old if key(r) not in fresh] + new
+        args.out.write_text(json.dumps({"rows": merged}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

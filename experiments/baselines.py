@@ -50,6 +50,8 @@ RUNS = [
     ("baselines/pebble_walker_100_utd1", None, 453, "4: + utd 1 (B-Pref's)"),
     ("baselines/surf_walker_100", None, 661, "SURF on rung 3 (utd 0.3)"),
     ("baselines/surf_walker_100_utd1", None, 661, "SURF on rung 4 (utd 1)"),
+    ("baselines/pebble_walker_100_utd1_bf16_seed1", None, 453, "4 in bf16, five new seeds (--seed 1)"),
+    ("baselines/surf_walker_100_utd1_bf16", None, 661, "SURF on rung 4 in bf16 (same seeds)"),
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
 ]
 
@@ -99,6 +101,8 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
         "reset_updates": cfg["pretrain"].get("reset_updates", 0) if cfg["algo"] != "sac" else None,
         "num_envs": cfg["env"]["num_envs"],
         "utd": cfg["sac"]["utd"],
+        "precision": cfg["sac"]["precision"],
+        "seed": cfg["train"]["seed"],
         "seeds": len(columns),
         "env_steps": last,
         "total_steps": cfg["train"]["total_steps"],
@@ -119,10 +123,65 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
     }
 
 
+POOLED = {  # rung name of a pooled row -> the rungs it pools
+    "4, pooled: TF32 seeds (--seed 0) and bf16 seeds (--seed 1), 10 seeds": [
+        "4: + utd 1 (B-Pref's)",
+        "4 in bf16, five new seeds (--seed 1)",
+    ],
+}
+"""Rows whose runs differ only in matmul precision and base seed (checked on their config.json)."""
+
+_MAY_DIFFER = {("sac", "precision"), ("train", "seed")}
+
+
+def _settings(log: str) -> dict:
+    cfg = json.loads((RESULTS / "runs" / log / "config.json").read_text())
+    return {(group, key): value for group, values in cfg.items() if isinstance(values, dict)
+            for key, value in values.items()} | {("algo", ""): cfg["algo"]}  # fmt: skip
+
+
+def pooled(rung: str, parts: list[dict]) -> dict:
+    """One row of the seeds of ``parts``, after checking that their configs differ only in ``_MAY_DIFFER``."""
+    logs = [p["log"].removeprefix("results/runs/") for p in parts]
+    first = _settings(logs[0])
+    for log in logs[1:]:
+        other = _settings(log)
+        # Settings added by later code (in one config only) are left out; every shared one must agree.
+        differ = {k for k in first.keys() & other.keys() if first[k] != other[k]} - _MAY_DIFFER
+        if differ:
+            raise ValueError(f"cannot pool {logs[0]} and {log}: they differ in {sorted(differ)}")
+    if not all(p["complete"] for p in parts):
+        raise ValueError(f"cannot pool {logs}: not every run reached its total_steps")
+    x = np.asarray([v for p in parts for v in p["final_returns"]], float)
+    ci = bootstrap_ci(x)
+    steps = set.intersection(*(set(p["returns_at"]) for p in parts))
+    return parts[0] | {
+        "rung": rung,
+        "precision": sorted({p["precision"] for p in parts}),
+        "seed": [p["seed"] for p in parts],
+        "seeds": len(x),
+        "final_returns": [round(v, 2) for v in x],
+        "mean": round(float(x.mean()), 2),
+        "std": round(float(x.std()), 2),
+        "iqm": round(float(iqm(x)), 2),
+        "iqm_ci": [round(v, 2) if math.isfinite(v) else None for v in ci],
+        "returns_at": {  # seed-weighted mean of the parts' means
+            s: round(sum(p["returns_at"][s] * p["seeds"] for p in parts) / len(x), 1) for s in sorted(steps, key=int)
+        },
+        "device": sorted({p["device"] for p in parts}),
+        "date": sorted({p["date"] for p in parts}),
+        "jax": sorted({p["jax"] for p in parts}),
+        "command": [p["command"] for p in parts],
+        "log": [p["log"] for p in parts],
+    }
+
+
 FIGURE = {  # rung name in RUNS -> legend label of results/baselines_walker_walk.png
     "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)": "PEBBLE, rung 0 (earlier protocol)",
     "4: + utd 1 (B-Pref's)": "PEBBLE, rung 4 (B-Pref's protocol)",
+    "4 in bf16, five new seeds (--seed 1)": "PEBBLE, rung 4, bf16, new seeds",
     "SURF on rung 4 (utd 1)": "PEBBLE+SURF, rung 4",
+    "SURF on rung 4 in bf16 (same seeds)": "PEBBLE+SURF, rung 4, bf16",
 }
 PUBLISHED = {"PEBBLE": 453, "PEBBLE+SURF": 661}
 """The SURF paper's 500k walker_walk means at 100 labels (REFERENCE.md section 2)."""
@@ -154,6 +213,8 @@ def figure(path: pathlib.Path) -> None:
 
 def main() -> None:
     rows = [row(*spec) for spec in RUNS]
+    by_rung = {r["rung"]: r for r in rows}
+    rows += [pooled(rung, [by_rung[p] for p in parts]) for rung, parts in POOLED.items()]
     (RESULTS / "baselines.json").write_text(json.dumps({"rows": rows}, indent=1) + "\n")
     figure(RESULTS / "baselines_walker_walk.png")
     print("| rung | env steps run | " + " | ".join(f"{s // 1000}k" for s in STEPS) + " | last eval, mean +- std |")
