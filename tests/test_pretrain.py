@@ -121,3 +121,67 @@ def test_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"pretrain.{field}"):
         dataclasses.replace(pretrain.PretrainConfig(), **{field: value}).validate()
     pretrain.PretrainConfig().validate()
+
+
+class _BPrefRunningMeanStd:
+    """NumPy transcription of B-Pref's ``TorchRunningMeanStd`` (BPref f3ece2e ``utils.py:211-247``), in float64."""
+
+    def __init__(self, epsilon=1e-4):
+        self.mean, self.var, self.count = 0.0, 1.0, epsilon
+
+    def update(self, x):
+        batch_mean, batch_var, batch_count = x.mean(), x.var(ddof=1), x.shape[0]
+        delta = batch_mean - self.mean
+        tot_count = self.count + batch_count
+        new_mean = self.mean + delta + batch_count / tot_count
+        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / tot_count
+        self.mean, self.var, self.count = new_mean, m2 / tot_count, tot_count
+
+    @property
+    def std(self):
+        return np.sqrt(self.var)
+
+
+def _drifting_batches(seed=4, sizes=(64, 64, 32, 64, 64, 64)):
+    """kNN-like distances whose mean shrinks batch by batch (as the buffer fills)."""
+    rng = np.random.default_rng(seed)
+    return [rng.gamma(4.0, (3.0 - 0.4 * i) / 4.0, size=n).astype(np.float32) for i, n in enumerate(sizes)]
+
+
+def test_bpref_running_std_follows_bprefs_formula_not_the_exact_one():
+    reference, stats, exact = _BPrefRunningMeanStd(), pretrain.init_stats("bpref"), pretrain.init_stats()
+    update_bpref, update = jax.jit(pretrain.update_bpref), jax.jit(pretrain.update)
+    for batch in _drifting_batches():
+        reference.update(batch.astype(np.float64))
+        stats, exact = update_bpref(stats, batch), update(exact, batch)
+        np.testing.assert_allclose(float(stats.mean), reference.mean, rtol=1e-5)
+        np.testing.assert_allclose(float(stats.var), reference.var, rtol=1e-4)
+        np.testing.assert_allclose(float(stats.count), reference.count, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(pretrain.normalize(stats, batch)), batch / reference.std, rtol=1e-4)
+    # The exact running std (the `exact` rule) is measurably another number on the same stream.
+    assert abs(float(jnp.sqrt(exact.var)) / reference.std - 1.0) > 0.02
+
+
+@pytest.mark.parametrize("rule", ["exact", "bpref"])
+def test_intrinsic_reward_uses_the_configured_running_std(rule):
+    cfg = pretrain.PretrainConfig(k=2, chunk_size=8, running_std=rule)
+    buffer, rows, obs = _ring_buffer(9)
+    points = obs[rows].reshape(-1, 2)
+    reward_fn = jax.jit(functools.partial(pretrain.intrinsic_reward, cfg))
+    reference, stats, seen = _BPrefRunningMeanStd(), pretrain.init_stats(rule), []
+    for batch_rows in ([0, 4, 9, 13], [1, 2, 20, 25, 26], [3, 7]):
+        batch = points[batch_rows]
+        reward, stats = reward_fn(stats, batch, buffer)
+        distance = _brute_force_knn(batch, points, 2)
+        reference.update(distance)
+        seen.append(distance)
+        std = reference.std if rule == "bpref" else np.concatenate(seen).std()
+        np.testing.assert_allclose(np.asarray(reward), distance / std, rtol=1e-4)
+
+
+def test_paper_preset_uses_bprefs_running_std():
+    from rebel_jax.config import PRESETS
+
+    assert PRESETS["paper"].pretrain.running_std == "bpref"
+    with pytest.raises(ValueError, match="pretrain.running_std"):
+        pretrain.PretrainConfig(running_std="torch").validate()

@@ -354,10 +354,12 @@ def _demo() -> Config:
 
 
 PRESETS: dict[str, Config] = {
-    "paper": Config(query=QueryConfig(sampling="disagreement")),
+    "paper": Config(query=QueryConfig(sampling="disagreement"), pretrain=PretrainConfig(running_std="bpref")),
     "tiny": _tiny(),
     "demo": _demo(),
 }
 """``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2), with its disagreement query
-sampling (``feed_type=1`` in B-Pref's and SURF's walker commands). ``tiny``: CPU tests of the CLI.
-``demo``: ``make train``, a small preference-learning run that learns on a CPU (``_demo``)."""
+sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
+reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
+``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small preference-learning run that learns on a
+CPU (``_demo``)."""

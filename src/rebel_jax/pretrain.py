@@ -14,7 +14,7 @@ O(N * chunk) whatever the buffer size.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import flax.struct
 import jax
@@ -37,12 +37,20 @@ class PretrainConfig:
     """SAC updates on the relabelled buffer right after the critic is re-initialised at the first
     feedback session (B-Pref's ``reset_update``, 100: ``agent.update_after_reset`` in
     ``train_PEBBLE.py``). 0 skips them (this project's earlier rule)."""
+    running_std: Literal["exact", "bpref"] = "exact"
+    """The running std the kNN distances are divided by: ``exact``, the standard deviation of every
+    distance seen so far (Chan's parallel update); ``bpref``, B-Pref's ``TorchRunningMeanStd`` as
+    written (BPref f3ece2e ``utils.py:211-247``): count starts at 1e-4 with variance 1, batch
+    variances are unbiased, and the mean update reads ``mean + delta + n / total`` (not ``delta *
+    n / total``), so the variance misses the slow drift of the distances and carries an early
+    transient (the ``paper`` preset's choice; see notes/bpref_audit.md)."""
 
     def validate(self) -> None:
         _check(self.steps >= 0, "pretrain.steps", self.steps, ">= 0")
         _check(self.reset_updates >= 0, "pretrain.reset_updates", self.reset_updates, ">= 0")
         _check(self.k >= 1, "pretrain.k", self.k, ">= 1")
         _check(self.chunk_size >= 1, "pretrain.chunk_size", self.chunk_size, ">= 1")
+        _check(self.running_std in ("exact", "bpref"), "pretrain.running_std", self.running_std, "exact, bpref")
 
 
 @flax.struct.dataclass
@@ -57,9 +65,19 @@ class RunningStats:
     """Number of values seen."""
 
 
-def init_stats() -> RunningStats:
-    """Empty statistics: mean 0, variance 1, count 0 (``normalize`` is the identity until updated)."""
-    return RunningStats(mean=jnp.zeros(()), var=jnp.ones(()), count=jnp.zeros(()))
+BPREF_COUNT_EPSILON = 1e-4
+"""The count B-Pref's ``TorchRunningMeanStd`` starts from (``epsilon=1e-4``, BPref ``utils.py:212-215``)."""
+
+
+def init_stats(rule: str = "exact") -> RunningStats:
+    """Empty statistics: mean 0, variance 1 (``normalize`` is the identity until updated).
+
+    Args:
+      rule: ``PretrainConfig.running_std``; ``exact`` starts at count 0, ``bpref`` at count 1e-4 as
+        B-Pref's ``TorchRunningMeanStd(epsilon=1e-4)`` (BPref ``utils.py:212-215``).
+    """
+    count = BPREF_COUNT_EPSILON if rule == "bpref" else 0.0
+    return RunningStats(mean=jnp.zeros(()), var=jnp.ones(()), count=jnp.full((), count, jnp.float32))
 
 
 def update(stats: RunningStats, values: jax.Array) -> RunningStats:
@@ -79,6 +97,32 @@ def update(stats: RunningStats, values: jax.Array) -> RunningStats:
     delta = batch_mean - stats.mean
     mean = stats.mean + delta * batch_count / total
     m2 = stats.var * stats.count + batch_var * batch_count + delta**2 * stats.count * batch_count / total
+    return RunningStats(mean=mean, var=m2 / total, count=total)
+
+
+def update_bpref(stats: RunningStats, values: jax.Array) -> RunningStats:
+    """B-Pref's running statistics update, formula for formula (including its mean update).
+
+    BPref f3ece2e ``utils.py:217-247`` (``TorchRunningMeanStd.update`` and
+    ``update_mean_var_count_from_moments``): the batch variance is ``torch.var``'s unbiased one,
+    and the new mean is ``mean + delta + n / total``. The variance update is Chan's, but with that
+    mean ``delta`` is nearly the difference of consecutive batch means, so the variance tracks the
+    batches' own spread rather than the spread of everything seen.
+
+    Args:
+      stats: statistics so far (``init_stats("bpref")`` to start as B-Pref).
+      values: (N,) new values, N >= 2.
+
+    Returns:
+      The statistics after B-Pref's update.
+    """
+    batch_count = jnp.asarray(values.size, stats.count.dtype)
+    batch_mean = jnp.mean(values)
+    batch_var = jnp.var(values, ddof=1)  # torch.var (utils.py:220) is unbiased.
+    delta = batch_mean - stats.mean  # utils.py:237
+    total = stats.count + batch_count  # utils.py:238
+    mean = stats.mean + delta + batch_count / total  # utils.py:240, as written.
+    m2 = stats.var * stats.count + batch_var * batch_count + delta**2 * stats.count * batch_count / total  # :241-243
     return RunningStats(mean=mean, var=m2 / total, count=total)
 
 
@@ -163,7 +207,8 @@ def intrinsic_reward(
 ) -> tuple[jax.Array, RunningStats]:
     """PEBBLE's pre-training reward for a SAC batch: kNN distance over its running std.
 
-    The statistics are updated with this batch first, then used to scale it (B-Pref's order).
+    The statistics are updated with this batch first, then used to scale it (B-Pref's order,
+    ``agent/sac.py:176-177``), by ``update`` or B-Pref's ``update_bpref`` (``cfg.running_std``).
 
     Args:
       cfg: the pre-training settings.
@@ -176,5 +221,5 @@ def intrinsic_reward(
     """
     obs, valid = flatten_buffer_obs(buffer)
     distance = knn_reward(batch_obs, obs, valid, cfg.k, cfg.chunk_size)
-    stats = update(stats, distance)
+    stats = update_bpref(stats, distance) if cfg.running_std == "bpref" else update(stats, distance)
     return normalize(stats, distance), stats

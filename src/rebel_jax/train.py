@@ -222,7 +222,8 @@ class Trainer:
             reward = reward.replace(pool=surf.init_pool(self.pool_capacity, self.stored_length, obs_size, action_size))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         teacher = teachers.knobs(self.cfg.teacher)
-        ts = ts.replace(key=key, reward=reward, entropy_stats=pretrain.init_stats(), lam=lam, teacher=teacher)
+        stats = pretrain.init_stats(self.cfg.pretrain.running_std)
+        ts = ts.replace(key=key, reward=reward, entropy_stats=stats, lam=lam, teacher=teacher)
         if self.onpolicy_value:
             length, num_eval = self.cfg.env.episode_length, self.cfg.train.eval_episodes
             episode = {
