@@ -48,8 +48,9 @@ class AgentPreferenceConfig:
     """Where V's trajectories come from. ``onpolicy``, the paper's ``V = E[sum_h gamma^h
     r(s_h, a_h) | s_0, a_h ~ pi]`` (eq. "mle_new"): the last complete episodes of the in-batch
     evaluation environments, which start at the task's reset and follow the current policy
-    (its mean action, frozen at the episode start), over their whole length, at no extra env
-    cost. ``replay``, this project's earlier estimate: ``num_segments`` segments of
+    (its mean action, frozen at the episode start), over their first ``horizon`` steps (``episodes``
+    of them), at no extra env cost; on pixel tasks their newest frames are kept and the stacks
+    rebuilt (``pixel_train``). ``replay``, this project's earlier estimate: ``num_segments`` segments of
     ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
     with actions redrawn from the current policy."""
     episodes: int = 0
@@ -141,8 +142,8 @@ def agent_value(
       estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
         ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
       predict_fn: ``(params, obs, action) -> (M, N, H)`` members' rewards; default the state ensemble's
-        ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are replay places (row, env)
-        that it turns into frame stacks (:mod:`rebel_jax.pixel_reward`).
+        ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are the on-policy episodes'
+        kept frames, or replay places (row, env), that it turns into frame stacks (``pixel_train``).
 
     Returns:
       (M,) values ``V_m``.
