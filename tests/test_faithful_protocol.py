@@ -228,8 +228,11 @@ def test_evaluation_envs_follow_the_actor_frozen_at_the_episode_start(micro):
 # -- REBEL's on-policy V (issue 10) ---------------------------------------------------------------
 
 
-def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode():
-    cfg = dataclasses.replace(MICRO, algo="rebel", rebel=AgentPreferenceConfig(lam=-0.1, gamma=0.9))
+@pytest.mark.parametrize("size", [(0, 0), (1, 5)])
+def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(size):
+    episodes, horizon = size  # (0, 0): every evaluation episode, whole; else the first `horizon` steps of one.
+    rebel = AgentPreferenceConfig(lam=-0.1, gamma=0.9, episodes=episodes, horizon=horizon)
+    cfg = dataclasses.replace(MICRO, algo="rebel", rebel=rebel)
     trainer = Trainer(cfg)
     ts = jax.jit(trainer.init)(jax.random.key(4))
     step, length, n = jax.jit(trainer.vector_step), cfg.env.episode_length, trainer.num_train
@@ -241,16 +244,17 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
         if t >= length:
             after.append(np.asarray(ts.env.obs[n:]))
     obs, actions = trainer.value_trajectories(ts, jax.random.key(0))
-    assert obs.shape[:2] == (cfg.train.eval_episodes, length)
+    kept, steps = episodes or cfg.train.eval_episodes, horizon or length
+    assert obs.shape[:2] == (kept, steps)
     # A trajectory of the environment: each observation is the one the previous step led to...
-    np.testing.assert_array_equal(np.swapaxes(np.asarray(obs), 0, 1)[1:], np.stack(after)[:-1])
+    np.testing.assert_array_equal(np.swapaxes(np.asarray(obs), 0, 1)[1:], np.stack(after)[: steps - 1, :kept])
     # ...under the policy frozen at the episode's start (its mean action).
     expected = trainer.sac.act_deterministic(frozen, obs)
     np.testing.assert_allclose(np.asarray(actions), np.asarray(expected), rtol=1e-5, atol=1e-6)
-    # V: the paper's discounted sum over the whole episode, as a plain loop over steps.
+    # V: the paper's discounted sum over the horizon (default the whole episode), as a plain loop over steps.
     params = ts.reward.params
     values = np.zeros(cfg.reward.ensemble_size)
-    for h in range(length):
+    for h in range(steps):
         values += 0.9**h * np.asarray(rm.predict(cfg.reward, params, obs[:, h], actions[:, h])).mean(axis=1)
     got = agent_preference.agent_value(cfg.reward, params, obs, actions, 0.9, "discounted")
     np.testing.assert_allclose(np.asarray(got), values, rtol=1e-5)

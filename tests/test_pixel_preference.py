@@ -17,7 +17,7 @@ from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
 from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
-from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.pixel_train import PixelTrainer, policy_of
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.surf import SURFConfig
@@ -192,9 +192,8 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
 
 
-REBEL = dataclasses.replace(
-    MICRO, algo="rebel", rebel=AgentPreferenceConfig(source="replay", num_segments=3, segment_length=4)
-)
+# The paper's V (rebel.source onpolicy, the default): the evaluation episode's 10 agent steps, whole.
+REBEL = dataclasses.replace(MICRO, algo="rebel", rebel=AgentPreferenceConfig())
 LAMS = (0.0, -1.0)
 
 
@@ -298,5 +297,135 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     for algo in ("sac",):
         with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
             Config(algo=algo, env=EnvConfig(task="probe_point_pixels")).validate()
-    with pytest.raises(ConfigError, match="replay on a pixel task"):
-        dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(source="onpolicy")).validate()
+    for rebel in (
+        AgentPreferenceConfig(form="penalty", normalize=True),
+        AgentPreferenceConfig(source="replay", segment_length=4),
+    ):
+        dataclasses.replace(REBEL, rebel=rebel).validate()
+    with pytest.raises(ConfigError, match="rebel.episodes"):
+        dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(episodes=2)).validate()  # 1 evaluation env
+    with pytest.raises(ValueError, match="rebel.horizon"):
+        PixelTrainer(dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(horizon=11)))  # episodes of 10
+
+
+# -- REBEL's on-policy V on pixels: the evaluation episode's kept frames -------------------------------
+
+ONPOLICY = dataclasses.replace(
+    REBEL,
+    train=dataclasses.replace(MICRO.train, eval_episodes=2),
+    rebel=AgentPreferenceConfig(lam=-0.5, gamma=0.9, episodes=1, horizon=6),
+)
+
+
+@pytest.fixture(scope="module")
+def two_episodes():
+    """A pixel REBEL seed stepped through two episodes (vector steps 0..19), the evaluation env's
+    observations after every step of the second, and the policy it followed."""
+    trainer = PixelTrainer(ONPOLICY)
+    ts = jax.jit(trainer.init)(jax.random.key(3))
+    step, length, n = jax.jit(trainer.vector_step), trainer.episode_length, trainer.num_train
+    after = []
+    for t in range(2 * length):
+        if t == length:
+            frozen = policy_of(ts.sac)  # the second episode's evaluation policy
+        ts, _ = step(ts, jnp.int32(t))
+        if t >= length:
+            after.append(np.asarray(ts.env.obs[n]))
+    return trainer, jax.device_get(ts), np.stack(after), frozen
+
+
+def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_episode(two_episodes):
+    trainer, ts, after, frozen = two_episodes
+    horizon, gamma, lam = 6, 0.9, -0.5
+    assert trainer.onpolicy_size == (1, horizon)
+    frames, actions, predict_fn = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    assert frames.shape == (1, horizon, SIZE, SIZE, 3) and frames.dtype == jnp.uint8
+    frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
+    # The environment's own stacks: the reset frame three times, then each step's observation after the last.
+    naive = np.stack([np.tile(frames[0], (1, 1, 3)), *after[: horizon - 1]])
+    np.testing.assert_array_equal(naive[1:, ..., -3:], frames[1:])  # the kept frames are the newest ones
+    np.testing.assert_array_equal(frame_replay.episode_stacks(frames[None], STACK)[0], naive)  # rebuilt stacks
+    # The actions are the mean actions of the policy frozen at the episode's start, on those stacks.
+    expected = trainer._mean_action(frozen, jnp.asarray(naive))
+    np.testing.assert_allclose(actions, np.asarray(expected), rtol=1e-5, atol=1e-6)
+    # V: each member's own apply on each step, looped in Python, discounted over the horizon.
+    (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))
+    loss, metrics = term(ts.reward.params, None, jax.random.key(2))
+    net = pixel_reward.network(REWARD)
+    values = []
+    for m in range(REWARD.ensemble_size):
+        member = jax.tree.map(lambda x, m=m: x[m], ts.reward.params)
+        values.append(sum(gamma**h * float(net.apply(member, naive[h], actions[h])) for h in range(horizon)))
+    np.testing.assert_allclose(float(loss), lam * sum(values), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(metrics["agent_value"]), np.mean(values), rtol=1e-5, atol=1e-6)
+    # The same V from the frames through the shared agent_value.
+    got = agent_preference.agent_value(
+        REWARD, ts.reward.params, frames[None], actions[None], gamma, "discounted", predict_fn
+    )
+    np.testing.assert_allclose(np.asarray(got), values, rtol=1e-5, atol=1e-6)
+
+
+def test_pixel_onpolicy_value_gradients_reach_only_the_reward_parameters(two_episodes):
+    trainer, ts, _, _ = two_episodes
+    frames, actions, predict_fn = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    params = ts.reward.params
+
+    def loss_of(p, frames, actions):
+        term = agent_preference.agent_value_term(REWARD, -0.5, frames, actions, 0.9, predict_fn=predict_fn)
+        return term(p, None, None)[0]
+
+    grads = jax.grad(loss_of, argnums=(0, 1, 2))(params, frames.astype(jnp.float32), actions)
+    assert all(np.any(np.asarray(g)) for g in jax.tree.leaves(grads[0]))  # every reward leaf moves
+    assert not np.any(np.asarray(grads[1])) and not np.any(np.asarray(grads[2]))  # the episode stays fixed
+
+
+def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
+    """``rebel.form penalty`` with ``rebel.normalize`` on pixels: ``lambda * sum_m (V*_m - V_m) / s_m``."""
+    _, ts, after, _ = two_episodes
+    ts = jax.tree.map(jnp.asarray, ts)
+    cfg = dataclasses.replace(
+        ONPOLICY, rebel=dataclasses.replace(ONPOLICY.rebel, form="penalty", normalize=True, best_segments=2)
+    )
+    trainer = PixelTrainer(cfg)
+    horizon, gamma, lam, h = 6, 0.9, -0.5, MICRO.query.segment_length
+    rng = np.random.default_rng(8)
+    pairs = 3
+    starts = rng.integers(0, 2, (2, pairs)) * trainer.episode_length + rng.integers(0, 10 - h + 1, (2, pairs))
+    envs = rng.integers(0, ENVS, (2, pairs))
+    seg_a = SegmentPlaces(jnp.asarray(starts[0], jnp.int32), jnp.asarray(envs[0], jnp.int32))
+    seg_b = SegmentPlaces(jnp.asarray(starts[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
+    reward = pixel_reward.add_labels(ts.reward, seg_a, seg_b, jnp.ones(pairs), jnp.ones(pairs))
+    ts = ts.replace(reward=reward)
+    params, buffer = ts.reward.params, ts.buffer
+    members = REWARD.ensemble_size
+    # A BT minibatch: every member on the three pairs; its per-step rewards give the spread.
+    tile = lambda x: jnp.tile(x[None], (members, 1))  # noqa: E731
+    seg_m = [SegmentPlaces(tile(s.row), tile(s.env)) for s in (seg_a, seg_b)]
+    _, bt = pixel_reward.bt_loss(
+        REWARD, params, buffer, *seg_m, jnp.ones((members, pairs)), jnp.ones((members, pairs)), h
+    )
+    (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))
+    loss, metrics = term(params, bt, jax.random.key(2))
+
+    net = pixel_reward.network(REWARD)
+    member = [jax.tree.map(lambda x, m=m: x[m], params) for m in range(members)]
+
+    def step_rewards(m, row, env, length):
+        obs = frame_replay.row_stacks(buffer, jnp.arange(row, row + length), jnp.int32(env))
+        return np.asarray(net.apply(member[m], obs, buffer.action[row : row + length, env]))
+
+    frames, actions, _ = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
+    naive = np.stack([np.tile(frames[0], (1, 1, 3)), *after[: horizon - 1]])
+    segments = [(int(starts[s, i]), int(envs[s, i])) for s in range(2) for i in range(pairs)]
+    mean_return = [np.mean([step_rewards(m, r, e, h).sum() for m in range(members)]) for r, e in segments]
+    best = [segments[i] for i in np.argsort(mean_return)[::-1][:2]]
+    expected = 0.0
+    for m in range(members):
+        value = sum(gamma**t * float(net.apply(member[m], naive[t], actions[t])) for t in range(horizon))
+        per_step = np.mean(np.concatenate([step_rewards(m, r, e, h) for r, e in best]))
+        optimal = per_step * sum(gamma**t for t in range(horizon))
+        labelled = np.concatenate([step_rewards(m, r, e, h) for r, e in segments])
+        expected += (optimal - value) / np.std(labelled)
+    np.testing.assert_allclose(float(loss), lam * expected, rtol=1e-4, atol=1e-6)
+    assert np.isfinite(float(metrics["optimal_value"]))

@@ -48,10 +48,22 @@ class AgentPreferenceConfig:
     """Where V's trajectories come from. ``onpolicy``, the paper's ``V = E[sum_h gamma^h
     r(s_h, a_h) | s_0, a_h ~ pi]`` (eq. "mle_new"): the last complete episodes of the in-batch
     evaluation environments, which start at the task's reset and follow the current policy
-    (its mean action, frozen at the episode start), over their whole length, at no extra env
-    cost. ``replay``, this project's earlier estimate: ``num_segments`` segments of
+    (its mean action, frozen at the episode start), over their first ``horizon`` steps (``episodes``
+    of them), at no extra env cost; on pixel tasks their newest frames are kept and the stacks
+    rebuilt (``pixel_train``). ``replay``, this project's earlier estimate: ``num_segments`` segments of
     ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
     with actions redrawn from the current policy."""
+    episodes: int = 0
+    """``source='onpolicy'``: evaluation episodes V averages over, the first of ``train.eval_episodes``.
+    0: all of them on a state task, ``PIXEL_EPISODES`` (2) on a pixel task (see ``horizon``)."""
+    horizon: int = 0
+    """``source='onpolicy'``: agent steps T from the reset that V sums over, the first T steps of each
+    evaluation episode (at most the episode). 0: the whole episode on a state task, ``PIXEL_HORIZON``
+    (100) on a pixel task. On pixels every one of the ``episodes x T`` steps is a frame stack that the 3
+    encoders score with gradients in every reward step: 100 x 2 is 600 encoder passes, an eighth of the
+    BT minibatch's 4,800, where a whole walker episode (500) of all 10 evaluation episodes would be
+    15,000 (about 15 GB of float32 activations per seed at 84x84). The kept frames cost
+    ``2 x episodes x T x 21,168`` bytes per seed at 84x84 (8.5 MB at 2 x 100; 212 MB at 10 x 500)."""
     num_segments: int = 64
     """``source='replay'``: segments N of recent agent experience, drawn once per feedback session,
     over which V is averaged (their actions redrawn from the current policy)."""
@@ -83,10 +95,31 @@ class AgentPreferenceConfig:
         _check(self.form in ("lower_bound", "penalty"), "rebel.form", self.form, "lower_bound, penalty")
         for name in ("num_segments", "segment_length", "best_segments"):
             _check(getattr(self, name) >= 1, f"rebel.{name}", getattr(self, name), ">= 1")
+        for name in ("episodes", "horizon"):
+            _check(getattr(self, name) >= 0, f"rebel.{name}", getattr(self, name), ">= 0 (0: the task's default)")
         if self.estimator == "mean":
             _check(0 <= self.gamma < 1, "rebel.gamma", self.gamma, "[0, 1) with estimator 'mean'")
         else:
             _check(0 <= self.gamma <= 1, "rebel.gamma", self.gamma, "[0, 1]")
+
+    def onpolicy_size(self, eval_episodes: int, episode_length: int, pixels: bool) -> tuple[int, int]:
+        """``(episodes, horizon)`` of the on-policy trajectories: the settings, or the task's defaults for 0.
+
+        Args:
+          eval_episodes: evaluation environments of the trainer.
+          episode_length: agent steps per episode.
+          pixels: whether the task observes frame stacks (smaller defaults, see ``horizon``).
+        """
+        episodes = self.episodes or (min(PIXEL_EPISODES, eval_episodes) if pixels else eval_episodes)
+        horizon = self.horizon or (min(PIXEL_HORIZON, episode_length) if pixels else episode_length)
+        return episodes, horizon
+
+
+PIXEL_EPISODES = 2
+"""``rebel.episodes`` 0 on a pixel task: evaluation episodes of the on-policy V."""
+PIXEL_HORIZON = 100
+"""``rebel.horizon`` 0 on a pixel task: agent steps of the on-policy V (with gamma 0.99, 64% of the
+discount weight of a 500-step walker episode)."""
 
 
 def agent_value(
@@ -109,8 +142,8 @@ def agent_value(
       estimator: ``"discounted"``: ``mean_n sum_h gamma^h r_m(s_nh, a_nh)``; ``"mean"``:
         ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
       predict_fn: ``(params, obs, action) -> (M, N, H)`` members' rewards; default the state ensemble's
-        ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are replay places (row, env)
-        that it turns into frame stacks (:mod:`rebel_jax.pixel_reward`).
+        ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are the on-policy episodes'
+        kept frames, or replay places (row, env), that it turns into frame stacks (``pixel_train``).
 
     Returns:
       (M,) values ``V_m``.
@@ -123,18 +156,25 @@ def agent_value(
     return jnp.mean(jnp.sum(rewards * discounts, axis=-1), axis=1)
 
 
+def reward_spread(rewards_a: jax.Array, rewards_b: jax.Array, weight: jax.Array) -> jax.Array:
+    """(M,) each member's std of the per-step reward over the steps of its labelled pairs (>= 1e-6).
+
+    Args:
+      rewards_a, rewards_b: (M, B, H) member m's per-step rewards on both segments of its pairs.
+      weight: (M, B) or (B,) 1 for real pairs, 0 for padding.
+    """
+    rewards = jnp.concatenate([rewards_a, rewards_b], axis=1)  # (M, 2B, H)
+    w = jnp.broadcast_to(jnp.concatenate([weight, weight], axis=-1)[..., None], rewards.shape)
+    total = jnp.maximum(jnp.sum(w, axis=(1, 2)), 1.0)
+    mean = jnp.sum(rewards * w, axis=(1, 2)) / total
+    var = jnp.sum(w * (rewards - mean[:, None, None]) ** 2, axis=(1, 2)) / total
+    return jnp.maximum(jnp.sqrt(var), 1e-6)
+
+
 def _labelled_spread(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
-    """(M,) each member's std of the per-step reward over its minibatch's labelled steps (>= 1e-6)."""
-
-    def one(member_params, obs_a, act_a, obs_b, act_b, weight):
-        apply = network(cfg).apply
-        rewards = jnp.concatenate([apply(member_params, obs_a, act_a), apply(member_params, obs_b, act_b)], axis=0)
-        w = jnp.broadcast_to(jnp.concatenate([weight, weight])[:, None], rewards.shape)
-        mean = jnp.sum(rewards * w) / jnp.maximum(jnp.sum(w), 1.0)
-        var = jnp.sum(w * (rewards - mean) ** 2) / jnp.maximum(jnp.sum(w), 1.0)
-        return jnp.maximum(jnp.sqrt(var), 1e-6)
-
-    return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, batch.weight)
+    """(M,) :func:`reward_spread` of the state ensemble on a minibatch's labelled segments."""
+    apply = jax.vmap(network(cfg).apply)
+    return reward_spread(apply(params, batch.obs_a, batch.act_a), apply(params, batch.obs_b, batch.act_b), batch.weight)
 
 
 def agent_value_term(
@@ -146,6 +186,7 @@ def agent_value_term(
     estimator: str = "discounted",
     normalize: bool = False,
     predict_fn: Callable | None = None,
+    spread_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
 
@@ -168,7 +209,10 @@ def agent_value_term(
         labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
         BT loss fixes the reward's scale only up to what the labels demand, so with it one
         lambda weighs V alike on tasks whose learned rewards spread differently.
-      predict_fn: as :func:`agent_value` (``normalize`` needs the state ensemble).
+      predict_fn: as :func:`agent_value`.
+      spread_fn: ``(params, batch) -> (M,)`` the spread ``s_m`` of ``normalize``; default the state
+        ensemble's on a :class:`PrefBatch`. The pixel trainer passes :func:`reward_spread` of the per-step
+        rewards its BT term computed (``batch`` is then that term's metrics).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
@@ -184,7 +228,8 @@ def agent_value_term(
         obs_fixed, action_fixed = jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action)
         values = agent_value(cfg, params, obs_fixed, action_fixed, gamma, estimator, predict_fn)
         if normalize:
-            values = values / jax.lax.stop_gradient(_labelled_spread(cfg, params, batch))
+            spread = (spread_fn or functools.partial(_labelled_spread, cfg))(params, batch)
+            values = values / jax.lax.stop_gradient(spread)
         loss = lam * jnp.sum(values)
         return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
 
@@ -216,8 +261,15 @@ def best_segments(cfg: RewardConfig, params: Any, data: LabelData, k: int) -> tu
     action = jnp.concatenate([data.act_a, data.act_b])
     filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
     returns = jnp.sum(mean_reward(cfg, params, obs, action), axis=-1)
-    _, index = jax.lax.top_k(jnp.where(filled, returns, -jnp.inf), min(k, obs.shape[0]))
-    return obs[index], action[index], filled[index].astype(obs.dtype)
+    index, valid = top_segments(returns, filled, k)
+    return obs[index], action[index], valid.astype(obs.dtype)
+
+
+def top_segments(returns: jax.Array, filled: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
+    """The ``min(k, S)`` segments of highest ``returns`` (S,) among the ``filled`` (S,) ones: ``(index, valid)``,
+    best first; empty slots never win and are marked invalid where fewer than ``k`` are filled."""
+    _, index = jax.lax.top_k(jnp.where(filled, returns, -jnp.inf), min(k, returns.shape[0]))
+    return index, filled[index]
 
 
 def optimal_value(
@@ -229,6 +281,7 @@ def optimal_value(
     gamma: float | jax.Array,
     estimator: str,
     horizon: int,
+    predict_fn: Callable | None = None,
 ) -> jax.Array:
     """Each member's estimate of ``V(pi*(nu))``: the best segments' mean reward, sustained over the horizon.
 
@@ -248,12 +301,14 @@ def optimal_value(
       gamma: discount.
       estimator: ``"discounted"`` or ``"mean"``.
       horizon: steps T of the discounted sum.
+      predict_fn: as :func:`agent_value` (the pixel trainer's ``obs`` are replay places).
 
     Returns:
       (M,) values.
     """
     _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-    rewards = predict(cfg, params, obs, action)  # (M, K, H)
+    rewards = (predict_fn or functools.partial(predict, cfg))(params, obs, action)  # (M, K, H)
+    valid = valid.astype(rewards.dtype)
     weight = jnp.broadcast_to(valid[:, None], rewards.shape[1:])
     per_step = jnp.sum(rewards * weight, axis=(1, 2)) / jnp.maximum(jnp.sum(weight), 1.0)
     if estimator == "mean":
@@ -272,6 +327,9 @@ def value_gap_term(
     gamma: float | jax.Array,
     estimator: str = "discounted",
     normalize: bool = False,
+    predict_fn: Callable | None = None,
+    best_predict_fn: Callable | None = None,
+    spread_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's un-relaxed penalty ``lambda * sum_m (V*_m - V_m)`` (the paper's eq. "bilevel_rlhf_fo").
 
@@ -297,6 +355,9 @@ def value_gap_term(
       estimator: ``"discounted"`` or ``"mean"``; ``V*`` is summed over T steps (``discounted``).
       normalize: divide both values by each member's spread of the per-step reward on the
         batch's labelled segments, as ``agent_value_term``.
+      predict_fn: the members' rewards on ``obs`` (:func:`agent_value`); default the state ensemble's.
+      best_predict_fn: the same on ``best_obs`` (:func:`optimal_value`); default the state ensemble's.
+      spread_fn: ``normalize``'s spread, as :func:`agent_value_term`.
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (mean V),
@@ -311,12 +372,20 @@ def value_gap_term(
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
-        values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator)
+        values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator, predict_fn)
         best = optimal_value(
-            cfg, params, fixed(best_obs), fixed(best_action), fixed(best_valid), gamma, estimator, horizon
+            cfg,
+            params,
+            fixed(best_obs),
+            fixed(best_action),
+            fixed(best_valid),
+            gamma,
+            estimator,
+            horizon,
+            best_predict_fn,
         )
         if normalize:
-            spread = fixed(_labelled_spread(cfg, params, batch))
+            spread = fixed((spread_fn or functools.partial(_labelled_spread, cfg))(params, batch))
             values, best = values / spread, best / spread
         loss = lam * jnp.sum(best - values)
         return loss, {"agent_value": jnp.mean(values), "optimal_value": jnp.mean(best), "agent_term": loss}

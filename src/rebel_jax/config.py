@@ -275,11 +275,6 @@ class Config:
             self.drqv2.validate()
             if self.preference:
                 self.pixel_reward.validate()
-            if self.algo == "rebel":  # On pixels: V on replay segments, the literal lower bound, not normalised.
-                rebel = self.rebel
-                _check(rebel.source == "replay", "rebel.source", rebel.source, "replay on a pixel task")
-                _check(rebel.form == "lower_bound", "rebel.form", rebel.form, "lower_bound on a pixel task")
-                _check(not rebel.normalize, "rebel.normalize", rebel.normalize, "False on a pixel task")
             every, envs = self.drqv2.update_every, self.env.num_envs
             _check(
                 envs % every == 0 or every % envs == 0,
@@ -298,8 +293,14 @@ class Config:
                 length = self.rebel.segment_length
                 if self.rebel.source == "replay":
                     _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
-                elif not pixels:
-                    self._check_complete_episode("rebel.source='onpolicy'", "V's episodes", "--rebel.source replay")
+                else:
+                    episodes = self.rebel.episodes
+                    _check(episodes <= self.train.eval_episodes, "rebel.episodes", episodes, "<= train.eval_episodes")
+                    if not pixels:  # PixelTrainer checks in agent steps
+                        horizon = self.rebel.horizon
+                        _check(horizon <= self.env.episode_length, "rebel.horizon", horizon, "<= env.episode_length")
+                        what, other = "V's episodes", "--rebel.source replay"
+                        self._check_complete_episode("rebel.source='onpolicy'", what, other)
             if self.query.pool == "episodes" and not pixels:  # PixelTrainer checks in agent steps
                 self._check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
             steps = self.train.steps_per_round

@@ -217,13 +217,39 @@ def valid_rows(buffer: FrameBuffer, nstep: int) -> jax.Array:
     return written & complete & same_episode
 
 
+def stack_rows(newest: jax.Array, episode_step: jax.Array, stack: int) -> jax.Array:
+    """(..., stack) frame rows of the stacks whose newest frame is row ``newest`` (...), ``episode_step``
+    agent steps after the reset (oldest first; clamped to the reset frame, as the environment's stack is)."""
+    back = jnp.arange(stack - 1, -1, -1)
+    return newest[..., None] - jnp.minimum(back, episode_step[..., None])
+
+
+def channel_stack(frames: jax.Array) -> jax.Array:
+    """(..., stack, H, W, 3) frames -> (..., H, W, 3 * stack) stacks, oldest frame's channels first."""
+    frames = jnp.moveaxis(frames, -4, -2)  # (..., H, W, stack, 3)
+    return frames.reshape(*frames.shape[:-2], -1)
+
+
 def _stacks(buffer: FrameBuffer, newest: jax.Array, episode_step: jax.Array, env: jax.Array) -> jax.Array:
     """(B, H, W, 3 * stack) stacks whose newest frame is row ``newest``, ``episode_step`` frames after the reset."""
-    back = jnp.arange(buffer.stack - 1, -1, -1)  # oldest first
-    rows = (newest[:, None] - jnp.minimum(back[None], episode_step[:, None])) % buffer.frame_rows
-    frames = buffer.frames[rows, env[:, None]]  # (B, stack, H, W, 3)
-    frames = jnp.moveaxis(frames, 1, -2)  # (B, H, W, stack, 3)
-    return frames.reshape(*frames.shape[:-2], -1)
+    rows = stack_rows(newest, episode_step, buffer.stack) % buffer.frame_rows
+    return channel_stack(buffer.frames[rows, env[:, None]])  # frames (B, stack, H, W, 3)
+
+
+def episode_stacks(frames: jax.Array, stack: int) -> jax.Array:
+    """The observation stacks of episodes kept as their newest frames from the reset on.
+
+    Args:
+        frames: (N, T, H, W, 3) uint8, frame h the newest frame of the observation at agent step h
+            (frame 0 the reset frame), as REBEL's on-policy store keeps them (``pixel_train``).
+        stack: frames per observation.
+
+    Returns:
+        (N, T, H, W, 3 * stack) stacks, as the environment built them (the reset frame repeated at first).
+    """
+    steps = jnp.arange(frames.shape[1])
+    rows = stack_rows(steps, steps, stack)  # (T, stack)
+    return channel_stack(frames[:, rows])
 
 
 def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamma: float) -> PixelTransition:

@@ -317,19 +317,20 @@ def append_places(
     )
 
 
-def member_logits(
+def member_step_pairs(
     cfg: PixelRewardConfig,
     params: Any,
     buffer: frame_replay.FrameBuffer,
     seg_a: SegmentPlaces,
     seg_b: SegmentPlaces,
     horizon: int,
-) -> jax.Array:
-    """(M, B) logits ``G_m(b) - G_m(a)`` of member m on its own pairs (fields of ``seg_*`` are (M, B))."""
+) -> tuple[jax.Array, jax.Array]:
+    """(M, B, H) each member's per-step rewards on both segments of its own pairs (fields of ``seg_*`` are (M, B))."""
 
     def one(member_params, a, b):
-        return member_returns(cfg, member_params, buffer, b, horizon) - member_returns(
-            cfg, member_params, buffer, a, horizon
+        return (
+            member_step_rewards(cfg, member_params, buffer, a, horizon),
+            member_step_rewards(cfg, member_params, buffer, b, horizon),
         )
 
     return jax.vmap(one)(params, seg_a, seg_b)
@@ -357,22 +358,19 @@ def bt_loss(
     summed over members (SURF steps them one after another). ``labels`` and ``weight`` are (M, B).
 
     Returns:
-        The loss and ``{"bt_loss", "bt_accuracy", "logits"}``.
+        The loss and ``{"bt_loss", "bt_accuracy", "logits", "rewards_a", "rewards_b", "weight"}``: the
+        members' per-step rewards on their pairs (M, B, H), uncropped, and the pairs' weights, which
+        REBEL's ``rebel.normalize`` reads (:func:`rebel_jax.agent_preference.reward_spread`).
     """
+    rewards_a, rewards_b = member_step_pairs(cfg, params, buffer, seg_a, seg_b, horizon)
     if crop:
         mask_a, mask_b = surf.crop_masks(key, labels.shape, horizon, crop)
-
-        def one(member_params, a, b, m_a, m_b):
-            reward_a = member_step_rewards(cfg, member_params, buffer, a, horizon)
-            reward_b = member_step_rewards(cfg, member_params, buffer, b, horizon)
-            return jnp.sum(reward_b * m_b, -1) - jnp.sum(reward_a * m_a, -1)
-
-        logits = jax.vmap(one)(params, seg_a, seg_b, mask_a, mask_b)
+        logits = jnp.sum(rewards_b * mask_b, -1) - jnp.sum(rewards_a * mask_a, -1)
     else:
-        logits = member_logits(cfg, params, buffer, seg_a, seg_b, horizon)
+        logits = jnp.sum(rewards_b, -1) - jnp.sum(rewards_a, -1)
     batch = reward_model.PrefBatch(None, None, None, None, labels=labels, weight=weight)
     loss, metrics = reward_model.bt_term(logits, batch)
-    return loss, dict(metrics, logits=logits)
+    return loss, dict(metrics, logits=logits, rewards_a=rewards_a, rewards_b=rewards_b, weight=weight)
 
 
 @flax.struct.dataclass
@@ -399,8 +397,9 @@ def train_epoch(
     reading slots ``perm_m[i B : (i + 1) B]``; the accuracy counts each minibatch's hard labels right
     before its step, over all stored labels (0.5 labels do not count).
 
-    ``terms`` are further loss terms ``(params, key) -> (loss, metrics)`` added to the BT term at every
-    step (REBEL's ``lambda * V``, :func:`rebel_jax.agent_preference.agent_value_term` with pixel rewards).
+    ``terms`` are further loss terms ``(params, batch, key) -> (loss, metrics)`` added to the BT term at
+    every step, ``batch`` being the BT term's metrics (:func:`bt_loss`): REBEL's ``lambda * V``
+    (:func:`rebel_jax.agent_preference.agent_value_term` with pixel rewards), SURF's pseudo-labels.
 
     Returns:
         The state and ``{"accuracy", "loss"}`` (mean loss over the minibatches).
@@ -420,7 +419,7 @@ def train_epoch(
         key_crop, key_terms = jax.random.split(step_key)
         loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon, crop, key_crop)
         for i, term in enumerate(terms):
-            term_loss, _ = term(params, jax.random.fold_in(key_terms, i))
+            term_loss, _ = term(params, metrics, jax.random.fold_in(key_terms, i))
             loss = loss + term_loss
         return loss, dict(metrics, loss=loss)
 
@@ -514,12 +513,13 @@ def pseudo_label_term(
     on the pairs at or above ``surf.threshold`` (pixel_reward_model_semi.py:291-301).
 
     Returns:
-        ``(params, key) -> (loss, metrics)``.
+        ``(params, batch, key) -> (loss, metrics)``.
     """
     c = surf_cfg.crop
     central = slice(c, horizon - c)
 
-    def loss_fn(params, key):
+    def loss_fn(params, batch, key):
+        del batch  # Unused.
         shape = (cfg.ensemble_size, surf_cfg.ratio * cfg.batch_size)
         key_index, key_crop = jax.random.split(key)
         index = jax.random.randint(key_index, shape, 0, jnp.maximum(pool.count, 1))

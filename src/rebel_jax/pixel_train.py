@@ -53,7 +53,7 @@ from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
 from rebel_jax.queries import Segments
-from rebel_jax.train import EpisodeStats, _all_finite, reward_training_metrics
+from rebel_jax.train import EpisodeStats, _all_finite, init_trajectory, record_trajectory, reward_training_metrics
 
 PIXEL_SESSION_METRICS = (
     "session",
@@ -91,6 +91,12 @@ class PixelTrainState:
       reward: the pixel reward ensemble and its labels (``--algo pebble``; None for drqv2).
       teacher: the scripted teacher's knobs (``teachers.knobs``), traced (None for drqv2).
       lam: () REBEL's signed lambda, traced so that a sweep can vmap over it (None unless rebel).
+      eval_trajectory: REBEL's on-policy V (``rebel.source='onpolicy'``; else None): the first
+        ``rebel.episodes`` evaluation environments' newest frames and actions over the first
+        ``rebel.horizon`` agent steps T of their episodes (:func:`rebel_jax.train.record_trajectory`),
+        ``current`` being written and ``last`` the last complete one, each ``{"frame": (T, episodes, H, W,
+        3) uint8, "action": (T, episodes, A)}``; the stacks are rebuilt from the frames
+        (:func:`rebel_jax.frame_replay.episode_stacks`).
     """
 
     sac: DrQV2State
@@ -102,6 +108,7 @@ class PixelTrainState:
     reward: pixel_reward.PixelRewardState | None = None
     teacher: dict | None = None
     lam: jax.Array | None = None
+    eval_trajectory: dict | None = None
 
 
 def policy_of(agent_state: DrQV2State) -> dict:
@@ -134,16 +141,19 @@ class PixelTrainer:
             sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
             self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0
             ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
-            ok = ok and (cfg.algo != "rebel" or cfg.rebel.segment_length <= self.episode_length)
+            value_length = cfg.rebel.segment_length if cfg.rebel.source == "replay" else cfg.rebel.horizon
+            ok = ok and (cfg.algo != "rebel" or value_length <= self.episode_length)
             if not ok:
                 raise ValueError(
                     f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
-                    f"rebel.segment_length) <= {self.episode_length} agent steps per "
+                    f"rebel.segment_length, rebel.horizon) <= {self.episode_length} agent steps per "
                     f"episode and a complete episode before the first session (train.seed_steps / num_envs = "
                     f"{cfg.feedback_start // self.num_train} vector steps)"
                 )
         else:
             self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
+        self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
+        self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, self.episode_length, True)
         self.trace_count = 0
 
     def policy_params(self, ts: PixelTrainState) -> dict:
@@ -180,7 +190,11 @@ class PixelTrainer:
         if self.pool_capacity:
             reward = reward.replace(pool=pixel_reward.empty_places(self.pool_capacity))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
-        return ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
+        ts = ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
+        if self.onpolicy_value:
+            fields = {"frame": (shape[:2] + (3,), jnp.uint8), "action": ((self.env.action_size,), jnp.float32)}
+            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.onpolicy_size))
+        return ts
 
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
@@ -253,6 +267,11 @@ class PixelTrainer:
             lambda: (ts.sac, zeros),
         )
         ts = ts.replace(sac=agent, buffer=buffer, env=nxt, episodes=episodes)
+        if self.onpolicy_value:  # The evaluation environments' step: the newest frame acted on, the action.
+            first, end = self.num_train, self.num_train + self.onpolicy_size[0]
+            step = {"frame": env_state.obs[first:end, ..., -3:], "action": action[first:end]}
+            trajectory = record_trajectory(ts.eval_trajectory, step, t, self.episode_length)
+            ts = ts.replace(eval_trajectory=trajectory)
         return ts, dict(metrics, learning=learning.astype(jnp.float32))
 
     # -- feedback session (--algo pebble) --------------------------------------------------
@@ -339,7 +358,8 @@ class PixelTrainer:
                 rcfg, stored, ts.buffer, key_train, self.stored, terms, self.crop, scfg.reward_update, float("inf")
             )
         else:
-            terms = self._value_terms(ts, key_value, agent_step) if self.cfg.algo == "rebel" else ()
+            rebel = self.cfg.algo == "rebel"
+            terms = self._value_terms(ts.replace(reward=stored), key_value, agent_step) if rebel else ()
             trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
         buffer = frame_replay.relabel(
@@ -351,21 +371,36 @@ class PixelTrainer:
         metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
         return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
 
-    def _value_terms(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array) -> tuple:
-        """REBEL's ``lambda * V`` on pixels, through :func:`rebel_jax.agent_preference.agent_value_term`.
+    def value_trajectories(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array):
+        """REBEL's V trajectories on pixels (``rebel.source``): ``(obs, actions (N, T, A), predict_fn)``,
+        ``predict_fn(params, obs, actions) -> (M, N, T)`` the members' rewards (as
+        :meth:`rebel_jax.train.Trainer.value_trajectories`, with the stacks kept out of the closure).
 
-        V's trajectories are ``rebel.num_segments`` replay segments of ``rebel.segment_length`` steps
-        (``rebel.source replay``), drawn once per session from the query pool, with actions redrawn once
-        from the current DrQ-v2 policy (its exploration noise at ``agent_step``) and held fixed. The
-        term carries their places; the frames are gathered from the replay in every step of the
-        session (``pixel_reward.place_rewards``), so the term costs ``num_segments x segment_length``
-        stacks per step: keep ``rebel.num_segments`` small on pixels.
+        ``onpolicy`` (the paper's V): the first ``rebel.horizon`` agent steps of the last complete episodes
+        of ``rebel.episodes`` evaluation environments, which start at the task's reset and follow the mean
+        action of the DrQ-v2 policy frozen at the episode start; ``obs`` are their kept newest frames
+        (N, T, H, W, 3), whose stacks ``predict_fn`` rebuilds (:func:`rebel_jax.frame_replay.episode_stacks`).
+
+        ``replay``: ``rebel.num_segments`` replay segments of ``rebel.segment_length`` steps, drawn from the
+        query pool, with actions redrawn once from the current DrQ-v2 policy (its exploration noise at
+        ``agent_step``) and held fixed; ``obs`` are their places (N, T, 2) = (row, env), whose frames
+        ``predict_fn`` gathers from the replay (``pixel_reward.place_rewards``).
+
+        Either way ``predict_fn`` runs in every step of the session: ``N x T`` stacks per member and step.
         """
-        rebel = self.cfg.rebel
+        rebel, rcfg, buffer = self.cfg.rebel, self.cfg.pixel_reward, ts.buffer
+        if self.onpolicy_value:
+            last = ts.eval_trajectory["last"]
+            stack = self.env.frames
+
+            def episode_rewards(params, frames, action):
+                return pixel_reward.predict(rcfg, params, frame_replay.episode_stacks(frames, stack), action)
+
+            return jnp.swapaxes(last["frame"], 0, 1), jnp.swapaxes(last["action"], 0, 1), episode_rewards
         key_segments, key_actions = jax.random.split(key)
         places = pixel_reward.sample_segments(
             key_segments,
-            ts.buffer,
+            buffer,
             rebel.num_segments,
             rebel.segment_length,
             self.episode_length,
@@ -376,20 +411,59 @@ class PixelTrainer:
 
         def act(inputs):
             row, env, key = inputs
-            return self.agent.act(ts.sac, frame_replay.row_stacks(ts.buffer, row, env), key, agent_step)
+            return self.agent.act(ts.sac, frame_replay.row_stacks(buffer, row, env), key, agent_step)
 
         keys = jax.random.split(key_actions, rebel.num_segments)
         actions = jax.lax.map(act, (rows, envs, keys))  # one segment's stacks at a time
-        where = jnp.stack([rows, envs], axis=-1)
-        rcfg, buffer = self.cfg.pixel_reward, ts.buffer
+        return jnp.stack([rows, envs], axis=-1), actions, self._place_rewards(buffer)
+
+    def _place_rewards(self, buffer: frame_replay.FrameBuffer):
+        rcfg = self.cfg.pixel_reward
 
         def predict_fn(params, place, action):
             return pixel_reward.place_rewards(rcfg, params, buffer, place, action)
 
-        term = agent_preference.agent_value_term(
-            rcfg, ts.lam, where, actions, rebel.gamma, rebel.estimator, False, predict_fn
+        return predict_fn
+
+    def _value_terms(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array) -> tuple:
+        """REBEL's term on pixels (``rebel.form``), through :mod:`rebel_jax.agent_preference` as on state tasks.
+
+        ``lower_bound``: ``lambda * V`` (:func:`~rebel_jax.agent_preference.agent_value_term`) on
+        :meth:`value_trajectories`. ``penalty``: ``lambda * (V* - V)``
+        (:func:`~rebel_jax.agent_preference.value_gap_term`), ``V*`` from the ``rebel.best_segments``
+        labelled segments (places, both sides of every stored pair) of highest ensemble-mean learned return
+        under the parameters at the session's start, with their stored actions; their
+        ``best_segments x segment_length`` stacks are gathered and scored in every step. ``rebel.normalize``
+        divides by :func:`~rebel_jax.agent_preference.reward_spread` of the per-step rewards the BT term
+        computed on the minibatch (no extra encoder pass).
+
+        Args:
+          ts: the state, its label store holding this session's labels.
+        """
+        rebel, rcfg = self.cfg.rebel, self.cfg.pixel_reward
+        obs, actions, predict_fn = self.value_trajectories(ts, key, agent_step)
+
+        def spread_fn(params, bt):
+            del params  # Unused: the BT term's rewards are the parameters' already.
+            return agent_preference.reward_spread(bt["rewards_a"], bt["rewards_b"], bt["weight"])
+
+        common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn, spread_fn=spread_fn)
+        if rebel.form == "lower_bound":
+            return (agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, rebel.gamma, **common),)
+        data, buffer, h = ts.reward.data, ts.buffer, self.horizon
+        both = pixel_reward.SegmentPlaces(
+            row=jnp.concatenate([data.row_a, data.row_b]), env=jnp.concatenate([data.env_a, data.env_b])
         )
-        return (lambda params, key: term(params, None, key),)
+        filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
+        returns = jnp.mean(pixel_reward.ensemble_returns(rcfg, ts.reward.params, buffer, both, h), axis=0)
+        index, valid = agent_preference.top_segments(returns, filled, rebel.best_segments)
+        rows = pixel_reward.segment_rows(both.row[index], h)
+        envs = jnp.broadcast_to(both.env[index][:, None], rows.shape)
+        best = (jnp.stack([rows, envs], axis=-1), buffer.action[rows, envs], valid)
+        term = agent_preference.value_gap_term(
+            rcfg, ts.lam, obs, actions, *best, rebel.gamma, best_predict_fn=self._place_rewards(buffer), **common
+        )
+        return (term,)
 
     def _reset_critic(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step):
         """A fresh critic, then ``pretrain.reset_updates`` DrQ-v2 updates (pixel_train_PEBBLE.py:413-420)."""

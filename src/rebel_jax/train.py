@@ -137,10 +137,11 @@ class TrainState:
         (``cfg.teacher`` at init; None for sac).
       eval_actor: the actor parameters the evaluation environments follow, frozen at the
         start of each episode.
-      eval_trajectory: REBEL's on-policy V (``rebel.source='onpolicy'``; else None): the
-        evaluation environments' observations and actions, ``current`` being written and
-        ``last`` the last complete episode, each ``{"obs": (L, eval_episodes, obs_size),
-        "action": (L, eval_episodes, act_size)}``.
+      eval_trajectory: REBEL's on-policy V (``rebel.source='onpolicy'``; else None): the first
+        ``rebel.episodes`` evaluation environments' observations and actions over the first
+        ``rebel.horizon`` steps T of their episodes (:func:`record_trajectory`), ``current`` being
+        written and ``last`` the last complete one, each ``{"obs": (T, episodes, obs_size),
+        "action": (T, episodes, act_size)}``.
     """
 
     sac: SACState
@@ -193,6 +194,7 @@ class Trainer:
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
+        self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, cfg.env.episode_length, False)
 
     def policy_params(self, ts: TrainState):
         """What :meth:`evaluate` takes: the actor's parameters."""
@@ -225,12 +227,8 @@ class Trainer:
         stats = pretrain.init_stats(self.cfg.pretrain.running_std)
         ts = ts.replace(key=key, reward=reward, entropy_stats=stats, lam=lam, teacher=teacher)
         if self.onpolicy_value:
-            length, num_eval = self.cfg.env.episode_length, self.cfg.train.eval_episodes
-            episode = {
-                "obs": jnp.zeros((length, num_eval, obs_size)),
-                "action": jnp.zeros((length, num_eval, action_size)),
-            }
-            ts = ts.replace(eval_trajectory={"current": episode, "last": episode})
+            fields = {"obs": ((obs_size,), jnp.float32), "action": ((action_size,), jnp.float32)}
+            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.onpolicy_size))
         return ts
 
     def _qpos_size(self) -> int:
@@ -323,21 +321,13 @@ class Trainer:
             phase = jnp.where(learning & (t < self.pretrain_steps), 2, phase)  # 2: unsupervised pre-training
         (sac_state, stats), metrics = jax.lax.switch(phase, branches)
         ts = ts.replace(sac=sac_state, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
-        if self.onpolicy_value:
-            ts = ts.replace(eval_trajectory=self._record_evaluation(ts.eval_trajectory, env_state, action, t))
+        if self.onpolicy_value:  # The evaluation environments' step: the state acted in, the action.
+            first, end = self.num_train, self.num_train + self.onpolicy_size[0]
+            step = {"obs": env_state.obs[first:end], "action": action[first:end]}
+            trajectory = record_trajectory(ts.eval_trajectory, step, t, self.cfg.env.episode_length)
+            ts = ts.replace(eval_trajectory=trajectory)
         metrics = dict(metrics, learning=learning.astype(jnp.float32))
         return ts, metrics
-
-    def _record_evaluation(self, trajectory: dict, state: State, action: jax.Array, t: jax.Array) -> dict:
-        """Writes the evaluation environments' step ``t`` (the state acted in, the action); keeps a done episode."""
-        length, n = self.cfg.env.episode_length, self.num_train
-        step = t % length
-        current = {
-            "obs": trajectory["current"]["obs"].at[step].set(state.obs[n:]),
-            "action": trajectory["current"]["action"].at[step].set(action[n:]),
-        }
-        last = jax.lax.cond(step == length - 1, lambda: current, lambda: trajectory["last"])
-        return {"current": current, "last": last}
 
     # -- feedback session (preference methods) ---------------------------------------------
     def _central(self, seg: Segments) -> Segments:
@@ -380,9 +370,10 @@ class Trainer:
     def value_trajectories(self, ts: TrainState, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """REBEL's V trajectories (``rebel.source``): ``(obs (N, H, obs_size), actions (N, H, act_size))``.
 
-        ``onpolicy``: the evaluation environments' last complete episodes, N = ``eval_episodes``
-        and H = ``episode_length``. ``replay``: ``num_segments`` replay segments, actions redrawn
-        from the current policy (``a_h ~ pi_theta``, held fixed).
+        ``onpolicy``: the first ``rebel.horizon`` steps of the evaluation environments' last complete
+        episodes, N = ``rebel.episodes`` and H = ``rebel.horizon`` (by default all of them, whole).
+        ``replay``: ``num_segments`` replay segments, actions redrawn from the current policy
+        (``a_h ~ pi_theta``, held fixed).
         """
         if self.onpolicy_value:
             last = ts.eval_trajectory["last"]
@@ -594,6 +585,43 @@ class Trainer:
         keys = jax.random.split(key_actions, self.env.episode_length)
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
         return total.mean()
+
+
+def init_trajectory(fields: dict[str, tuple[tuple[int, ...], Any]], episodes: int, horizon: int) -> dict:
+    """An empty store of REBEL's on-policy trajectories (``TrainState.eval_trajectory``).
+
+    Args:
+      fields: name -> (shape of one environment's step, dtype), e.g. the state observation and the
+        action (:class:`Trainer`), or the newest frame and the action (the pixel trainer).
+      episodes: N, evaluation environments recorded.
+      horizon: T, steps recorded from each episode's reset.
+
+    Returns:
+      ``{"current": ..., "last": ...}``, each ``{name: (T, N, *shape)}`` zeros.
+    """
+    episode = {name: jnp.zeros((horizon, episodes, *shape), dtype) for name, (shape, dtype) in fields.items()}
+    return {"current": episode, "last": episode}
+
+
+def record_trajectory(trajectory: dict, step: dict[str, jax.Array], t: jax.Array, episode_length: int) -> dict:
+    """Writes the evaluation environments' step ``t`` into ``current``; copies it to ``last`` once complete.
+
+    The episode's step ``k = t mod episode_length`` goes to row k of each field while ``k < T`` (the
+    store's horizon; later steps are dropped), and at ``k = T - 1`` the T steps are copied to ``last``:
+    ``last`` holds the first T steps of the most recent evaluation episodes that have taken them. The copy
+    is a ``lax.cond`` on the unbatched ``t``, a real branch under ``vmap``.
+
+    Args:
+      trajectory: the store (:func:`init_trajectory`).
+      step: name -> (N, ...) this step's values, the state acted in and the action taken.
+      t: the vector-step index (unbatched; all episodes start together).
+      episode_length: agent steps per episode.
+    """
+    k = t % episode_length
+    horizon = jax.tree.leaves(trajectory["last"])[0].shape[0]
+    current = {name: trajectory["current"][name].at[k].set(value, mode="drop") for name, value in step.items()}
+    last = jax.lax.cond(k == horizon - 1, lambda: current, lambda: trajectory["last"])
+    return {"current": current, "last": last}
 
 
 def _all_finite(tree) -> jax.Array:
