@@ -11,6 +11,16 @@
 #   SET "surf500": PEBBLE+SURF at utd 1, likewise.
 #   SET "surf500bf16" (third session): the "surf500" job in bf16 (same seeds), to 500k;
 #   SET "pebble500bf16": the "pebble500" job in bf16 on five new seeds (--seed 1).
+# Planned for the next session (bf16, each fits one 30-minute machine by the bf16 round times of
+# BENCHMARKS.md; cheetah's settings are walker's carried over: neither B-Pref nor SURF publishes a
+# cheetah command, and the published cheetah figures are PPE's re-run):
+#   SET "pebble_cheetah1m" / "surf_cheetah1m": cheetah_run, 100 labels, 1M steps (~100k vector
+#       steps x (1.3 ms env + 10 bf16 updates) = about 21 min);
+#   SET "pebble1000": walker_walk PEBBLE with 1,000 labels (100 per session, B-Pref's
+#       scripts/walker_walk/1000/oracle/run_PEBBLE.sh), about 20 min;
+#   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
+#       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
+#       at 10 columns is not measured yet.
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
@@ -39,6 +49,16 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   surf500bf16)
     launch surf_walker_100_utd1_bf16 --preset paper --algo surf --task walker_walk --labels 100 --seeds 5 --precision bf16
+    wait; finish; exit 0 ;;
+  pebble_cheetah1m|surf_cheetah1m)
+    algo=${2%%_*}
+    launch ${algo}_cheetah_100_1m_bf16 --preset paper --algo $algo --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16
+    wait; finish; exit 0 ;;
+  pebble1000)
+    launch pebble_walker_1000_bf16 --preset paper --algo pebble --task walker_walk --labels 1000 --seeds 5 --precision bf16
+    wait; finish; exit 0 ;;
+  rebel_walker)
+    launch rebel_walker_100_lam${LAM:?set LAM}_bf16 --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --rebel.normalize --precision bf16 --seed 2
     wait; finish; exit 0 ;;
   pebble500bf16)
     launch pebble_walker_100_utd1_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1
