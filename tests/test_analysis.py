@@ -315,3 +315,45 @@ def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
         assert band.shape == (2, taus.size) and np.all(band[0] <= band[1])
         assert np.all((band >= 0) & (band <= 1))
     np.testing.assert_allclose(result["flat"][1], np.stack([result["flat"][0]] * 2))  # No spread, no band.
+
+
+def _baselines_module(monkeypatch):
+    """``experiments/baselines.py``, importable with its sibling ``analysis``."""
+    monkeypatch.syspath_prepend(str(_PATH.parent))
+    spec = importlib.util.spec_from_file_location("baselines", _PATH.parent / "baselines.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _fake_run(root: pathlib.Path, name: str, returns: list[float], changes: dict | None = None) -> dict:
+    """A run directory's ``config.json`` (only the settings ``pooled`` reads) and its table row."""
+    cfg = {"algo": "pebble", "sac": {"precision": "tf32", "utd": 1.0}, "train": {"seed": 0},
+           "feedback": {"labels": 100}, "rebel": {"lam": 0.0}}  # fmt: skip
+    for (group, key), value in (changes or {}).items():
+        cfg[group][key] = value
+    run = root / "runs" / "baselines" / name
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps(cfg))
+    x = np.asarray(returns)
+    return {"log": f"results/runs/baselines/{name}", "complete": True, "final_returns": returns,
+            "returns_at": {"500000": float(x.mean())}, "seeds": len(x), "precision": cfg["sac"]["precision"],
+            "seed": cfg["train"]["seed"], "device": "d", "date": "t", "jax": "j", "command": "c"}  # fmt: skip
+
+
+def test_baselines_pool_only_runs_that_differ_in_precision_and_seed(tmp_path, monkeypatch):
+    baselines = _baselines_module(monkeypatch)
+    monkeypatch.setattr(baselines, "RESULTS", tmp_path)
+    a = _fake_run(tmp_path, "a", [100.0, 300.0])
+    b = _fake_run(tmp_path, "b", [500.0, 700.0, 900.0], {("sac", "precision"): "bf16", ("train", "seed"): 1})
+    row = baselines.pooled("pooled", [a, b])
+    x = np.asarray([100.0, 300.0, 500.0, 700.0, 900.0])
+    assert row["seeds"] == 5 and row["final_returns"] == x.tolist()
+    assert row["mean"] == pytest.approx(x.mean(), abs=0.01) and row["std"] == pytest.approx(x.std(), abs=0.01)
+    assert row["returns_at"]["500000"] == pytest.approx(x.mean())  # seed-weighted, not the mean of means
+    assert row["precision"] == ["bf16", "tf32"] and row["seed"] == [0, 1]
+    c = _fake_run(tmp_path, "c", [1.0, 2.0], {("feedback", "labels"): 1000})
+    with pytest.raises(ValueError, match="feedback.*labels"):
+        baselines.pooled("pooled", [a, c])
+    with pytest.raises(ValueError, match="total_steps"):
+        baselines.pooled("pooled", [a, b | {"complete": False}])
