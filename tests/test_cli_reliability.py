@@ -208,8 +208,13 @@ def test_a_diverged_seed_stops_the_run_naming_it_then_continues_on_request(whole
 
 
 def _killed(run_dir: pathlib.Path, kill_at: str, *flags: str) -> str:
-    """Runs the CLI in a subprocess (with no XLA_FLAGS of its own) until it kills itself; returns its output."""
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    """Runs the CLI in a subprocess (without conftest's deadlock workaround) until it kills itself; returns its output.
+
+    The child keeps this process's other XLA flags (conftest's compile optimisation level): its
+    rounds must compute what this process's do, bit for bit.
+    """
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != cli.NO_CPU_DEADLOCK)
     env.update(
         PYTHONPATH=str(ROOT / "src"),
         JAX_COMPILATION_CACHE_DIR=str(jax.config.jax_compilation_cache_dir),
@@ -232,7 +237,7 @@ def test_a_run_killed_anywhere_resumes_to_the_same_result(whole, tmp_path, capsy
     output = _killed(run_dir, kill_at, *flags)
     assert "Failed to import" not in output  # MJX's warp messages go to logging
     meta = json.loads((run_dir / "meta.json").read_text())
-    assert cli.NO_CPU_DEADLOCK in meta["xla_flags"]  # set by the CLI itself: the child had no XLA_FLAGS
+    assert cli.NO_CPU_DEADLOCK in meta["xla_flags"]  # set by the CLI itself: the child's XLA_FLAGS lacked it
     assert not (run_dir / "final.json").exists()
     if kill_at.startswith("log"):
         assert _steps_on_disk(run_dir) == [] and len(_metrics(run_dir)) == 1
