@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,8 +13,16 @@ import optax
 import pytest
 
 from rebel_jax.config import SACConfig
-from rebel_jax.networks import Actor, sample_action
-from rebel_jax.sac import SAC, Transition, gradient_step, make_alpha_loss, update_flops
+from rebel_jax.networks import MLP, Actor, sample_action
+from rebel_jax.sac import (
+    SAC,
+    Transition,
+    gradient_step,
+    make_actor_loss,
+    make_alpha_loss,
+    make_critic_loss,
+    update_flops,
+)
 
 # One config and one compiled training loop serve all four probes (CPU compiles are slow).
 # The temperature is nearly fixed and tiny, so soft values equal the hard ones to ~1e-4.
@@ -269,3 +279,49 @@ def test_update_flops_bpref_size():
     """B-Pref walker sizes: about 35 GFLOP per update (REFERENCE.md section 7)."""
     flops = update_flops(SACConfig(), obs_size=24, action_size=6)
     assert 34e9 < flops < 37e9
+
+
+class _SharedInputDoubleCritic(nn.Module):
+    """The twin critic before the update was reshaped: both members read one shared input
+    (``in_axes=None``), which XLA merges into one wide first layer. Kept as the reference."""
+
+    hidden: int
+    depth: int
+    precision: str = "tf32"
+
+    @nn.compact
+    def __call__(self, obs, action):
+        twin = nn.vmap(
+            MLP, variable_axes={"params": 0}, split_rngs={"params": True}, in_axes=None, out_axes=0, axis_size=2
+        )
+        q = twin(self.hidden, self.depth, 1, self.precision)(jnp.concatenate([obs, action], axis=-1))
+        return q[0, ..., 0], q[1, ..., 0]
+
+
+def _reference_sac(cfg: SACConfig, obs_size: int, action_size: int) -> SAC:
+    """A :class:`SAC` whose losses use :class:`_SharedInputDoubleCritic` (the previous formulation)."""
+    ref = SAC(cfg, obs_size, action_size)
+    ref.critic = _SharedInputDoubleCritic(cfg.hidden, cfg.depth, cfg.precision)
+    ref.critic_loss = make_critic_loss(ref.actor, ref.critic, cfg.gamma)
+    ref.actor_loss = make_actor_loss(ref.actor, ref.critic)
+    return ref
+
+
+@pytest.mark.parametrize("precision", ["tf32", "highest"])
+def test_update_equals_previous_formulation(precision):
+    """Seven updates (the target moves on three) from one state give the previous update's states
+    and metrics; the parameters (and so checkpoints) have the same structure and initial values."""
+    cfg = dataclasses.replace(SMALL, precision=precision)
+    agent, ref = SAC(cfg, 3, 2), _reference_sac(cfg, 3, 2)
+    state = jax.jit(agent.init)(jax.random.key(0))
+    ref_state = jax.jit(ref.init)(jax.random.key(0))
+    assert jax.tree.structure(state) == jax.tree.structure(ref_state)
+    jax.tree.map(np.testing.assert_array_equal, state, ref_state)
+    update, ref_update = jax.jit(agent.update), jax.jit(ref.update)
+    for i in range(7):
+        batch, key = _random_batch(200 + i, 8), jax.random.key(10 + i)
+        state, metrics = update(state, batch, key)
+        ref_state, ref_metrics = ref_update(ref_state, batch, key)
+        close = functools.partial(np.testing.assert_allclose, rtol=1e-5, atol=1e-6)
+        jax.tree.map(close, (state, metrics), (ref_state, ref_metrics))
+    assert int(state.steps) == 7

@@ -158,11 +158,16 @@ class DoubleCritic(nn.Module):
             MLP,
             variable_axes={"params": 0},
             split_rngs={"params": True},
-            in_axes=None,
+            in_axes=0,
             out_axes=0,
             axis_size=2,
         )
-        q = twin(self.hidden, self.depth, 1, self.precision)(jnp.concatenate([obs, action], axis=-1))
+        x = jnp.concatenate([obs, action], axis=-1)
+        # The input is broadcast to both members, not shared (``in_axes=None``): XLA then merges the
+        # first layers into one wide matmul whose (batch, member, hidden) output must be transposed
+        # to the member-major layout of the batched matmuls after it (a copy of every hidden
+        # activation, forward and backward).
+        q = twin(self.hidden, self.depth, 1, self.precision)(jnp.broadcast_to(x, (2, *x.shape)))
         return q[0, ..., 0], q[1, ..., 0]
 
 
