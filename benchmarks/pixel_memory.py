@@ -188,7 +188,8 @@ def fit(rows: list[dict], name: str, seeds: int, budget: int = GPU_BYTES) -> dic
     scale with the seeds), and the longest run at ``seeds`` seeds (the replay grows with the run's length
     at a preference run's bytes per agent step; the temp does not: checked by compiling a shorter run).
     """
-    mine = [r for r in rows if r["config"] == name and r["seeds"] == seeds and "error" not in r]
+    mine = [r for r in rows if r["config"] == name and r["seeds"] == seeds and not r.get("variant")]
+    mine = [r for r in mine if "error" not in r]
     longest = max(r["total_steps"] for r in mine)
     by = {r["program"]: r for r in mine if r["total_steps"] == longest}
     state, temp = by["state"]["state_bytes"], by.get("round", {}).get("temp_bytes")
@@ -221,7 +222,11 @@ def table(rows: list[dict], seeds: int = 5) -> str:
         flops = {
             r["program"]: r["flops"] / 1e9
             for r in rows
-            if r["config"] == name and r["seeds"] == seeds and "flops" in r and r["total_steps"] == 500_000
+            if r["config"] == name
+            and r["seeds"] == seeds
+            and "flops" in r
+            and r["total_steps"] == 500_000
+            and not r.get("variant")
         }
 
         def cell(key, fmt="{:.1f}", f=f):
@@ -230,7 +235,9 @@ def table(rows: list[dict], seeds: int = 5) -> str:
         def gflop(program, flops=flops):
             return f"{flops[program]:,.0f}" if program in flops else "-"
 
-        longest = f"{f['max_total_steps']:,}" if "max_total_steps" in f else "any (replay 100k)"
+        longest = f"{f['max_total_steps']:,}" if "max_total_steps" in f else "not compiled"
+        if name.startswith("drqv2"):
+            longest = "any (replay 100k)"
         fits = ("yes" if f["fits"] else "**no**") if "fits" in f else "?"
         lines.append(
             f"| {name} | {f['replay_gib_per_seed']:.2f} | {f['state_gib']:.1f} | {cell('round_temp_gib')} | "
@@ -253,6 +260,7 @@ def main() -> None:
     p.add_argument("--programs", nargs="+", default=list(PROGRAMS), choices=PROGRAMS)
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--total-steps", type=int, default=0, help="agent steps per seed instead of 500k (sizes the replay)")
+    p.add_argument("--flags", default="", help='more CLI flags for every configuration: --flags="--a 1 --b 2"')
     p.add_argument("--out", default="benchmarks/results/pixel_memory.json")
     p.add_argument("--table", action="store_true", help="print the Markdown table of --out's rows and exit")
     args = p.parse_args()
@@ -268,9 +276,10 @@ def main() -> None:
         "seeds": args.seeds,
     }
     for name in args.configs:
-        flags = with_total_steps(CONFIGS[name], args.total_steps)
+        flags = with_total_steps(CONFIGS[name], args.total_steps) + args.flags.split()
         trainer = PixelTrainer(parse(["--preset", "paper", *flags]).config)
-        base = {"config": name, "command": "python -m rebel_jax.train --seeds 5 " + " ".join(flags), **meta}
+        command = f"python -m rebel_jax.train --seeds {args.seeds} " + " ".join(flags)
+        base = {"config": name, "variant": args.flags, "command": command, **meta}
         base.update(schedule(trainer))
         for program in args.programs:
             if program == "session" and not trainer.preference:
@@ -284,8 +293,8 @@ def main() -> None:
             except Exception as error:  # noqa: BLE001 - a failed program is a result too
                 row = {"error": f"{type(error).__name__}: {str(error)[:300]}"}
             row = {**base, "program": program, **row, "seconds": round(time.time() - start, 1)}
-            key = (name, program, args.seeds, row["total_steps"])
-            rows = [r for r in rows if (r["config"], r["program"], r["seeds"], r["total_steps"]) != key]
+            fields = ("config", "variant", "program", "seeds", "total_steps")
+            rows = [r for r in rows if tuple(r.get(k, "") for k in fields) != tuple(row[k] for k in fields)]
             rows.append(row)
             save(out, rows)
             shown = {k: row[k] for k in ("state_gib", "temp_gib", "flops", "error", "seconds") if k in row}

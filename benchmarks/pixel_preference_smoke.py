@@ -13,7 +13,10 @@ step, action repeat 2) of one seed; ``phase`` says what a round did.
         --max-seconds 540
     python benchmarks/pixel_preference_smoke.py --tiny --seeds 2 --rounds 3   # probe_point_pixels, 16x16, CPU
 
-Not yet run on a GPU (2026-11-24). ``--tiny`` runs end to end on the 2-core CPU (about a minute).
+Not yet run on a GPU (2026-11-24). ``--tiny --seeds 1`` runs end to end on the 2-core CPU (2 minutes, both
+jobs). On the CPU, pixel PEBBLE with 2 or more seeds hangs in ``init`` (jaxlib 0.10.2: every thread waits, two in
+the LAPACK kernel's ``jax::ParallelBatchMap``, the batched QR of the orthogonal initialisation of the reward
+members under the seed ``vmap``); 1 seed does not. The GPU's solver is cuSOLVER, not this kernel.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import pathlib
 import sys
 import time
@@ -29,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from pixel_memory import CONFIGS  # noqa: E402 - benchmarks/ is not a package
+from pixel_memory import CONFIGS, with_total_steps  # noqa: E402 - benchmarks/ is not a package
 
 from rebel_jax import frame_replay  # noqa: E402
 from rebel_jax.cli import parse  # noqa: E402
@@ -48,14 +52,14 @@ TINY = [
 """``--tiny``: 16x16 probe_point_pixels, episodes of 10 agent steps, rounds of 20 (a session every round)."""
 
 
-def job_flags(job: str, steps_per_round: int, tiny: bool) -> list[str]:
+def job_flags(job: str, steps_per_round: int, total_steps: int, tiny: bool) -> list[str]:
     """The CLI flags of ``job``: its :data:`CONFIGS` entry with rounds of ``steps_per_round`` agent steps
-    (or, with ``tiny``, its algorithm on :data:`TINY`'s probe)."""
-    flags = list(CONFIGS[job])
+    and runs of ``total_steps`` (0: the entry's 500k; a preference run's replay holds the run), or with
+    ``tiny`` its algorithm on :data:`TINY`'s probe."""
+    flags = with_total_steps(CONFIGS[job], total_steps)
     if tiny:
         return ["--preset", "tiny", "--algo", flags[flags.index("--algo") + 1], *TINY]
-    i = flags.index("--steps-per-round")
-    flags[i + 1] = str(steps_per_round)
+    flags[flags.index("--steps-per-round") + 1] = str(steps_per_round)
     return ["--preset", "paper", *flags]
 
 
@@ -73,7 +77,8 @@ class Results:
         self.rows: list[dict] = []
 
     def add(self, row: dict) -> None:
-        self.rows.append({"run": self.run_id, **row})
+        finite = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()}
+        self.rows.append({"run": self.run_id, **finite})  # strict JSON: NaN as null
         print(json.dumps(self.rows[-1]), flush=True)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
@@ -82,7 +87,7 @@ class Results:
 
 
 def run_job(job: str, args, results: Results, deadline: float) -> None:
-    flags = job_flags(job, args.steps_per_round, args.tiny)
+    flags = job_flags(job, args.steps_per_round, args.total_steps, args.tiny)
     cfg = parse(flags).config
     trainer = PixelTrainer(cfg)
     repeat = getattr(trainer.env, "action_repeat", 1)
@@ -135,6 +140,7 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--rounds", type=int, default=5, help="rounds per job, compile excluded")
     p.add_argument("--steps-per-round", type=int, default=1000, help="agent steps per seed and round")
+    p.add_argument("--total-steps", type=int, default=0, help="agent steps of the run (sizes a preference replay)")
     p.add_argument("--max-seconds", type=float, default=540.0, help="wall-time cap of the whole invocation")
     p.add_argument("--tiny", action="store_true", help="probe_point_pixels at 16x16 (a CPU check)")
     p.add_argument("--out", default=str(RESULTS))
