@@ -1,78 +1,166 @@
-"""A short pixel PEBBLE run at 84x84 on one GPU: compile time, round times with and without a feedback
-session, and the device's peak memory (a smoke test of the sizes, not a learning result).
+"""Pixel runs for a few rounds on one device: compile time, seconds and frames/s per seed of each round,
+and the device's peak memory, written after every measurement (a call killed at its time limit keeps
+what it measured). A smoke test of the sizes and the speed, not a learning result.
 
-Not yet run to the end (2026-11-24): no device time was left, and on the 2-core CPU its first round
-(compilation, then 500 vector steps of DrQ-v2 updates of 256) did not finish in 400 s.
+Jobs are :data:`pixel_memory.CONFIGS`' flags (5 seeds, 84x84, the real replay sizes: pixel PEBBLE's
+replay holds the whole 500k-step run, 51.7 GiB at 5 seeds) with rounds of ``--steps-per-round`` agent
+steps, so that a few rounds pass the 2,000 seed steps. Pixel PEBBLE's rounds at 1,000 steps: 0-1 seed
+steps, 2 the first session (with its 100 critic-reset updates), 3 on plain rounds with DrQ-v2's updates;
+DrQ-v2's: 0-1 seed steps, 2 on updates. ``frames_per_s_per_seed`` counts environment frames (2 per agent
+step, action repeat 2) of one seed; ``phase`` says what a round did.
 
-    python benchmarks/pixel_preference_smoke.py --algo pebble --task walker_walk_pixels
+    python benchmarks/pixel_preference_smoke.py --jobs drqv2_walker pebble_walker --seeds 5 --rounds 5 \\
+        --max-seconds 540
+    python benchmarks/pixel_preference_smoke.py --tiny --seeds 1 --rounds 3   # probe_point_pixels, 16x16, CPU
+
+Not yet run on a GPU (2026-11-24). ``--tiny --seeds 1`` runs end to end on the 2-core CPU (41 s idle, 2
+minutes under load, both jobs). On the CPU, pixel PEBBLE with 2 or more seeds hangs in ``init`` (jaxlib
+0.10.2: every thread waits, two in the LAPACK kernel's ``jax::ParallelBatchMap``, the batched QR of the
+orthogonal initialisation of the reward members under the seed ``vmap``); 1 seed does not. The GPU's solver is
+cuSOLVER, not this kernel.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import datetime
 import json
+import math
+import pathlib
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import frame_replay
-from rebel_jax.config import Config, EnvConfig, FeedbackConfig, TrainConfig
-from rebel_jax.drqv2 import task_config
-from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.queries import QueryConfig
-from rebel_jax.train import compiled, seed_keys
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from pixel_memory import CONFIGS, with_total_steps  # noqa: E402 - benchmarks/ is not a package
+
+from rebel_jax import frame_replay  # noqa: E402
+from rebel_jax.cli import parse  # noqa: E402
+from rebel_jax.pixel_train import PixelTrainer  # noqa: E402
+from rebel_jax.train import compiled, seed_keys  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_smoke.json"
+
+TINY = [
+    "--task", "probe_point_pixels", "--episode-length", "20", "--num-envs", "2", "--total-steps", "200",
+    "--seed-steps", "20", "--steps-per-round", "20", "--eval-every", "20", "--eval-episodes", "1",
+    "--drqv2.batch-size", "16", "--drqv2.hidden", "16", "--drqv2.feature-dim", "8", "--drqv2.nstep", "1",
+    "--labels", "12", "--per-session", "4", "--interval", "20", "--query.segment-length", "4",
+    "--pretrain.reset-updates", "2",
+]  # fmt: skip
+"""``--tiny``: 16x16 probe_point_pixels, episodes of 10 agent steps, rounds of 20 (a session every round)."""
+
+
+def job_flags(job: str, steps_per_round: int, total_steps: int, tiny: bool) -> list[str]:
+    """The CLI flags of ``job``: its :data:`CONFIGS` entry with rounds of ``steps_per_round`` agent steps
+    and runs of ``total_steps`` (0: the entry's 500k; a preference run's replay holds the run), or with
+    ``tiny`` its algorithm on :data:`TINY`'s probe."""
+    flags = with_total_steps(CONFIGS[job], total_steps)
+    if tiny:
+        return ["--preset", "tiny", "--algo", flags[flags.index("--algo") + 1], *TINY]
+    flags[flags.index("--steps-per-round") + 1] = str(steps_per_round)
+    return ["--preset", "paper", *flags]
+
+
+def peak_gib() -> float | None:
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats["peak_bytes_in_use"] / 2**30 if "peak_bytes_in_use" in stats else None
+
+
+class Results:
+    """Rows of one invocation, rewritten to ``path`` after each (other invocations' rows are kept)."""
+
+    def __init__(self, path: pathlib.Path, run_id: str):
+        self.path, self.run_id = path, run_id
+        self.previous = json.loads(path.read_text()) if path.exists() else []
+        self.rows: list[dict] = []
+
+    def add(self, row: dict) -> None:
+        finite = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()}
+        self.rows.append({"run": self.run_id, **finite})  # strict JSON: NaN as null
+        print(json.dumps(self.rows[-1]), flush=True)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.previous + self.rows, indent=1) + "\n")
+        tmp.replace(self.path)
+
+
+def run_job(job: str, args, results: Results, deadline: float) -> None:
+    flags = job_flags(job, args.steps_per_round, args.total_steps, args.tiny)
+    cfg = parse(flags).config
+    trainer = PixelTrainer(cfg)
+    repeat = getattr(trainer.env, "action_repeat", 1)
+    command = f"python -m rebel_jax.train --seeds {args.seeds} {' '.join(flags)}"
+    base = {"job": job, "seeds": args.seeds, "command": command}
+    start = time.time()
+    init, round_fn, _ = compiled(trainer)
+    state = jax.block_until_ready(init(seed_keys(0, args.seeds)))
+    init_s = time.time() - start
+    buffer = frame_replay.nbytes(jax.tree.map(lambda x: x[0], state.buffer))
+    start = time.time()
+    program = round_fn.lower(state, jnp.int32(0)).compile()
+    compile_s = time.time() - start
+    results.add({**base, "what": "compile", "init_s": round(init_s, 2), "compile_s": round(compile_s, 2),
+                 "replay_gb_per_seed": buffer / 1e9, "peak_gib": peak_gib()})  # fmt: skip
+    last = compile_s
+    for r in range(args.rounds):
+        if time.time() + last > deadline:
+            reason = "--max-seconds: the next round would not fit"
+            results.add({**base, "what": "stopped", "round": r, "reason": reason})
+            return
+        start = time.time()
+        state, metrics = program(state, jnp.int32(r))
+        metrics = jax.device_get(metrics)
+        seconds = last = time.time() - start
+        session = bool(trainer.preference and metrics["session"].mean() == 1.0)
+        seeding = (r + 1) * cfg.train.steps_per_round <= cfg.train.seed_steps
+        phase = "seed steps" if seeding else ("session + updates" if session else "updates")
+        steps = cfg.train.steps_per_round
+        shown = ("labels_used", "reward_epochs", "reward_accuracy_all", "reward_correlation", "critic_loss", "diverged")
+        results.add(
+            {
+                **base,
+                "what": "round",
+                "round": r,
+                "phase": phase,
+                "seconds": round(seconds, 3),
+                "agent_steps_per_s_per_seed": steps / seconds,
+                "frames_per_s_per_seed": steps * repeat / seconds,
+                "frames_per_s_all_seeds": steps * repeat * args.seeds / seconds,
+                "peak_gib": peak_gib(),
+                **{k: float(metrics[k].mean()) for k in shown if k in metrics},
+            }
+        )
 
 
 def main() -> None:
-    p = argparse.ArgumentParser()
-    p.add_argument("--algo", default="pebble")
-    p.add_argument("--task", default="walker_walk_pixels")
-    p.add_argument("--seeds", type=int, default=1)
-    p.add_argument("--rounds", type=int, default=4)
-    p.add_argument("--sampling", default="uniform")
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--jobs", nargs="+", default=["drqv2_walker", "pebble_walker"], choices=list(CONFIGS))
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=5, help="rounds per job, compile excluded")
+    p.add_argument("--steps-per-round", type=int, default=1000, help="agent steps per seed and round")
+    p.add_argument("--total-steps", type=int, default=0, help="agent steps of the run (sizes a preference replay)")
+    p.add_argument("--max-seconds", type=float, default=540.0, help="wall-time cap of the whole invocation")
+    p.add_argument("--tiny", action="store_true", help="probe_point_pixels at 16x16 (a CPU check)")
+    p.add_argument("--out", default=str(RESULTS))
     args = p.parse_args()
-    base = Config(
-        algo=args.algo,
-        env=EnvConfig(task=args.task, num_envs=2, episode_length=1000),
-        train=TrainConfig(total_steps=4000, seed_steps=1000, steps_per_round=1000, eval_every=1000, eval_episodes=1),
-        feedback=FeedbackConfig(labels=40, per_session=10, interval=1000),
-        query=QueryConfig(segment_length=50, sampling=args.sampling),
-    )
-    cfg = dataclasses.replace(base, drqv2=task_config(args.task, base.drqv2))
-    trainer = PixelTrainer(cfg)
-    init, round_fn, _ = compiled(trainer)
-    state = init(seed_keys(0, args.seeds))
-    rows = []
-    for r in range(args.rounds):
-        start = time.time()
-        state, metrics = round_fn(state, jnp.int32(r))
-        metrics = jax.device_get(metrics)
-        rows.append(
-            {
-                "round": r,
-                "seconds": round(time.time() - start, 2),
-                **{
-                    k: float(v.mean())
-                    for k, v in metrics.items()
-                    if k in ("labels_used", "reward_epochs", "reward_loss", "reward_correlation", "diverged")
-                },
-            }
-        )
-        print(json.dumps(rows[-1]), flush=True)
-    buffer = jax.tree.map(lambda x: x[0], state.buffer)
-    stats = jax.devices()[0].memory_stats() or {}
-    print(
-        json.dumps(
-            {
-                "device": str(jax.devices()[0]),
-                "buffer_gb_per_seed": frame_replay.nbytes(buffer) / 1e9,
-                "peak_gb": stats.get("peak_bytes_in_use", 0) / 1e9,
-                "trace_count": trainer.trace_count,
-            }
-        )
-    )
+    deadline = time.time() + args.max_seconds
+    stamp = datetime.datetime.now().isoformat(timespec="seconds")
+    results = Results(pathlib.Path(args.out), stamp)
+    device = jax.devices()[0]
+    print(json.dumps({"device": str(device), "kind": device.device_kind, "jax": jax.__version__}), flush=True)
+    results.add({"what": "meta", "device": device.device_kind, "backend": jax.default_backend(), "jax": jax.__version__,
+                 "max_seconds": args.max_seconds, "argv": sys.argv[1:]})  # fmt: skip
+    for job in args.jobs:
+        if time.time() >= deadline:
+            results.add({"job": job, "what": "stopped", "reason": "--max-seconds"})
+            continue
+        try:
+            run_job(job, args, results, deadline)
+        except Exception as error:  # noqa: BLE001 - e.g. out of memory: recorded, the next job still runs
+            results.add({"job": job, "what": "error", "error": f"{type(error).__name__}: {str(error)[:500]}"})
 
 
 if __name__ == "__main__":

@@ -1,0 +1,305 @@
+"""What the pixel programs need on a device, measured without running them: the bytes of the trainer's
+state (``jax.eval_shape`` of the seed-vmapped ``init``, nothing allocated) and XLA's ``memory_analysis()``
+and ``cost_analysis()`` of the programs lowered and compiled for this CPU with abstract inputs.
+
+Configurations (5 seeds, 84x84, the real episode lengths), each the CLI's flags (:data:`CONFIGS`):
+DrQ-v2 on walker/cheetah (SURF's DrQ-v2 settings, replay 100k transitions per seed) and pixel
+PEBBLE/SURF/REBEL (walker 200 labels, cheetah 1000; the replay holds the whole run, as the code requires).
+
+Programs (each jitted and vmapped over the seeds, as ``train.compiled``):
+
+- ``round``: ``PixelTrainer.round`` (donated state): the program the CLI runs. Its ``temp`` bytes are the
+  device's working memory beside the state; this is the row that says whether a run fits.
+- ``update``: one DrQ-v2 update (sample from the replay, augment, critic + encoder, actor, target).
+- ``env_step``: one vector step without updates (act, ``env.step`` of training and evaluation envs, replay write).
+- ``session``: one feedback session (select, teach, reward training, relabel the whole replay, critic reset).
+
+XLA's ``cost_analysis()`` counts a loop body once, not times its trip count (checked: a ``lax.scan`` of 10
+matmuls reports the flops of one), so per-round costs are composed here from the pieces:
+``updates_per_round x update + vector_steps_per_round x env_step`` (+ a session); the physics' solver loops
+and the session's reward-training epochs are counted once, so those figures are lower bounds.
+
+    XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false PYTHONPATH=src \\
+        python benchmarks/pixel_memory.py --configs drqv2_walker pebble_walker --programs state update round
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+
+from rebel_jax.cli import parse
+from rebel_jax.pixel_train import PixelTrainer
+
+GIB = 2**30
+GPU_BYTES = 78 * GIB
+"""What the lent H100 gives a process (about 78 GiB of its 80 GB)."""
+
+_WALKER = ["--task", "walker_walk_pixels", "--drqv2.nstep", "1", "--drqv2.batch-size", "512"]
+_WALKER += ["--drqv2.std-steps", "100000"]
+_CHEETAH = ["--task", "cheetah_run_pixels"]
+_RUN = ["--total-steps", "500000", "--seed-steps", "2000", "--eval-episodes", "10"]
+_DRQV2 = ["--algo", "drqv2", *_RUN, "--num-envs", "10", "--steps-per-round", "10000", "--eval-every", "10000"]
+# Preference runs: the first session (after the 2,000 seed steps) needs a complete 500-step episode, so
+# at most 4 envs; rounds of 1,000 agent steps divide the seed steps and SURF's 15,000-step interval.
+_PREF = [*_RUN, "--num-envs", "4", "--steps-per-round", "1000", "--eval-every", "10000", "--interval", "15000"]
+_SURF = ["--surf.crop", "2", "--surf.threshold", "0.99", "--surf.weight", "0.1", "--surf.ratio", "1"]
+_SURF += ["--surf.pool-size", "50", "--surf.reward-update", "20"]
+_WALKER_LABELS = ["--labels", "200", "--per-session", "10"]
+_CHEETAH_LABELS = ["--labels", "1000", "--per-session", "100"]
+
+CONFIGS: dict[str, list[str]] = {
+    "drqv2_walker": [*_DRQV2, *_WALKER],
+    "drqv2_cheetah": [*_DRQV2, *_CHEETAH],
+    "pebble_walker": ["--algo", "pebble", *_PREF, *_WALKER, *_WALKER_LABELS],
+    "pebble_cheetah": ["--algo", "pebble", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
+    "surf_walker": ["--algo", "surf", *_PREF, *_WALKER, *_WALKER_LABELS, *_SURF],
+    "surf_cheetah": ["--algo", "surf", *_PREF, *_CHEETAH, *_CHEETAH_LABELS, *_SURF],
+    "rebel_walker": ["--algo", "rebel", "--rebel.lam", "-0.01", *_PREF, *_WALKER, *_WALKER_LABELS],
+    "rebel_cheetah": ["--algo", "rebel", "--rebel.lam", "-0.01", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
+}
+"""The CLI flags of each configuration (``python -m rebel_jax.train --seeds 5 FLAGS``)."""
+
+PROGRAMS = ("state", "update", "env_step", "session", "round")
+
+
+def nbytes(tree) -> int:
+    """Bytes of every array (or ShapeDtypeStruct) leaf of ``tree``."""
+    return sum(x.size * jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree))
+
+
+def abstract_state(trainer: PixelTrainer, seeds: int):
+    """The seed-vmapped state's shapes (nothing allocated) and the abstract keys."""
+    keys = jax.ShapeDtypeStruct((seeds, 2), jnp.uint32)
+    return jax.eval_shape(jax.vmap(trainer.init), keys), keys
+
+
+def state_row(trainer: PixelTrainer, seeds: int) -> dict:
+    """Bytes of the state per seed, split by part, and for ``seeds`` seeds."""
+    state, _ = abstract_state(trainer, seeds)
+    parts = {
+        "replay": state.buffer,
+        "agent": state.sac,  # encoder, actor, critic, target critic and their Adam states
+        "reward": state.reward,  # pixel ensemble, its Adam state, the label store (and SURF's pool)
+        "env": state.env,
+        "other": (state.episodes, state.key, state.eval_policy, state.teacher, state.lam, state.eval_trajectory),
+    }
+    per_seed = {f"{k}_bytes_per_seed": nbytes(v) // seeds for k, v in parts.items()}
+    total = nbytes(state)
+    return {**per_seed, "state_bytes_per_seed": total // seeds, "state_bytes": total, "state_gib": total / GIB}
+
+
+def _programs(trainer: PixelTrainer):
+    """``name -> (function of (state, extra), extra's abstract value)``, each vmapped over the seeds."""
+    step = jnp.int32(trainer.cfg.train.seed_steps)
+
+    def update(ts):
+        return trainer._updates(ts.sac, ts.buffer, ts.key, step)
+
+    def env_step(ts):
+        key_act, _ = jax.random.split(ts.key)
+        t = step // trainer.num_train
+        action = trainer._act(ts, t, key_act)
+        nxt = jax.vmap(trainer.env.step)(ts.env, action)
+        return trainer._record(ts, nxt, action, t)
+
+    def session(ts):
+        return trainer.feedback_session(ts, jnp.bool_(True), step)
+
+    out = {"update": update, "env_step": env_step}
+    if trainer.preference:
+        out["session"] = session
+    return out
+
+
+def _analysis(compiled) -> dict:
+    mem = compiled.memory_analysis()
+    cost = compiled.cost_analysis() or {}
+    if isinstance(cost, list):  # older JAX: one dict per computation
+        cost = cost[0] if cost else {}
+    return {
+        "argument_bytes": int(mem.argument_size_in_bytes),
+        "output_bytes": int(mem.output_size_in_bytes),
+        "alias_bytes": int(mem.alias_size_in_bytes),
+        "temp_bytes": int(mem.temp_size_in_bytes),
+        "temp_gib": mem.temp_size_in_bytes / GIB,
+        "flops": float(cost.get("flops", float("nan"))),
+        "bytes_accessed": float(cost.get("bytes accessed", float("nan"))),
+    }
+
+
+def compile_row(trainer: PixelTrainer, seeds: int, program: str) -> dict:
+    """Lowers and compiles ``program`` for this backend with abstract inputs; its memory and cost analyses."""
+    state, _ = abstract_state(trainer, seeds)
+    start = time.time()
+    if program == "round":
+        fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0)
+        lowered = fn.lower(state, jax.ShapeDtypeStruct((), jnp.int32))
+    else:
+        lowered = jax.jit(jax.vmap(_programs(trainer)[program])).lower(state)
+    lowered_s = time.time() - start
+    compiled = lowered.compile()
+    compile_s = time.time() - start - lowered_s
+    return {**_analysis(compiled), "lower_s": round(lowered_s, 1), "compile_s": round(compile_s, 1)}
+
+
+def schedule(trainer: PixelTrainer) -> dict:
+    """Per-round counts the per-round figures are composed from."""
+    cfg = trainer.cfg
+    vector_steps = trainer.steps_per_round
+    updates = vector_steps // trainer.update_period * trainer.updates_per_step
+    out = {
+        "num_envs": trainer.num_train,
+        "eval_envs": cfg.train.eval_episodes,
+        "capacity_per_seed": trainer.capacity,
+        "total_steps": cfg.train.total_steps,
+        "steps_per_round": cfg.train.steps_per_round,
+        "rounds": cfg.train.num_rounds,
+        "vector_steps_per_round": vector_steps,
+        "updates_per_round": updates,
+        "batch_size": cfg.drqv2.batch_size,
+    }
+    if trainer.preference:
+        sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
+        out.update(labels=cfg.feedback.labels, per_session=cfg.feedback.queries, sessions=sessions)
+    return out
+
+
+def with_total_steps(flags: list[str], total_steps: int) -> list[str]:
+    """``flags`` with ``--total-steps`` replaced (0: unchanged)."""
+    flags = list(flags)
+    if total_steps:
+        flags[flags.index("--total-steps") + 1] = str(total_steps)
+    return flags
+
+
+def fit(rows: list[dict], name: str, seeds: int, budget: int = GPU_BYTES) -> dict:
+    """What fits in ``budget`` bytes for configuration ``name``, from its ``state`` and ``round`` rows at
+    ``seeds`` seeds and the longest ``total_steps`` measured: the round's peak (arguments + temp; the
+    state is donated, so the output aliases it), the most seeds at that length (the state and the temp
+    scale with the seeds), and the longest run at ``seeds`` seeds (the replay grows with the run's length
+    at a preference run's bytes per agent step; the temp does not: checked by compiling a shorter run).
+    """
+    mine = [r for r in rows if r["config"] == name and r["seeds"] == seeds and not r.get("variant")]
+    mine = [r for r in mine if "error" not in r]
+    longest = max(r["total_steps"] for r in mine)
+    by = {r["program"]: r for r in mine if r["total_steps"] == longest}
+    state, temp = by["state"]["state_bytes"], by.get("round", {}).get("temp_bytes")
+    out = {"config": name, "state_gib": state / GIB, "replay_gib_per_seed": by["state"]["replay_bytes_per_seed"] / GIB}
+    if temp is None:
+        return out
+    peak = state + temp
+    per_seed = peak / seeds
+    out.update(round_temp_gib=temp / GIB, peak_gib=peak / GIB, fits=peak <= budget, max_seeds=int(budget // per_seed))
+    replay = by["state"]["replay_bytes_per_seed"]
+    if by["state"].get("capacity_per_seed") == longest:  # the replay holds the run: it grows with it
+        per_step = replay / longest
+        spare = budget - (peak - seeds * replay)
+        steps = int(spare // (seeds * per_step)) // 10_000 * 10_000
+        out["max_total_steps"] = steps
+    return out
+
+
+def table(rows: list[dict], seeds: int = 5) -> str:
+    """Markdown rows: the state, the round's temp and peak at ``seeds`` seeds, and what fits in 78 GiB."""
+    lines = [
+        "| config | replay / seed (GiB) | state, 5 seeds (GiB) | round temp (GiB) | round peak (GiB) | fits 78 GiB "
+        "| most seeds | longest run at 5 seeds | update GFLOP | env step GFLOP | session GFLOP |",
+        "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|",
+    ]
+    for name in CONFIGS:
+        if not any(r["config"] == name and r["seeds"] == seeds for r in rows):
+            continue
+        f = fit(rows, name, seeds)
+        flops = {
+            r["program"]: r["flops"] / 1e9
+            for r in rows
+            if r["config"] == name
+            and r["seeds"] == seeds
+            and "flops" in r
+            and r["total_steps"] == 500_000
+            and not r.get("variant")
+        }
+
+        def cell(key, fmt="{:.1f}", f=f):
+            return fmt.format(f[key]) if key in f else "not compiled"
+
+        def gflop(program, flops=flops):
+            return f"{flops[program]:,.0f}" if program in flops else "-"
+
+        longest = f"{f['max_total_steps']:,}" if "max_total_steps" in f else "not compiled"
+        if name.startswith("drqv2"):
+            longest = "any (replay 100k)"
+        fits = ("yes" if f["fits"] else "**no**") if "fits" in f else "?"
+        lines.append(
+            f"| {name} | {f['replay_gib_per_seed']:.2f} | {f['state_gib']:.1f} | {cell('round_temp_gib')} | "
+            f"{cell('peak_gib')} | {fits} | {cell('max_seeds', '{}')} | {longest} | {gflop('update')} | "
+            f"{gflop('env_step')} | {gflop('session')} |"
+        )
+    return "\n".join(lines)
+
+
+def save(path: pathlib.Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rows, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    p.add_argument("--programs", nargs="+", default=list(PROGRAMS), choices=PROGRAMS)
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--total-steps", type=int, default=0, help="agent steps per seed instead of 500k (sizes the replay)")
+    p.add_argument("--flags", default="", help='more CLI flags for every configuration: --flags="--a 1 --b 2"')
+    p.add_argument("--out", default="benchmarks/results/pixel_memory.json")
+    p.add_argument("--table", action="store_true", help="print the Markdown table of --out's rows and exit")
+    args = p.parse_args()
+    if args.table:
+        print(table(json.loads(pathlib.Path(args.out).read_text())))
+        return
+    out = pathlib.Path(args.out)
+    rows = json.loads(out.read_text()) if out.exists() else []
+    meta = {
+        "device": f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)",
+        "jax": jax.__version__,
+        "date": datetime.date.today().isoformat(),
+        "seeds": args.seeds,
+    }
+    for name in args.configs:
+        flags = with_total_steps(CONFIGS[name], args.total_steps) + args.flags.split()
+        trainer = PixelTrainer(parse(["--preset", "paper", *flags]).config)
+        command = f"python -m rebel_jax.train --seeds {args.seeds} " + " ".join(flags)
+        base = {"config": name, "variant": args.flags, "command": command, **meta}
+        base.update(schedule(trainer))
+        for program in args.programs:
+            if program == "session" and not trainer.preference:
+                continue
+            start = time.time()
+            try:
+                if program == "state":
+                    row = state_row(trainer, args.seeds)
+                else:
+                    row = compile_row(trainer, args.seeds, program)
+            except Exception as error:  # noqa: BLE001 - a failed program is a result too
+                row = {"error": f"{type(error).__name__}: {str(error)[:300]}"}
+            row = {**base, "program": program, **row, "seconds": round(time.time() - start, 1)}
+            fields = ("config", "variant", "program", "seeds", "total_steps")
+            rows = [r for r in rows if tuple(r.get(k, "") for k in fields) != tuple(row[k] for k in fields)]
+            rows.append(row)
+            save(out, rows)
+            shown = {k: row[k] for k in ("state_gib", "temp_gib", "flops", "error", "seconds") if k in row}
+            print(json.dumps({"config": name, "program": program, **shown}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
