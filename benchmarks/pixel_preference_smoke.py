@@ -14,10 +14,10 @@ step, action repeat 2) of one seed; ``phase`` says what a round did.
     python benchmarks/pixel_preference_smoke.py --tiny --seeds 1 --rounds 3   # probe_point_pixels, 16x16, CPU
 
 Not yet run on a GPU (2026-11-24). ``--tiny --seeds 1`` runs end to end on the 2-core CPU (41 s idle, 2
-minutes under load, both jobs). On the CPU, pixel PEBBLE with 2 or more seeds hangs in ``init`` (jaxlib
+minutes under load, both jobs). On the CPU, pixel PEBBLE with 2 or more seeds hung in ``init`` (jaxlib
 0.10.2: every thread waits, two in the LAPACK kernel's ``jax::ParallelBatchMap``, the batched QR of the
-orthogonal initialisation of the reward members under the seed ``vmap``); 1 seed does not. The GPU's solver is
-cuSOLVER, not this kernel.
+orthogonal initialisation of the reward members under the seed ``vmap``); ``networks.orthogonal`` now
+loops over the batch one QR at a time (same values).
 """
 
 from __future__ import annotations

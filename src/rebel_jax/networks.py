@@ -38,6 +38,40 @@ def dense_kwargs(precision: str) -> dict:
     raise ValueError(f"precision must be one of {PRECISIONS}; got {precision!r}")
 
 
+@jax.custom_batching.custom_vmap
+def _qr(z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    q, r = jnp.linalg.qr(z)
+    return q, r
+
+
+@_qr.def_vmap
+def _qr_vmap(axis_size: int, in_batched: list, z: jax.Array):
+    """A batch of QRs as a loop of single QRs: on the CPU (jaxlib 0.10.2, 2 cores) the batched LAPACK
+    kernel (``ParallelBatchMap``) of the seed- and member-vmapped inits could deadlock the thread pool."""
+    del axis_size, in_batched
+    return jax.lax.map(_qr, z), (True, True)
+
+
+def orthogonal(scale: float = 1.0, column_axis: int = -1):
+    """``nn.initializers.orthogonal(scale, column_axis)`` (``jax.random.orthogonal``'s sign-corrected QR of a
+    normal matrix), the same values for the same key, whose QR stays one matrix at a time under ``vmap``."""
+
+    def init(key: jax.Array, shape: tuple[int, ...], dtype=jnp.float32) -> jax.Array:
+        if len(shape) < 2:
+            raise ValueError("orthogonal initializer requires at least a 2D shape")
+        n_rows, n_cols = math.prod(shape) // shape[column_axis], shape[column_axis]
+        z = jax.random.normal(key, (max(n_rows, n_cols), min(n_rows, n_cols)), dtype)
+        q, r = _qr(z)
+        q = q * jnp.sign(jnp.diagonal(r))[None, :]
+        if n_rows < n_cols:
+            q = q.T
+        drop = column_axis % len(shape)
+        q = jnp.reshape(q, tuple(d for i, d in enumerate(shape) if i != drop) + (shape[column_axis],))
+        return jnp.asarray(scale, dtype) * jnp.moveaxis(q, -1, column_axis)
+
+    return init
+
+
 class MLP(nn.Module):
     """``depth`` ReLU hidden layers of width ``hidden`` and a linear output layer.
 
@@ -60,7 +94,7 @@ class MLP(nn.Module):
     def __call__(self, x: jax.Array) -> jax.Array:
         """Args: x (..., in). Returns: (..., out) float32."""
         kw = dense_kwargs(self.precision)
-        init = dict(kernel_init=nn.initializers.orthogonal(1.0), bias_init=nn.initializers.zeros)
+        init = dict(kernel_init=orthogonal(1.0), bias_init=nn.initializers.zeros)
         for _ in range(self.depth):
             x = nn.relu(nn.Dense(self.hidden, **init, **kw)(x))
         return nn.Dense(self.out, **init, **kw)(x).astype(jnp.float32)
@@ -212,7 +246,7 @@ class Encoder(nn.Module):
     def __call__(self, obs: jax.Array) -> jax.Array:
         """Args: obs (..., H, W, C), uint8 or float in [0, 255]. Returns: (..., features) float32."""
         kw = dense_kwargs(self.precision)  # nn.Conv takes the same precision arguments
-        init = dict(kernel_init=nn.initializers.orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)
+        init = dict(kernel_init=orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)
         x = obs.astype(jnp.float32) / 255.0 - 0.5
         for stride in (2, 1, 1, 1):
             x = nn.relu(nn.Conv(self.channels, (3, 3), strides=(stride, stride), padding="VALID", **init, **kw)(x))
@@ -240,7 +274,7 @@ class Trunk(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        init = dict(kernel_init=nn.initializers.orthogonal(1.0), bias_init=nn.initializers.zeros)
+        init = dict(kernel_init=orthogonal(1.0), bias_init=nn.initializers.zeros)
         x = nn.Dense(self.features, **init, **dense_kwargs(self.precision))(x).astype(jnp.float32)
         return jnp.tanh(nn.LayerNorm(epsilon=1e-5)(x))
 

@@ -43,7 +43,7 @@ import optax
 
 from rebel_jax import frame_replay, queries, reward_model, surf
 from rebel_jax.errors import check as _check
-from rebel_jax.networks import Encoder, dense_kwargs
+from rebel_jax.networks import Encoder, dense_kwargs, orthogonal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,7 +93,7 @@ class PixelRewardNet(nn.Module):
         """Args: obs (..., H, W, C) uint8 stacks; action (..., A). Returns: (...) rewards in (-1, 1)."""
         x = jnp.concatenate([Encoder(precision=self.precision)(obs), action.astype(jnp.float32)], axis=-1)
         # SURF's weight_init (pixel_reward_model.py:22-27): orthogonal Linear weights, zero biases.
-        init = dict(kernel_init=nn.initializers.orthogonal(), bias_init=nn.initializers.zeros)
+        init = dict(kernel_init=orthogonal(), bias_init=nn.initializers.zeros)
         kw = dense_kwargs(self.precision)
         for _ in range(self.depth):
             x = nn.relu(nn.Dense(self.hidden, **init, **kw)(x))
