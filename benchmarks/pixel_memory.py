@@ -181,14 +181,24 @@ def with_total_steps(flags: list[str], total_steps: int) -> list[str]:
     return flags
 
 
-def fit(rows: list[dict], name: str, seeds: int, budget: int = GPU_BYTES) -> dict:
+def of_variant(rows: list[dict], variant: str = "") -> list[dict]:
+    """The rows of ``variant`` (``--flags``), and the default's rows of the programs it has none of
+    (e.g. ``state``, which no reward setting changes)."""
+    mine = [r for r in rows if r.get("variant", "") == variant]
+    have = {(r["config"], r["program"], r["seeds"], r["total_steps"]) for r in mine}
+    default = [r for r in rows if not r.get("variant")]
+    return mine + [r for r in default if (r["config"], r["program"], r["seeds"], r["total_steps"]) not in have]
+
+
+def fit(rows: list[dict], name: str, seeds: int, budget: int = GPU_BYTES, variant: str = "") -> dict:
     """What fits in ``budget`` bytes for configuration ``name``, from its ``state`` and ``round`` rows at
     ``seeds`` seeds and the longest ``total_steps`` measured: the round's peak (arguments + temp; the
     state is donated, so the output aliases it), the most seeds at that length (the state and the temp
     scale with the seeds), and the longest run at ``seeds`` seeds (the replay grows with the run's length
     at a preference run's bytes per agent step; the temp does not: checked by compiling a shorter run).
+    ``variant``: the rows of those ``--flags`` (:func:`of_variant`).
     """
-    mine = [r for r in rows if r["config"] == name and r["seeds"] == seeds and not r.get("variant")]
+    mine = [r for r in of_variant(rows, variant) if r["config"] == name and r["seeds"] == seeds]
     mine = [r for r in mine if "error" not in r]
     longest = max(r["total_steps"] for r in mine)
     by = {r["program"]: r for r in mine if r["total_steps"] == longest}
@@ -208,8 +218,9 @@ def fit(rows: list[dict], name: str, seeds: int, budget: int = GPU_BYTES) -> dic
     return out
 
 
-def table(rows: list[dict], seeds: int = 5) -> str:
-    """Markdown rows: the state, the round's temp and peak at ``seeds`` seeds, and what fits in 78 GiB."""
+def table(rows: list[dict], seeds: int = 5, variant: str = "") -> str:
+    """Markdown rows: the state, the round's temp and peak at ``seeds`` seeds, and what fits in 78 GiB
+    (``variant``: the rows of those ``--flags``, :func:`of_variant`)."""
     lines = [
         "| config | replay / seed (GiB) | state, 5 seeds (GiB) | round temp (GiB) | round peak (GiB) | fits 78 GiB "
         "| most seeds | longest run at 5 seeds | update GFLOP | env step GFLOP | session GFLOP |",
@@ -218,15 +229,11 @@ def table(rows: list[dict], seeds: int = 5) -> str:
     for name in CONFIGS:
         if not any(r["config"] == name and r["seeds"] == seeds for r in rows):
             continue
-        f = fit(rows, name, seeds)
+        f = fit(rows, name, seeds, variant=variant)
         flops = {
             r["program"]: r["flops"] / 1e9
-            for r in rows
-            if r["config"] == name
-            and r["seeds"] == seeds
-            and "flops" in r
-            and r["total_steps"] == 500_000
-            and not r.get("variant")
+            for r in of_variant(rows, variant)
+            if r["config"] == name and r["seeds"] == seeds and "flops" in r and r["total_steps"] == 500_000
         }
 
         def cell(key, fmt="{:.1f}", f=f):
@@ -263,9 +270,10 @@ def main() -> None:
     p.add_argument("--flags", default="", help='more CLI flags for every configuration: --flags="--a 1 --b 2"')
     p.add_argument("--out", default="benchmarks/results/pixel_memory.json")
     p.add_argument("--table", action="store_true", help="print the Markdown table of --out's rows and exit")
+    p.add_argument("--variant", default="", help="with --table: the rows measured with these --flags")
     args = p.parse_args()
     if args.table:
-        print(table(json.loads(pathlib.Path(args.out).read_text())))
+        print(table(json.loads(pathlib.Path(args.out).read_text()), variant=args.variant))
         return
     out = pathlib.Path(args.out)
     rows = json.loads(out.read_text()) if out.exists() else []
@@ -281,6 +289,8 @@ def main() -> None:
         command = f"python -m rebel_jax.train --seeds {args.seeds} " + " ".join(flags)
         base = {"config": name, "variant": args.flags, "command": command, **meta}
         base.update(schedule(trainer))
+        if trainer.preference:
+            base["member_loop"] = trainer.cfg.pixel_reward.member_loop
         for program in args.programs:
             if program == "session" and not trainer.preference:
                 continue

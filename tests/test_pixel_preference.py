@@ -293,6 +293,8 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     args = parse(["--preset", "tiny", *flags])
     cfg = args.config
     assert cfg.preference and cfg.pixels and cfg.pixel_reward.lr == 1e-4
+    assert cfg.pixel_reward.member_loop  # the default on pixels; the flag restores the members' vmap
+    assert not parse(["--preset", "tiny", *flags, "--pixel-reward.no-member-loop"]).config.pixel_reward.member_loop
     assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
     for algo in ("sac",):
         with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
@@ -429,3 +431,105 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
         expected += (optimal - value) / np.std(labelled)
     np.testing.assert_allclose(float(loss), lam * expected, rtol=1e-4, atol=1e-6)
     assert np.isfinite(float(metrics["optimal_value"]))
+
+
+# -- pixel_reward.member_loop: the members' gradients one at a time equal the vmapped ones -------------
+
+
+def _stored_labels(rng, count: int, capacity: int, horizon: int):
+    """A fresh ensemble holding ``count`` random pairs of ``horizon``-step segments, and its frame replay."""
+    buffer, _, _, _ = _filled_buffer(rng, 3 * LENGTH)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(11), (SIZE, SIZE, 3 * STACK), ACTIONS, capacity)
+
+    def places(n):
+        rows = rng.integers(0, 3, n) * LENGTH + rng.integers(0, LENGTH - horizon + 1, n)
+        return SegmentPlaces(jnp.asarray(rows, jnp.int32), jnp.asarray(rng.integers(0, ENVS, n), jnp.int32))
+
+    labels = jnp.asarray(rng.choice([0.0, 0.5, 1.0], count), jnp.float32)
+    state = pixel_reward.add_labels(state, places(count), places(count), labels, jnp.ones(count))
+    pool = pixel_reward.append_places(pixel_reward.empty_places(6), places(6), places(6), jnp.zeros(6), jnp.ones(6))
+    return state.replace(pool=pool), buffer, places
+
+
+def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentPlaces, horizon: int):
+    """The loss terms pixel_train passes to ``train_epoch`` for ``kind`` (REBEL: its V term on the replay
+    segments ``seg``, normalised)."""
+    if kind == "surf":
+        surf_cfg = SURFConfig(crop=1, ratio=1, threshold=0.5, weight=0.7)
+        return (pixel_reward.pseudo_label_term(cfg, surf_cfg, buffer, state.pool, horizon),)
+    if kind == "rebel":
+        length = 3
+        rows = pixel_reward.segment_rows(seg.row, length)
+        where = jnp.stack([rows, jnp.broadcast_to(seg.env[:, None], rows.shape)], axis=-1)
+
+        def predict_fn(params, place, action):
+            return pixel_reward.place_rewards(cfg, params, buffer, place, action)
+
+        def spread_fn(params, bt):
+            del params  # Unused.
+            return agent_preference.reward_spread(bt["rewards_a"], bt["rewards_b"], bt["weight"])
+
+        actions = buffer.action[rows, where[..., 1]]
+        term = agent_preference.agent_value_term(
+            cfg, -0.5, where, actions, 0.9, normalize=True, predict_fn=predict_fn, spread_fn=spread_fn
+        )
+        return (term,)
+    return ()
+
+
+@pytest.mark.parametrize("kind", ["pebble", "surf", "rebel"])
+def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
+    crop = 1 if kind == "surf" else 0
+    horizon = 4
+    state, buffer, places = _stored_labels(np.random.default_rng(9), 10, 12, horizon)  # 3 minibatches of 4
+    value_segments = places(3)
+    out = {}
+    for loop in (False, True):
+        cfg = dataclasses.replace(REWARD, member_loop=loop)
+        terms = _epoch_terms(kind, cfg, state, buffer, value_segments, horizon)
+        epoch = jax.jit(
+            lambda st, key, cfg=cfg, terms=terms: pixel_reward.train_epoch(cfg, st, buffer, key, horizon, terms, crop)
+        )
+        out[loop] = jax.device_get(epoch(state, jax.random.PRNGKey(12)))
+    (vmapped, metrics_vmap), (looped, metrics_loop) = out[False], out[True]
+    for name in ("accuracy", "loss"):
+        np.testing.assert_allclose(metrics_loop[name], metrics_vmap[name], rtol=1e-6, atol=1e-7, err_msg=name)
+    pairs = zip(jax.tree.leaves(looped.params), jax.tree.leaves(vmapped.params), strict=True)
+    for ours, theirs in pairs:
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
+    for ours, theirs in zip(jax.tree.leaves(looped.opt_state), jax.tree.leaves(vmapped.opt_state), strict=True):
+        # Adam's moments: rounding near their zeros is relative to the leaf's scale, not the entry's.
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5 * np.max(np.abs(theirs)))
+    moved = zip(jax.tree.leaves(state.params), jax.tree.leaves(looped.params), strict=True)
+    assert all(not np.allclose(before, after) for before, after in moved)
+
+
+def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
+    """What a member computes alone (``members=[m]``, the loop's view) is row m of the whole ensemble's
+    BT term and pseudo-label term: the same pairs, crops and pool draws, not another member's."""
+    horizon, members = 4, REWARD.ensemble_size
+    state, buffer, places = _stored_labels(np.random.default_rng(10), 8, 8, horizon)
+    seg_a, seg_b = (
+        SegmentPlaces(*(jnp.reshape(x, (members, 4)) for x in (p.row, p.env))) for p in (places(12), places(12))
+    )
+    labels, weight = jnp.ones((members, 4)), jnp.ones((members, 4))
+    key = jax.random.PRNGKey(13)
+    pseudo = pixel_reward.pseudo_label_term(REWARD, SURFConfig(crop=1, threshold=0.5), buffer, state.pool, horizon)
+
+    def losses(params, seg_a, seg_b, labels, weight, chosen):
+        loss, bt = pixel_reward.bt_loss(REWARD, params, buffer, seg_a, seg_b, labels, weight, horizon, 1, key, chosen)
+        return loss, bt["logits"], pseudo(params, bt, key)[0]
+
+    whole, whole_logits, whole_pseudo = losses(state.params, seg_a, seg_b, labels, weight, None)
+    alone = []
+    for m in range(members):
+        row = lambda x, m=m: x[m : m + 1]  # noqa: E731
+        args = jax.tree.map(row, (state.params, seg_a, seg_b, labels, weight))
+        alone.append(losses(*args, jnp.asarray([m])))
+        np.testing.assert_allclose(alone[m][1][0], whole_logits[m], rtol=1e-5, atol=1e-6)
+        # Member 0's draws would give another member other logits: the check above can tell them apart.
+        other = losses(*args, jnp.asarray([(m + 1) % members]))
+        assert not np.allclose(other[1][0], whole_logits[m], rtol=1e-3, atol=1e-4)
+        assert not np.isclose(float(other[2]), float(alone[m][2]), rtol=1e-3, atol=1e-5)
+    np.testing.assert_allclose(sum(float(a[0]) for a in alone), float(whole), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(sum(float(a[2]) for a in alone), float(whole_pseudo), rtol=1e-5, atol=1e-6)

@@ -69,6 +69,11 @@ class PixelRewardConfig:
     env: bounds the frame stacks in memory (not a SURF setting)."""
     precision: str = "tf32"
     """Matmul and convolution precision: ``tf32``, ``highest`` or ``bf16``."""
+    member_loop: bool = True
+    """Compute the members' losses and gradients one member at a time (``lax.map``) instead of all at once
+    (``vmap``): the same minibatches, crops and numbers up to float rounding, with about one member's
+    working memory in a reward-training step instead of ``ensemble_size`` members' (not a SURF setting;
+    BENCHMARKS.md, "Pixel runs before any GPU time"). The Adam step of all members stays one."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk"):
@@ -347,6 +352,7 @@ def bt_loss(
     horizon: int,
     crop: int = 0,
     key: jax.Array | None = None,
+    members: jax.Array | None = None,
 ) -> tuple[jax.Array, dict]:
     """The BT term: the sum over members of each member's weighted mean cross-entropy on its pairs.
 
@@ -355,22 +361,33 @@ def bt_loss(
     ``get_cropping_mask`` (pixel_reward_model.py:822-833, applied at :901-904).
 
     SURF's ``CrossEntropyLoss(r_hat, labels)`` over ``[G(a), G(b)]`` per member (pixel_reward_model.py:908-911),
-    summed over members (SURF steps them one after another). ``labels`` and ``weight`` are (M, B).
+    summed over members (SURF steps them one after another).
+
+    Args:
+        params: the parameters of M members (leading axis): the whole ensemble, or one member of it
+            (``pixel_reward.member_loop``).
+        seg_a, seg_b, labels, weight: (M, B) each member's pairs.
+        members: (M,) int32 the ensemble indices of ``params``' members; None: all ``ensemble_size``.
+            Every draw from ``key`` is made for the whole ensemble and these members' rows are kept, so a
+            member's crops do not depend on which other members are computed with it.
 
     Returns:
-        The loss and ``{"bt_loss", "bt_accuracy", "logits", "rewards_a", "rewards_b", "weight"}``: the
-        members' per-step rewards on their pairs (M, B, H), uncropped, and the pairs' weights, which
-        REBEL's ``rebel.normalize`` reads (:func:`rebel_jax.agent_preference.reward_spread`).
+        The loss and ``{"bt_loss", "bt_accuracy", "logits", "rewards_a", "rewards_b", "weight", "members"}``:
+        the members' per-step rewards on their pairs (M, B, H), uncropped, and the pairs' weights, which
+        REBEL's ``rebel.normalize`` reads (:func:`rebel_jax.agent_preference.reward_spread`), and
+        ``members``, which SURF's pseudo-label term reads.
     """
+    members = jnp.arange(cfg.ensemble_size) if members is None else members
     rewards_a, rewards_b = member_step_pairs(cfg, params, buffer, seg_a, seg_b, horizon)
     if crop:
-        mask_a, mask_b = surf.crop_masks(key, labels.shape, horizon, crop)
+        mask_a, mask_b = surf.crop_masks(key, (cfg.ensemble_size, labels.shape[1]), horizon, crop)
+        mask_a, mask_b = mask_a[members], mask_b[members]
         logits = jnp.sum(rewards_b * mask_b, -1) - jnp.sum(rewards_a * mask_a, -1)
     else:
         logits = jnp.sum(rewards_b, -1) - jnp.sum(rewards_a, -1)
     batch = reward_model.PrefBatch(None, None, None, None, labels=labels, weight=weight)
     loss, metrics = reward_model.bt_term(logits, batch)
-    return loss, dict(metrics, logits=logits, rewards_a=rewards_a, rewards_b=rewards_b, weight=weight)
+    return loss, dict(metrics, logits=logits, rewards_a=rewards_a, rewards_b=rewards_b, weight=weight, members=members)
 
 
 @flax.struct.dataclass
@@ -400,6 +417,14 @@ def train_epoch(
     ``terms`` are further loss terms ``(params, batch, key) -> (loss, metrics)`` added to the BT term at
     every step, ``batch`` being the BT term's metrics (:func:`bt_loss`): REBEL's ``lambda * V``
     (:func:`rebel_jax.agent_preference.agent_value_term` with pixel rewards), SURF's pseudo-labels.
+    A term's loss must be a sum over the members of ``params`` (leading axis), each member's part
+    depending on that member's parameters only; a term that draws from its key draws for the whole
+    ensemble and keeps the rows of ``batch["members"]``.
+
+    The loss is a sum of per-member losses, so each member's gradient is that of its own part. With
+    ``cfg.member_loop`` the step computes them one member at a time (``lax.map``: one member's
+    activations in memory), else all at once (``vmap`` inside the members' functions); every member
+    sees the same minibatch and draws either way, the step keys being shared by the members.
 
     Returns:
         The state and ``{"accuracy", "loss"}`` (mean loss over the minibatches).
@@ -415,15 +440,29 @@ def train_epoch(
     order = jnp.pad(jnp.argsort(noise, axis=1).astype(jnp.int32), ((0, 0), (0, padded - capacity)))
     optimizer = optax.adam(cfg.lr)
 
-    def loss_fn(params, seg_a, seg_b, labels, weight, step_key):
+    def loss_fn(params, seg_a, seg_b, labels, weight, step_key, members):
         key_crop, key_terms = jax.random.split(step_key)
-        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon, crop, key_crop)
+        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon, crop, key_crop, members)
         for i, term in enumerate(terms):
             term_loss, _ = term(params, metrics, jax.random.fold_in(key_terms, i))
             loss = loss + term_loss
         return loss, dict(metrics, loss=loss)
 
     grad_fn = jax.grad(loss_fn, has_aux=True)
+
+    def ensemble_grads(params, seg_a, seg_b, labels, weight, step_key):
+        """Every member's gradient, the (M, B) logits and the loss summed over the members."""
+        if not cfg.member_loop:
+            grads, metrics = grad_fn(params, seg_a, seg_b, labels, weight, step_key, None)
+            return grads, metrics["logits"], metrics["loss"]
+
+        def one(m):
+            mine = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, m, 1), (params, seg_a, seg_b, labels, weight))
+            grads, metrics = grad_fn(*mine, step_key, m[None])
+            return jax.tree.map(lambda g: g[0], grads), metrics["logits"][0], metrics["loss"]
+
+        grads, logits, losses = jax.lax.map(one, jnp.arange(cfg.ensemble_size))
+        return grads, logits, jnp.sum(losses)
 
     def body(carry: _Carry) -> _Carry:
         start = carry.step * b
@@ -433,15 +472,15 @@ def train_epoch(
         seg_b = SegmentPlaces(data.row_b[slots], data.env_b[slots])
         labels = data.labels[slots]
         step_key = jax.random.fold_in(key_terms, carry.step)
-        grads, metrics = grad_fn(carry.params, seg_a, seg_b, labels, weight, step_key)
-        correct = ((metrics["logits"] > 0) == (labels > 0.5)) & (labels != 0.5)
+        grads, logits, loss = ensemble_grads(carry.params, seg_a, seg_b, labels, weight, step_key)
+        correct = ((logits > 0) == (labels > 0.5)) & (labels != 0.5)
         updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
         return _Carry(
             params=optax.apply_updates(carry.params, updates),
             opt_state=opt_state,
             step=carry.step + 1,
             correct=carry.correct + jnp.sum(correct * weight, axis=1),
-            loss=carry.loss + metrics["loss"],
+            loss=carry.loss + loss,
         )
 
     start = _Carry(state.params, state.opt_state, jnp.zeros((), jnp.int32), jnp.zeros(cfg.ensemble_size), jnp.zeros(()))
@@ -513,17 +552,20 @@ def pseudo_label_term(
     on the pairs at or above ``surf.threshold`` (pixel_reward_model_semi.py:291-301).
 
     Returns:
-        ``(params, batch, key) -> (loss, metrics)``.
+        ``(params, batch, key) -> (loss, metrics)``, ``batch`` the BT term's metrics: its ``members`` name
+        the ensemble members of ``params`` (all of them, or one with ``pixel_reward.member_loop``).
     """
     c = surf_cfg.crop
     central = slice(c, horizon - c)
 
     def loss_fn(params, batch, key):
-        del batch  # Unused.
+        # Drawn for the whole ensemble; the rows of the members in ``params`` kept (bt_loss's "members").
         shape = (cfg.ensemble_size, surf_cfg.ratio * cfg.batch_size)
         key_index, key_crop = jax.random.split(key)
         index = jax.random.randint(key_index, shape, 0, jnp.maximum(pool.count, 1))
         mask_a, mask_b = surf.crop_masks(key_crop, shape, horizon, c)
+        members = batch["members"]
+        index, mask_a, mask_b = index[members], mask_a[members], mask_b[members]
 
         def one(member_params, idx, m_a, m_b):
             reward_a = member_step_rewards(
