@@ -53,6 +53,8 @@ RUNS = [
     ("baselines/pebble_walker_100_utd1_bf16_seed1", None, 453, "4 in bf16, five new seeds (--seed 1)"),
     ("baselines/surf_walker_100_utd1_bf16", None, 661, "SURF on rung 4 in bf16 (same seeds)"),
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
+    ("baselines/pebble_cheetah_100_1m_bf16", None, 546, "PEBBLE, cheetah_run, 1M (bf16)"),
+    ("baselines/surf_cheetah_100_1m_bf16_stopped270k", None, 557, "SURF, cheetah_run (bf16), stopped at 270k"),
 ]
 
 
