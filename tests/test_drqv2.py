@@ -5,7 +5,9 @@ Tiny images (16x16) and small networks: the encoder then ends at 1x1x32 features
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +15,7 @@ import numpy as np
 import optax
 import pytest
 
+from rebel_jax.config import ConfigError
 from rebel_jax.drqv2 import (
     CLAMP_EPS,
     DrQV2,
@@ -240,6 +243,55 @@ def test_update_vmapped_over_seeds_equals_separate_calls():
     for i in range(2):
         single, _ = update(states[i], batches[i], update_keys[i], steps[i])
         _close(jax.tree.map(lambda x, i=i: x[i], batched), single, rtol=1e-4, atol=1e-5)
+
+
+def _seed_batch(seeds: int = 2):
+    """(batched agent, looped agent) and the (states, batches, update keys) of ``seeds`` seeds, stacked."""
+    batched = DrQV2(SMALL, OBS_SHAPE, ACTIONS)
+    looped = DrQV2(dataclasses.replace(SMALL, seed_loop=True), OBS_SHAPE, ACTIONS)
+    keys = jax.random.split(jax.random.key(0), seeds)
+    stack = functools.partial(jax.tree.map, lambda *xs: jnp.stack(xs))
+    states = jax.jit(jax.vmap(batched.init))(keys)
+    batches = stack(*[_batch(20 + i) for i in range(seeds)])
+    return (batched, looped), (states, batches, jax.random.split(jax.random.key(7), seeds))
+
+
+def _group_counts(stablehlo: str) -> list[int]:
+    """Every convolution's ``feature_group_count`` and ``batch_group_count`` in a StableHLO module's text."""
+    return [int(n) for n in re.findall(r"(?:feature|batch)_group_count = (\d+)", stablehlo)]
+
+
+def test_seed_loop_update_equals_the_vmapped_update():
+    """``drqv2.seed_loop``: the seeds' updates one at a time give the batched update's state and metrics, with
+    the agent step unbatched as in the trainer; unbatched, the looped agent is the same function."""
+    (batched, looped), (states, batches, keys) = _seed_batch()
+    states, _ = jax.jit(jax.vmap(batched.update, in_axes=(0, 0, 0, None)))(states, batches, keys, jnp.int32(0))
+    step = jnp.int32(40)
+    args = (states, batches, jax.random.split(jax.random.key(8), 2), step)
+    want = jax.jit(jax.vmap(batched.update, in_axes=(0, 0, 0, None)))(*args)
+    got = jax.jit(jax.vmap(looped.update, in_axes=(0, 0, 0, None)))(*args)
+    _close(got, want, rtol=1e-5, atol=1e-6)
+    first = jax.tree.map(lambda x: x[0], args[:3])
+    _close(jax.jit(looped.update)(*first, step), jax.jit(batched.update)(*first, step), rtol=0, atol=0)
+
+
+def test_seed_loop_leaves_no_grouped_convolution():
+    """Batched over seeds, the encoder's convolutions (forward, input and kernel gradients) become grouped
+    ones, ``feature_group_count`` = seeds; looped, every one is a plain convolution. The same number in both."""
+    (batched, looped), (states, batches, keys) = _seed_batch(3)
+    texts = [
+        jax.jit(jax.vmap(agent.update, in_axes=(0, 0, 0, None))).lower(states, batches, keys, jnp.int32(0)).as_text()
+        for agent in (batched, looped)
+    ]
+    grouped, plain = (_group_counts(text) for text in texts)
+    assert len(grouped) == len(plain) == 2 * 15  # 8 forward, 3 input-gradient and 4 kernel-gradient convolutions
+    assert max(grouped) == 3 and set(plain) == {1}
+
+
+def test_seed_loop_is_a_validated_setting():
+    with pytest.raises(ConfigError, match="drqv2.seed_loop"):
+        DrQV2Config(seed_loop="yes").validate()
+    DrQV2Config(seed_loop=True).validate()
 
 
 def test_act_explores_around_the_deterministic_action():

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,6 +57,20 @@ def test_round_is_traced_once_and_updates_on_drqv2_schedule(run):
     assert 0.1 <= float(metrics[-1]["std"][0]) < 1.0
 
 
+def test_seed_loop_rounds_equal_the_batched_rounds(run):
+    """``drqv2.seed_loop`` inside the seed-vmapped round (scan, cond, donation): the same run up to float rounding."""
+    _, batched, batched_metrics, _ = run
+    trainer = PixelTrainer(dataclasses.replace(MICRO, drqv2=dataclasses.replace(MICRO.drqv2, seed_loop=True)))
+    init, round_fn, _ = compiled(trainer)
+    state = init(seed_keys(0, SEEDS))
+    for r in range(ROUNDS):
+        state, metrics = round_fn(state, jnp.int32(r))
+    assert trainer.trace_count == 1
+    close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
+    jax.tree.map(close, state.sac, batched.sac)
+    close(metrics["critic_loss"], batched_metrics[-1]["critic_loss"])
+
+
 def test_seeds_differ_and_the_buffer_holds_frames_once(run):
     trainer, state, _, evaluate = run
     leaves = jax.tree.leaves(state.sac.actor_params)
@@ -77,6 +94,9 @@ def test_seeds_differ_and_the_buffer_holds_frames_once(run):
 def test_cli_takes_drqv2_only_with_a_pixel_task(capsys):
     args = parse(["--preset", "tiny", "--algo", "drqv2", "--task", "walker_walk_pixels", "--drqv2.nstep", "1"])
     assert args.config.algo == "drqv2" and args.config.drqv2.nstep == 1 and not args.config.preference
+    assert not args.config.drqv2.seed_loop
+    looped = parse(["--preset", "tiny", "--algo", "drqv2", "--task", "walker_walk_pixels", "--drqv2.seed-loop"])
+    assert looped.config.drqv2.seed_loop
     for flags in (["--algo", "drqv2", "--task", "walker_walk"], ["--algo", "sac", "--task", "walker_walk_pixels"]):
         with pytest.raises(SystemExit) as err:
             parse(["--preset", "tiny", *flags])

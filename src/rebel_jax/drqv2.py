@@ -88,6 +88,13 @@ class DrQV2Config:
     """Random-shift padding in pixels (drqv2.py:153)."""
     precision: Literal["tf32", "highest", "bf16"] = "tf32"
     """Matmul and convolution precision (see :mod:`rebel_jax.networks`)."""
+    seed_loop: bool = False
+    """Run a ``vmap`` of :meth:`DrQV2.update` (the trainer's over seeds) as a loop over its entries
+    (``jax.custom_batching.sequential_vmap``: ``lax.map``), one seed's update at a time, instead of one
+    batched update: the same numbers up to float rounding. Batched, each of the encoder's
+    convolutions and their gradients becomes one grouped convolution (``feature_group_count`` = seeds),
+    suspected slow on GPU; looped, each is a plain one (not a DrQ-v2 setting; BENCHMARKS.md, "Pixel
+    programs on one H100"). Off until a GPU has timed it."""
 
     def validate(self) -> None:
         for name in ("feature_dim", "hidden", "depth", "update_every", "batch_size", "nstep", "std_steps"):
@@ -99,6 +106,7 @@ class DrQV2Config:
             _check(getattr(self, name) >= 0, f"drqv2.{name}", getattr(self, name), ">= 0")
         _check(self.pad >= 0, "drqv2.pad", self.pad, ">= 0")
         _check(self.precision in ("tf32", "highest", "bf16"), "drqv2.precision", self.precision, "tf32, highest, bf16")
+        _check(isinstance(self.seed_loop, bool), "drqv2.seed_loop", self.seed_loop, "True, False")
 
 
 def task_config(task: str, base: DrQV2Config = DrQV2Config()) -> DrQV2Config:
@@ -312,6 +320,7 @@ class DrQV2:
         self.optimizer = optax.adam(cfg.lr)  # One learning rate for all three (drqv2.py:148-150).
         self.critic_loss = make_critic_loss(self.encoder, self.actor, self.critic, cfg.std_clip)
         self.actor_loss = make_actor_loss(self.actor, self.critic, cfg.std_clip)
+        self._looped_update = jax.custom_batching.sequential_vmap(self._update)
 
     def _features_shape(self) -> jax.ShapeDtypeStruct:
         obs = jax.ShapeDtypeStruct((1, *self.obs_shape), jnp.uint8)
@@ -361,6 +370,9 @@ class DrQV2:
     ) -> tuple[DrQV2State, Metrics]:
         """One DrQ-v2 update: augment, critic + encoder step, actor step, target critic.
 
+        With ``cfg.seed_loop`` a ``vmap`` of this method runs one entry at a time (``lax.map``); called
+        unbatched it is the same update either way.
+
         Args:
             state: current state.
             batch: n-step transitions with uint8 frame stacks (not yet augmented).
@@ -371,6 +383,14 @@ class DrQV2:
             state: updated, ``steps`` incremented.
             metrics: critic_loss, actor_loss, q (mean predicted Q), target_q, std.
         """
+        if self.cfg.seed_loop:  # Positional arguments: custom_vmap takes no keywords.
+            return self._looped_update(state, batch, key, step)
+        return self._update(state, batch, key, step)
+
+    def _update(
+        self, state: DrQV2State, batch: PixelTransition, key: jax.Array, step: jax.Array
+    ) -> tuple[DrQV2State, Metrics]:
+        """:meth:`update` as one batched computation under ``vmap``."""
         key_obs, key_next, key_critic, key_actor = jax.random.split(key, 4)
         batch = batch.replace(
             obs=random_shift(key_obs, batch.obs, self.cfg.pad),

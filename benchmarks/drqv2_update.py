@@ -1,0 +1,122 @@
+"""The seed-vmapped DrQ-v2 update alone, its seeds batched (``drqv2.seed_loop`` off) against looped (on).
+
+    python benchmarks/drqv2_update.py                      # 84x84, 5 seeds, walker (batch 512, n-step 1)
+    python benchmarks/drqv2_update.py --size 16 --batch-size 8 --seeds 2 --repeats 2   # a CPU check
+
+One row per setting: the median milliseconds of one update of every seed (``ms_per_update``), over
+``--repeats`` calls of a jitted ``lax.scan`` of ``--updates-per-call`` updates after a warm-up call, on
+fixed random uint8 frame stacks; the agent step is unbatched, as in the trainer. ``grouped_convolutions``
+counts the compiled program's convolutions with ``feature_group_count`` or ``batch_group_count`` above 1
+(the batched update's encoder convolutions, which the loop removes). Rows merge into
+``benchmarks/results/drqv2_update.json`` after each one. ``REBEL_JAX_GIT_COMMIT`` names the commit where
+the tree was copied without its history.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import pathlib
+import re
+import sys
+
+import jax
+import jax.numpy as jnp
+from timing import median_seconds
+
+from rebel_jax.cli import _git_commit
+from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_update.json"
+WALKER_ACTIONS = 6
+FRAMES = 3  # frame stack: 3 RGB frames, 9 channels
+
+
+def _device() -> str:
+    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
+
+
+def grouped_convolutions(hlo: str) -> int:
+    """Convolutions of an HLO module's text with ``feature_group_count`` or ``batch_group_count`` above 1."""
+    counts = (re.findall(r"(?:feature|batch)_group_count=(\d+)", line) for line in hlo.splitlines())
+    return sum(any(int(n) > 1 for n in found) for found in counts)
+
+
+def update_scan(cfg: DrQV2Config, size: int, seeds: int, per_call: int):
+    """(jitted ``(state, key) -> state`` of ``per_call`` seed-vmapped updates on fixed batches, the seeds' state)."""
+    agent = DrQV2(cfg, (size, size, 3 * FRAMES), WALKER_ACTIONS)
+    key_init, key_obs, key_next, key_action = jax.random.split(jax.random.PRNGKey(0), 4)
+    state = jax.jit(jax.vmap(agent.init))(jax.random.split(key_init, seeds))
+    shape = (seeds, cfg.batch_size)
+    pixels = lambda key: jax.random.randint(key, (*shape, size, size, 3 * FRAMES), 0, 256).astype(jnp.uint8)
+    batch = PixelTransition(
+        obs=pixels(key_obs),
+        action=jax.random.uniform(key_action, (*shape, WALKER_ACTIONS), minval=-1, maxval=1),
+        reward=jax.random.uniform(key_action, shape),
+        discount=jnp.full(shape, cfg.gamma),
+        next_obs=pixels(key_next),
+    )
+    update = jax.vmap(agent.update, in_axes=(0, 0, 0, None))
+
+    def many(state, key):
+        def body(state, key):
+            return update(state, batch, jax.random.split(key, seeds), jnp.int32(10_000))[0], None
+
+        return jax.lax.scan(body, state, jax.random.split(key, per_call))[0]
+
+    return jax.jit(many, donate_argnums=0), state
+
+
+def rows(args):
+    base = task_config("walker_walk", DrQV2Config(precision=args.precision))
+    base = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
+    for loop in args.seed_loop:
+        cfg = dataclasses.replace(base, seed_loop=loop == "on")
+        run, state = update_scan(cfg, args.size, args.seeds, args.updates_per_call)
+        compiled = run.lower(state, jax.random.PRNGKey(1)).compile()
+        grouped = grouped_convolutions(compiled.as_text())
+        sec = median_seconds(compiled, state, args.updates_per_call, args.repeats)
+        row = {
+            "device": _device(),
+            "date": datetime.date.today().isoformat(),
+            "jax": jax.__version__,
+            "commit": _git_commit(),
+            "command": " ".join(["python"] + sys.argv),
+            "seeds": args.seeds,
+            "size": args.size,
+            "batch_size": cfg.batch_size,
+            "nstep": cfg.nstep,
+            "precision": cfg.precision,
+            "seed_loop": cfg.seed_loop,
+            "ms_per_update": sec * 1e3,
+            "ms_per_seed_update": sec * 1e3 / args.seeds,
+            "grouped_convolutions": grouped,
+        }
+        print(json.dumps(row), flush=True)
+        yield row
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--size", type=int, default=84, help="image height and width")
+    p.add_argument("--batch-size", type=int, default=0, help="transitions per update (0: walker's 512)")
+    p.add_argument("--precision", default="tf32", choices=["tf32", "highest", "bf16"])
+    p.add_argument("--seed-loop", nargs="+", default=["off", "on"], choices=["off", "on"])
+    p.add_argument("--updates-per-call", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=5, help="timed calls per row")
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    args = p.parse_args(argv)
+    results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
+    fields = ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop")
+    key = lambda r: tuple(r.get(f) for f in fields)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for row in rows(args):
+        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
+        args.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
