@@ -24,7 +24,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
-from timing import median_seconds
+from timing import device_name, median_seconds
 
 from rebel_jax.cli import _git_commit
 from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
@@ -32,10 +32,6 @@ from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_update.json"
 WALKER_ACTIONS = 6
 FRAMES = 3  # frame stack: 3 RGB frames, 9 channels
-
-
-def _device() -> str:
-    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
 
 
 def grouped_convolutions(hlo: str) -> int:
@@ -79,7 +75,7 @@ def rows(args):
         grouped = grouped_convolutions(compiled.as_text())
         sec = median_seconds(compiled, state, args.updates_per_call, args.repeats)
         row = {
-            "device": _device(),
+            "device": device_name(),
             "date": datetime.date.today().isoformat(),
             "jax": jax.__version__,
             "commit": _git_commit(),

@@ -24,7 +24,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-from timing import random_steps_seconds
+from timing import device_name, random_steps_seconds
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
 
@@ -36,10 +36,6 @@ def _load(path: pathlib.Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {"rows": [], "fidelity": {}}
 
 
-def _device() -> str:
-    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
-
-
 def time_rollout(env, batch: int, repeats: int = 5) -> float:
     """Median seconds per control step of ``batch`` environments."""
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch))
@@ -48,7 +44,7 @@ def time_rollout(env, batch: int, repeats: int = 5) -> float:
 
 def throughput(args):
     """Yields one result row per (task, solver, batch)."""
-    device, date = _device(), datetime.date.today().isoformat()
+    device, date = device_name(), datetime.date.today().isoformat()
     for task in args.tasks:
         for solver in args.solvers:
             env = make_env(task, solver=solver, unroll_substeps=args.unroll)
@@ -193,7 +189,7 @@ def main():
         results["fidelity"] = {
             "date": datetime.date.today().isoformat(),
             "jax": jax.__version__,
-            "device": _device(),
+            "device": device_name(),
             "command": " ".join(["python"] + sys.argv),
             "tasks": fidelity(args),
         }

@@ -35,17 +35,13 @@ import time
 
 import jax
 import jax.numpy as jnp
-from timing import random_steps_seconds
+from timing import device_name, random_steps_seconds
 
 from rebel_jax.envs import make_env
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "render_throughput.json"
 STEPS_PER_CALL = 10
 POOL = 64
-
-
-def _device() -> str:
-    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
 
 
 def _states(env, batch: int):
@@ -92,7 +88,7 @@ class _Physics:
 
 
 def rows(args):
-    device, date = _device(), datetime.date.today().isoformat()
+    device, date = device_name(), datetime.date.today().isoformat()
     command = " ".join(["python"] + sys.argv)
     for task in args.tasks:
         env = make_env(f"{task}_pixels")

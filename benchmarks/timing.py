@@ -8,6 +8,11 @@ import time
 import jax
 
 
+def device_name() -> str:
+    """The first device's kind (e.g. ``NVIDIA H100 80GB HBM3``), or ``cpu``: the ``device`` of a result row."""
+    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
+
+
 def median_seconds(run, state, per_call: int, repeats: int = 5) -> float:
     """Median seconds per inner step of ``state = run(state, key)`` after a compile + warm-up call.
 

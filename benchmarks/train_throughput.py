@@ -28,7 +28,7 @@ import time
 
 import jax
 import jax.numpy as jnp
-from timing import median_seconds
+from timing import device_name, median_seconds
 
 from rebel_jax import replay
 from rebel_jax.config import PRESETS
@@ -39,12 +39,8 @@ BF16_CEILING_TFLOPS = {"NVIDIA H100 80GB HBM3": 798.0, "NVIDIA H200": 788.0}  # 
 UPDATES_PER_CALL = 20
 
 
-def _device() -> str:
-    return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
-
-
 def _row(**kw) -> dict:
-    base = {"device": _device(), "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    base = {"device": device_name(), "date": datetime.date.today().isoformat(), "jax": jax.__version__}
     return {**base, "command": " ".join(["python"] + sys.argv), **kw}
 
 
@@ -184,7 +180,7 @@ def update_rows(args):
                 continue
             sec, counts = time_update(seeds, precision, args.repeats)
             tflops = seeds * flops / sec / 1e12
-            ceiling = BF16_CEILING_TFLOPS.get(_device())
+            ceiling = BF16_CEILING_TFLOPS.get(device_name())
             row = _row(
                 what="update",
                 algo="sac",
