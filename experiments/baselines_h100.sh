@@ -18,6 +18,8 @@
 #       steps x (1.3 ms env + 10 bf16 updates) = about 21 min);
 #   SET "pebble1000": walker_walk PEBBLE with 1,000 labels (100 per session, B-Pref's
 #       scripts/walker_walk/1000/oracle/run_PEBBLE.sh), about 20 min;
+#   SET "pebble_env40" (fifth session): the "pebble500bf16" job (same seeds) at 40 envs instead of 10, for
+#       the 12-minute target and the smallest num_envs that keeps B-Pref's curve;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
@@ -59,6 +61,9 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   rebel_walker)
     launch rebel_walker_100_lam${LAM:?set LAM}_bf16 --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --rebel.normalize --precision bf16 --seed 2
+    wait; finish; exit 0 ;;
+  pebble_env40)
+    launch pebble_walker_100_utd1_bf16_seed1_env40 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 --num-envs 40
     wait; finish; exit 0 ;;
   pebble500bf16)
     launch pebble_walker_100_utd1_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1
