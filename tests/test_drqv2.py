@@ -247,7 +247,7 @@ def test_update_vmapped_over_seeds_equals_separate_calls():
 
 def _seed_batch(seeds: int = 2):
     """(batched agent, looped agent) and the (states, batches, update keys) of ``seeds`` seeds, stacked."""
-    batched = DrQV2(SMALL, OBS_SHAPE, ACTIONS)
+    batched = DrQV2(dataclasses.replace(SMALL, seed_loop=False), OBS_SHAPE, ACTIONS)
     looped = DrQV2(dataclasses.replace(SMALL, seed_loop=True), OBS_SHAPE, ACTIONS)
     keys = jax.random.split(jax.random.key(0), seeds)
     stack = functools.partial(jax.tree.map, lambda *xs: jnp.stack(xs))
@@ -291,7 +291,8 @@ def test_seed_loop_leaves_no_grouped_convolution():
 def test_seed_loop_is_a_validated_setting():
     with pytest.raises(ConfigError, match="drqv2.seed_loop"):
         DrQV2Config(seed_loop="yes").validate()
-    DrQV2Config(seed_loop=True).validate()
+    DrQV2Config(seed_loop=False).validate()
+    assert DrQV2Config().seed_loop  # on by default: measured 6.8x faster on one H100 (BENCHMARKS.md)
 
 
 def test_act_explores_around_the_deterministic_action():

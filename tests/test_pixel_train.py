@@ -58,17 +58,19 @@ def test_round_is_traced_once_and_updates_on_drqv2_schedule(run):
 
 
 def test_seed_loop_rounds_equal_the_batched_rounds(run):
-    """``drqv2.seed_loop`` inside the seed-vmapped round (scan, cond, donation): the same run up to float rounding."""
-    _, batched, batched_metrics, _ = run
-    trainer = PixelTrainer(dataclasses.replace(MICRO, drqv2=dataclasses.replace(MICRO.drqv2, seed_loop=True)))
+    """``drqv2.seed_loop`` (on in ``run``) inside the seed-vmapped round (scan, cond, donation): the batched
+    update gives the same run up to float rounding."""
+    _, looped, looped_metrics, _ = run
+    assert MICRO.drqv2.seed_loop
+    trainer = PixelTrainer(dataclasses.replace(MICRO, drqv2=dataclasses.replace(MICRO.drqv2, seed_loop=False)))
     init, round_fn, _ = compiled(trainer)
     state = init(seed_keys(0, SEEDS))
     for r in range(ROUNDS):
         state, metrics = round_fn(state, jnp.int32(r))
     assert trainer.trace_count == 1
     close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
-    jax.tree.map(close, state.sac, batched.sac)
-    close(metrics["critic_loss"], batched_metrics[-1]["critic_loss"])
+    jax.tree.map(close, state.sac, looped.sac)
+    close(metrics["critic_loss"], looped_metrics[-1]["critic_loss"])
 
 
 def test_seeds_differ_and_the_buffer_holds_frames_once(run):
@@ -94,9 +96,9 @@ def test_seeds_differ_and_the_buffer_holds_frames_once(run):
 def test_cli_takes_drqv2_only_with_a_pixel_task(capsys):
     args = parse(["--preset", "tiny", "--algo", "drqv2", "--task", "walker_walk_pixels", "--drqv2.nstep", "1"])
     assert args.config.algo == "drqv2" and args.config.drqv2.nstep == 1 and not args.config.preference
-    assert not args.config.drqv2.seed_loop
-    looped = parse(["--preset", "tiny", "--algo", "drqv2", "--task", "walker_walk_pixels", "--drqv2.seed-loop"])
-    assert looped.config.drqv2.seed_loop
+    assert args.config.drqv2.seed_loop
+    batched = parse(["--preset", "tiny", "--algo", "drqv2", "--task", "walker_walk_pixels", "--drqv2.no-seed-loop"])
+    assert not batched.config.drqv2.seed_loop
     for flags in (["--algo", "drqv2", "--task", "walker_walk"], ["--algo", "sac", "--task", "walker_walk_pixels"]):
         with pytest.raises(SystemExit) as err:
             parse(["--preset", "tiny", *flags])
