@@ -93,7 +93,7 @@ def run_job(job: str, args, results: Results, deadline: float) -> None:
     trainer = PixelTrainer(cfg)
     repeat = getattr(trainer.env, "action_repeat", 1)
     command = f"python -m rebel_jax.train --seeds {args.seeds} {' '.join(flags)}"
-    base = {"job": job, "seeds": args.seeds, "command": command}
+    base = {"job": job, "seeds": args.seeds, "command": command, "seed_loop": cfg.drqv2.seed_loop}
     start = time.time()
     init, round_fn, _ = compiled(trainer)
     state = jax.block_until_ready(init(seed_keys(0, args.seeds)))

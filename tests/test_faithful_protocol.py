@@ -145,10 +145,12 @@ def _labelled_state(cfg, count, stored, pool_capacity, seed=0):
 
 @pytest.mark.parametrize("count", [10, 100, 300])
 def test_surf_session_runs_ceil_reward_update_times_labels_over_batch_steps(count):
-    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128)) == math.ceil(1000 * count / 128)
+    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128, jnp.asarray(10))) == math.ceil(1000 * count / 128)
+    # No new pair (the budget is spent): SURF holds no session, so no step runs.
+    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128, jnp.asarray(0))) == 0
     cfg = RewardConfig(hidden=8, depth=1, batch_size=128, label_capacity=400)
     state, _ = _labelled_state(cfg, count, 4, 0)
-    steps = surf.surf_iterations(7, state.data.count, cfg.batch_size)  # Few steps: a quick test.
+    steps = surf.surf_iterations(7, state.data.count, cfg.batch_size, jnp.asarray(1))  # Few steps: a quick test.
     train = jax.jit(lambda state, key, steps: rm.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
     trained, metrics = train(state, jax.random.key(1), steps)
     assert int(metrics["epochs"]) == math.ceil(7 * count / 128)

@@ -125,14 +125,18 @@ def add_unlabelled(state: RewardState, seg_a: Any, seg_b: Any, keep: jax.Array |
     return state.replace(pool=pool)
 
 
-def surf_iterations(reward_update: int, count: jax.Array, batch_size: int) -> jax.Array:
-    """SURF's gradient steps per session: ``ceil(reward_update * labels / batch_size)``.
+def surf_iterations(reward_update: int, count: jax.Array, batch_size: int, kept: jax.Array) -> jax.Array:
+    """SURF's gradient steps per session: ``ceil(reward_update * labels / batch_size)``, none without new labels.
 
     ``train_PEBBLE_semi_dataaug.py`` (alinlab/SURF 2088ee8), ``learn_reward``: ``num_iters =
     int(np.ceil(self.cfg.reward_update * self.labeled_feedback / self.reward_model.train_batch_size))``,
-    with ``reward_update=1000`` in its walker command and ``train_batch_size = 128``.
+    with ``reward_update=1000`` in its walker command and ``train_batch_size = 128``. SURF (as B-Pref)
+    holds no session once the budget is spent (``run``: ``if self.total_feedback < self.cfg.max_feedback``);
+    here a session whose seed kept no new pair (``kept`` 0) runs no step. The trainer discards such a
+    session's training anyway, so this only spares its cost: about 10 s per session on cheetah_run
+    (BENCHMARKS.md), 40 of the 50 sessions of a 1M run.
     """
-    return (reward_update * count + batch_size - 1) // batch_size
+    return jnp.where(kept > 0, (reward_update * count + batch_size - 1) // batch_size, 0)
 
 
 def _central_length(stored_length: int, crop: int) -> int:

@@ -437,7 +437,7 @@ class Trainer:
             )
             stored = surf.add_unlabelled(stored, pool_a, pool_b, kept > 0)
             terms = self._loss_terms(ts.replace(reward=stored), key_terms)
-            steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size)
+            steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size, kept)
             trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
         else:
             terms = self._loss_terms(ts.replace(reward=stored), key_terms)  # The store with this session's labels.
