@@ -1,7 +1,7 @@
 """The faithful-baseline table (issue 9) from the runs' logs: ``results/baselines.json``.
 
 Usage:
-  python experiments/baselines.py     # writes results/baselines.json, results/baselines_walker_walk.png
+  python experiments/baselines.py     # writes results/baselines.json, results/baselines_<task>.png
                                       # and prints a Markdown table
 
 Every setting in a row is read from that run's ``config.json`` and ``meta.json``; returns are read
@@ -22,7 +22,7 @@ from rebel_jax.plots import load_runs, plot_curves
 
 ROOT = pathlib.Path(__file__).parents[1]
 RESULTS = ROOT / "results"
-STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000)
+STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000, 750_000, 1_000_000)
 """Steps at which every run's return is reported (where the run got that far)."""
 
 # (log directory under results/runs, the columns of a grid run that are this method, published
@@ -55,6 +55,7 @@ RUNS = [
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
     ("baselines/pebble_cheetah_100_1m_bf16", None, 546, "PEBBLE, cheetah_run, 1M (bf16)"),
     ("baselines/surf_cheetah_100_1m_bf16_stopped270k", None, 557, "SURF, cheetah_run (bf16), stopped at 270k"),
+    ("baselines/surf_cheetah_100_1m_bf16", None, 557, "SURF, cheetah_run, 1M (bf16)"),
 ]
 
 
@@ -73,6 +74,34 @@ def _at_steps(run: pathlib.Path, columns: list[int]) -> dict[int, list[float]]:
             values = _per_seed(record["eval_return"])
             out[record["env_steps"]] = [values[i] for i in columns]
     return out
+
+
+def diagnostics(run: pathlib.Path, columns: list[int]) -> dict:
+    """What a curve did besides its end, from ``metrics.jsonl``: the best in-batch evaluation mean and its
+    step, the mean Q and critic loss over the last 10 rounds, and each seed's last learned-vs-true
+    segment-return correlation (``reward_correlation_return``, logged at sessions)."""
+    records = _records(run)
+
+    def series(key: str) -> list[tuple[int, list[float]]]:
+        out = []
+        for r in records:
+            if r.get(key) is not None:
+                values = [_per_seed(r[key])[i] for i in columns]
+                if all(v is not None and math.isfinite(v) for v in values):
+                    out.append((r["env_steps"], values))
+        return out
+
+    evals = series("eval_return")
+    best_step, best = max(((s, float(np.mean(v))) for s, v in evals), key=lambda sv: sv[1])
+    last = lambda key: round(float(np.mean([v for _, values in series(key)[-10:] for v in values])), 3)  # noqa: E731
+    correlations = series("reward_correlation_return")
+    return {
+        "best_eval_mean": round(best, 1),
+        "best_eval_step": best_step,
+        "q_last10": last("q"),
+        "critic_loss_last10": last("critic_loss"),
+        "reward_correlation_return": [round(v, 2) for v in correlations[-1][1]] if correlations else None,
+    }
 
 
 def row(log: str, select: str | None, published: float | None, rung: str) -> dict:
@@ -116,6 +145,7 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
         "iqm": round(float(iqm(x)), 2),
         "iqm_ci": [round(v, 2) if math.isfinite(v) else None for v in ci],
         "returns_at": {str(s): round(float(np.mean(v)), 1) for s, v in _at_steps(run, columns).items()},
+        "diagnostics": diagnostics(run, columns),
         "published": published,
         "device": ", ".join(meta["devices"]),
         "date": meta["started"][:10],
@@ -178,19 +208,30 @@ def pooled(rung: str, parts: list[dict]) -> dict:
     }
 
 
-FIGURE = {  # rung name in RUNS -> legend label of results/baselines_walker_walk.png
-    "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)": "PEBBLE, rung 0 (earlier protocol)",
-    "4: + utd 1 (B-Pref's)": "PEBBLE, rung 4 (B-Pref's protocol)",
-    "4 in bf16, five new seeds (--seed 1)": "PEBBLE, rung 4, bf16, new seeds",
-    "SURF on rung 4 (utd 1)": "PEBBLE+SURF, rung 4",
-    "SURF on rung 4 in bf16 (same seeds)": "PEBBLE+SURF, rung 4, bf16",
+FIGURES = {  # task -> (rung name in RUNS -> legend label), for results/baselines_<task>.png
+    "walker_walk": {
+        "0: earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25)": "PEBBLE, rung 0 (earlier protocol)",
+        "4: + utd 1 (B-Pref's)": "PEBBLE, rung 4 (B-Pref's protocol)",
+        "4 in bf16, five new seeds (--seed 1)": "PEBBLE, rung 4, bf16, new seeds",
+        "SURF on rung 4 (utd 1)": "PEBBLE+SURF, rung 4",
+        "SURF on rung 4 in bf16 (same seeds)": "PEBBLE+SURF, rung 4, bf16",
+    },
+    "cheetah_run": {
+        "SAC, cheetah_run, fixed reset": "SAC, true reward (40 envs, utd 0.25)",
+        "PEBBLE, cheetah_run, 1M (bf16)": "PEBBLE (B-Pref's protocol, bf16)",
+        "SURF, cheetah_run, 1M (bf16)": "PEBBLE+SURF (B-Pref's protocol, bf16)",
+    },
 }
-PUBLISHED = {"PEBBLE": 453, "PEBBLE+SURF": 661}
-"""The SURF paper's 500k walker_walk means at 100 labels (REFERENCE.md section 2)."""
+PUBLISHED = {  # task -> (name -> (published mean, its step))
+    "walker_walk": {"PEBBLE": (453, 500_000), "PEBBLE+SURF": (661, 500_000)},
+    "cheetah_run": {"PEBBLE": (546, 1_000_000), "PEBBLE+SURF": (557, 1_000_000)},
+}
+"""The published means at 100 labels (REFERENCE.md section 2): walker_walk at 500k from the SURF paper's
+table, cheetah_run at 1M (the issue's targets)."""
 
 
-def figure(path: pathlib.Path) -> None:
-    """Mean +- std over seeds of the walker_walk runs of ``FIGURE``, with the published 500k means."""
+def figure(task: str, path: pathlib.Path) -> None:
+    """Mean +- std over seeds of ``task``'s runs in ``FIGURES``, with the published means."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,16 +239,17 @@ def figure(path: pathlib.Path) -> None:
 
     curves = {}
     for log, select, _, rung in RUNS:
-        if rung in FIGURE:
+        if rung in FIGURES[task]:
             steps, returns = load_runs(RESULTS / "runs" / log)
             columns = _columns(json.loads((RESULTS / "runs" / log / "meta.json").read_text()), select)
-            curves[FIGURE[rung]] = (steps, returns[:, columns])
+            curves[FIGURES[task][rung]] = (steps, returns[:, columns])
     fig, ax = plt.subplots(figsize=(7, 4.5))
     plot_curves(ax, curves)
-    for i, (name, value) in enumerate(PUBLISHED.items()):
-        ax.scatter([500_000], [value], marker="*", s=120, color=f"C{i + 3}", label=f"{name} published (500k)", zorder=3)
+    for i, (name, (value, step)) in enumerate(PUBLISHED[task].items()):
+        label = f"{name} published ({step // 1000}k)"
+        ax.scatter([step], [value], marker="*", s=120, color=f"C{i + len(curves)}", label=label, zorder=3)
     ax.legend(fontsize=8)
-    ax.set_title("walker_walk, 100 labels, oracle teacher")
+    ax.set_title(f"{task}, 100 labels, oracle teacher")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -218,7 +260,8 @@ def main() -> None:
     by_rung = {r["rung"]: r for r in rows}
     rows += [pooled(rung, [by_rung[p] for p in parts]) for rung, parts in POOLED.items()]
     (RESULTS / "baselines.json").write_text(json.dumps({"rows": rows}, indent=1) + "\n")
-    figure(RESULTS / "baselines_walker_walk.png")
+    for task in FIGURES:
+        figure(task, RESULTS / f"baselines_{task}.png")
     print("| rung | env steps run | " + " | ".join(f"{s // 1000}k" for s in STEPS) + " | last eval, mean +- std |")
     print("|---|---:|" + "---:|" * len(STEPS) + "---:|")
     for r in rows:
