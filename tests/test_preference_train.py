@@ -19,7 +19,7 @@ from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
-from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
+from rebel_jax.train import SESSION_METRICS, Trainer, compiled, saturated_fraction, seed_keys
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a
 # feedback session at the start of rounds 2, 3 and 4 (env steps 80, 120, 160). On the probe task,
@@ -244,6 +244,8 @@ def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_se
     np.testing.assert_allclose(
         metrics["reward_correlation_return"], np.corrcoef(learned.sum(-1), true.sum(-1))[0, 1], rtol=1e-4
     )
+    np.testing.assert_allclose(metrics["reward_learned_mean"], learned.mean(), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(metrics["reward_saturated"], np.mean(np.abs(learned) > 0.9))
     both_obs = np.concatenate([seg_a.obs, seg_b.obs])
     both_action = np.concatenate([seg_a.action, seg_b.action])
     queried = np.asarray(reward_model.mean_reward(trainer.reward_cfg, ts.reward.params, both_obs, both_action))
@@ -251,3 +253,15 @@ def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_se
     np.testing.assert_allclose(
         metrics["reward_correlation_queries"], np.corrcoef(queried.ravel(), true_queried.ravel())[0, 1], rtol=1e-4
     )
+
+
+@pytest.mark.parametrize(
+    "output, reward, low, high",
+    [("tanh", [-0.95, -0.5, 0.0, 0.89, 0.91, 0.99], -1.0, 1.0), ("sigmoid", [0.01, 0.04, 0.06, 0.5, 0.94, 0.96], 0, 1)],
+)
+def test_saturated_fraction_counts_rewards_near_the_outputs_bounds(output, reward, low, high):
+    reward = np.asarray(reward, np.float32)
+    margin = 0.05 * (high - low)
+    want = np.mean([r < low + margin or r > high - margin for r in reward])
+    assert want == 0.5  # three of six near a bound
+    np.testing.assert_allclose(saturated_fraction(jnp.asarray(reward), output), want)

@@ -76,6 +76,8 @@ SESSION_METRICS = (
     "reward_correlation",
     "reward_correlation_return",
     "reward_correlation_queries",
+    "reward_learned_mean",
+    "reward_saturated",
 )
 """Per-round metrics of the feedback session (NaN in rounds without one, except ``labels_used``).
 
@@ -85,6 +87,11 @@ The three correlations of the learned (ensemble-mean) reward with the true one t
 constrains (a model can order segments right and still spread reward over their steps wrongly);
 ``reward_correlation_queries`` is per step on this session's queried segments, the data the
 labels came from (high there but low on fresh segments points to a shift between the two).
+
+``reward_learned_mean`` and ``reward_saturated`` describe the learned reward on the same fresh
+segments: its mean, and the fraction of steps within 5% of the output's range from one of its bounds
+(``|r| > 0.9`` for tanh; below 0.05 or above 0.95 for sigmoid). A reward that is saturated on most
+steps cannot rank one good behaviour above a better one.
 """
 
 
@@ -456,6 +463,8 @@ class Trainer:
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
         metrics["reward_correlation_return"] = _pearson(learned.sum(-1), fresh.true_reward.sum(-1))
+        metrics["reward_learned_mean"] = jnp.mean(learned)
+        metrics["reward_saturated"] = saturated_fraction(learned, rcfg.output)
         queried = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
         learned_queried = reward_model.mean_reward(rcfg, reward.params, queried.obs, queried.action)
         metrics["reward_correlation_queries"] = _pearson(learned_queried.reshape(-1), queried.true_reward.reshape(-1))
@@ -667,6 +676,13 @@ def reward_training_metrics(accuracy_new: jax.Array, train_metrics: dict, kept: 
     metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
     metrics["session_labels"] = kept
     return metrics
+
+
+def saturated_fraction(reward: jax.Array, output: str) -> jax.Array:
+    """Fraction of ``reward``'s entries within 5% of the output's range from a bound (see :data:`SESSION_METRICS`)."""
+    low, high = (0.0, 1.0) if output == "sigmoid" else (-1.0, 1.0)
+    margin = 0.05 * (high - low)
+    return jnp.mean((reward < low + margin) | (reward > high - margin))
 
 
 def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:
