@@ -20,6 +20,11 @@
 #       scripts/walker_walk/1000/oracle/run_PEBBLE.sh), about 20 min;
 #   SET "pebble_env40" (fifth session): the "pebble500bf16" job (same seeds) at 40 envs instead of 10, for
 #       the 12-minute target and the smallest num_envs that keeps B-Pref's curve;
+#       It was refused: num_envs <= 10 under query.pool episodes (RESULTS.md);
+#   SET "surf_cheetah_ru" with RU=<steps factor> (after the fifth session): the SURF cheetah 1M job
+#       with --surf.reward-update RU. RU=1000 repeats the 390.4 run (now with the reward_saturated
+#       metric; sessions after the budget no longer train, ~1,600 s of rounds); RU=100 tests the
+#       saturated-reward reading of its miss (RESULTS.md);
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
@@ -61,6 +66,9 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   rebel_walker)
     launch rebel_walker_100_lam${LAM:?set LAM}_bf16 --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --rebel.normalize --precision bf16 --seed 2
+    wait; finish; exit 0 ;;
+  surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
+    launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
   pebble_env40)
     launch pebble_walker_100_utd1_bf16_seed1_env40 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 --num-envs 40
