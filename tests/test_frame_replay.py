@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import frame_replay
+from rebel_jax import frame_replay, pixel_reward
 from rebel_jax.frame_replay import FrameStep
 
 STACK, FRAME, ENVS, GAMMA = 3, (4, 4, 3), 2, 0.9
@@ -148,3 +148,96 @@ def test_each_frame_is_stored_once():
         total = frame_replay.nbytes(shapes)
         stacked = 100_000 * 2 * 84 * 84 * 9  # obs and next_obs as full stacks
         assert total < stacked / 5.9
+
+
+# -- segments: the label store's copies and the query pool on a ring that wraps --------------------------
+
+
+def _segment_reference(naive: NaiveBuffer, row: int, env: int, length: int):
+    """The environment's own stacks and actions of ``length`` rows from ``row`` (NumPy)."""
+    data = [naive.data[(row + j) % naive.rows] for j in range(length)]
+    return np.stack([d["obs"][env] for d in data]), np.stack([d["action"][env] for d in data])
+
+
+@pytest.mark.parametrize("num_steps", [6, 31], ids=["not-full", "wrapped"])
+def test_segment_frames_rebuild_the_naive_stacks(num_steps):
+    length, episode_length = 3, 5
+    buffer, naive = _fill(num_steps, episode_length, 14, seed=num_steps)
+    places = [(r, e) for r in range(naive.rows) if naive.valid(r, length) for e in range(ENVS)]
+    assert places
+    rows, envs = (jnp.asarray(x, jnp.int32) for x in zip(*places, strict=True))
+    frames = jax.jit(frame_replay.segment_frames, static_argnums=3)(buffer, rows, envs, length)
+    assert frames.shape == (len(places), length + STACK - 1, *FRAME)  # each frame once
+    stacks = frame_replay.segment_stacks(frames, STACK)
+    for i, (row, env) in enumerate(places):
+        expected, _ = _segment_reference(naive, row, env, length)
+        np.testing.assert_array_equal(stacks[i], expected, err_msg=f"row {row} env {env}")
+
+
+@pytest.mark.parametrize("recent", [3, 10])
+def test_sample_segments_draws_the_last_complete_episodes_the_ring_holds(recent):
+    """Rows 18..30 of a 13-row ring: episodes of 4 steps, 16-19 partly overwritten, 20-23 and 24-27
+    complete, 28-30 running; the draws cover exactly the last ``recent`` complete (episode, env)."""
+    length, episode_length = 2, 4
+    buffer, naive = _fill(31, episode_length, 26, seed=5)
+    draw = jax.jit(pixel_reward.sample_segments, static_argnums=(2, 3, 4))
+    places = draw(jax.random.key(0), buffer, 2000, length, episode_length, recent)
+    held = {}
+    for d in naive.data:
+        held[d["episode"]] = held.get(d["episode"], 0) + 1
+    complete = sorted((ep, e) for ep, n in held.items() if n == episode_length for e in range(ENVS))
+    assert [ep for ep, _ in complete] == [5, 5, 6, 6]
+    eligible = set(complete[-recent:])
+    drawn = set()
+    for row, env in zip(np.asarray(places.row), np.asarray(places.env), strict=True):
+        first = naive.data[row]
+        assert naive.valid(int(row), length), f"row {row} does not start {length} steps of one episode"
+        assert first["time"] % episode_length <= episode_length - length
+        drawn.add((first["episode"], int(env)))
+    assert drawn == eligible
+
+
+def test_label_store_keeps_its_frames_after_the_replay_wraps():
+    """Labelled segments are copied: after the ring has overwritten every row, the store still holds the
+    stacks and actions the teacher saw, where the replay's rows (the old place-based store) no longer do."""
+    length, episode_length, pairs = 3, 5, 4
+    rng = np.random.default_rng(7)
+    steps = _simulate(rng, 40, episode_length)
+    buffer = frame_replay.init(14, ENVS, FRAME, 2, episode_length, STACK)
+    naive = NaiveBuffer(7)
+
+    def add(buffer, step):
+        naive.add(step)
+        return _add()(buffer, FrameStep(**{k: v for k, v in step.items() if k not in ("time", "episode")}))
+
+    for step in steps[:20]:  # the ring has wrapped twice: rows hold steps 13..19, episode 15..19 complete
+        buffer = add(buffer, step)
+    draw = jax.jit(pixel_reward.sample_segments, static_argnums=(2, 3, 4))
+    places = draw(jax.random.key(1), buffer, 2 * pairs, length, episode_length, 10)
+    seg_a, seg_b = (jax.tree.map(lambda x, s=s: x[s], places) for s in (slice(0, pairs), slice(pairs, None)))
+    starts = zip(places.row, places.env, strict=True)
+    references = [_segment_reference(naive, int(r), int(e), length) for r, e in starts]
+    mask = jnp.asarray([1.0, 0.0, 1.0, 1.0])  # the second pair skipped by the teacher
+    store = pixel_reward.empty_store(3, length, (*FRAME[:2], 3 * STACK), 2)
+    store = store.replace(ptr=jnp.int32(2), count=jnp.int32(2))  # two older labels: the kept pairs wrap
+    store = jax.jit(pixel_reward.append_segments)(store, buffer, seg_a, seg_b, jnp.arange(pairs) / 4.0, mask)
+    slots = {0: 2, 2: 0, 3: 1}  # pair -> slot
+    assert int(store.ptr) == 2 and int(store.count) == 3
+
+    def check(store):
+        for pair, slot in slots.items():
+            for side, frames, action in ((0, store.frames_a, store.action_a), (1, store.frames_b, store.action_b)):
+                stacks, actions = references[side * pairs + pair]
+                got = pixel_reward.SegmentFrames(frames[slot], action[slot])
+                np.testing.assert_array_equal(got.stacks(), stacks, err_msg=f"pair {pair} side {side}")
+                np.testing.assert_array_equal(got.action, actions)
+            assert float(store.labels[slot]) == pair / 4.0
+
+    check(store)
+    for step in steps[20:]:  # 20 more steps: every row and frame of the ring is overwritten
+        buffer = add(buffer, step)
+    check(store)
+    gathered = pixel_reward.gather_segments(buffer, seg_a, length)
+    for pair in slots:
+        stale = pixel_reward.SegmentFrames(gathered.frames[pair], gathered.action[pair])
+        assert not np.array_equal(stale.stacks(), references[pair][0])  # the replay's rows moved on

@@ -26,7 +26,7 @@ def _assert_orthogonal(kernel: np.ndarray, gain: float) -> None:
 
 def test_pixel_reward_ensemble_of_two_seeds_is_orthogonal():
     cfg = PixelRewardConfig(ensemble_size=3)  # hidden 256: the size that hung
-    init = jax.jit(jax.vmap(lambda key: pixel_reward.init(cfg, key, (16, 16, 9), 2, 4)))
+    init = jax.jit(jax.vmap(lambda key: pixel_reward.init(cfg, key, (16, 16, 9), 2, 4, 5)))
     params = jax.device_get(init(seed_keys(0, 2)).params["params"])
     for name, layer in params.items():
         layers = layer.items() if name == "Encoder_0" else [(name, layer)]

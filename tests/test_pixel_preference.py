@@ -57,12 +57,36 @@ def _filled_buffer(rng, steps: int):
     return buffer, np.stack(stacks), np.stack(actions), np.stack(true)
 
 
+def _frames(buffer, seg: SegmentPlaces, horizon: int) -> pixel_reward.SegmentFrames:
+    """Segments at places of any leading shape, copied from the replay as the label store keeps them."""
+    flat = jax.tree.map(lambda x: x.reshape(-1), seg)
+    got = pixel_reward.gather_segments(buffer, flat, horizon)
+    return jax.tree.map(lambda x: x.reshape(*seg.row.shape, *x.shape[1:]), got)
+
+
+def _place_of(buffer, frames, action, length: int) -> tuple[int, int]:
+    """The one (row, env) of the replay whose ``length`` actions are ``action`` (the actions are distinct
+    floats), checking that the stored ``frames`` are the replay's there."""
+    actions = np.asarray(buffer.action)
+    found = [
+        (row, env)
+        for row in range(int(buffer.size) - length + 1)
+        for env in range(buffer.num_envs)
+        if np.array_equal(actions[row : row + length, env], action)
+    ]
+    assert len(found) == 1, found
+    row, env = found[0]
+    expected = frame_replay.segment_frames(buffer, jnp.asarray([row]), jnp.asarray([env]), length)[0]
+    np.testing.assert_array_equal(frames, expected)
+    return row, env
+
+
 @pytest.mark.parametrize("crop", [0, 1])
 def test_bt_loss_matches_numpy_on_naive_stacks(crop):
     rng = np.random.default_rng(0)
     buffer, stacks, actions, _ = _filled_buffer(rng, 3 * LENGTH)
     horizon, batch = 4, 5
-    state = pixel_reward.init(REWARD, jax.random.PRNGKey(1), (SIZE, SIZE, 3 * STACK), ACTIONS, 8)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(1), (SIZE, SIZE, 3 * STACK), ACTIONS, 8, horizon)
     members = REWARD.ensemble_size
     # Starts inside one episode (episode b, offset <= L - H), per member its own pairs.
     episode = rng.integers(0, 3, (2, members, batch))
@@ -74,8 +98,9 @@ def test_bt_loss_matches_numpy_on_naive_stacks(crop):
     seg_a = SegmentPlaces(jnp.asarray(rows[0], jnp.int32), jnp.asarray(envs[0], jnp.int32))
     seg_b = SegmentPlaces(jnp.asarray(rows[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
     key = jax.random.PRNGKey(7)
+    seg_a, seg_b = _frames(buffer, seg_a, horizon), _frames(buffer, seg_b, horizon)
     loss, metrics = pixel_reward.bt_loss(
-        REWARD, state.params, buffer, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), horizon, crop, key
+        REWARD, state.params, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), crop, key
     )
     masks = np.ones((2, members, batch, horizon), np.float32)
     if crop:  # SURF's crops, drawn from the same key: every member sums over its own masked steps
@@ -110,7 +135,7 @@ def test_relabel_and_row_stacks_match_naive_stacks():
     np.testing.assert_array_equal(
         frame_replay.row_stacks(buffer, jnp.arange(2 * LENGTH)[:, None], jnp.arange(ENVS)[None]), stacks
     )
-    state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
     relabelled = frame_replay.relabel(
         buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=5
     )
@@ -183,10 +208,12 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
     for seed in range(SEEDS):
         count = int(data.count[seed])
         assert count == 12
+        buffer = jax.tree.map(lambda x, s=seed: x[s], state.buffer)
         for i in range(count):
             returns = []
-            for row, env in ((data.row_a, data.env_a), (data.row_b, data.env_b)):
-                start, e = int(row[seed, i]), int(env[seed, i])
+            for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b)):
+                # The stored copy is the replay's segment at the place the teacher saw.
+                start, e = _place_of(buffer, frames[seed, i], action[seed, i], horizon)
                 assert start % length <= length - horizon  # inside one episode
                 returns.append(sum(float(true[seed, start + h, e]) for h in range(horizon)))
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
@@ -211,7 +238,7 @@ def rebel_run():
 def test_value_term_on_pixels_matches_numpy_on_naive_stacks():
     rng = np.random.default_rng(4)
     buffer, stacks, _, _ = _filled_buffer(rng, 2 * LENGTH)
-    state = pixel_reward.init(REWARD, jax.random.PRNGKey(5), (SIZE, SIZE, 3 * STACK), ACTIONS, 4)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(5), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
     horizon, n, gamma = 4, 3, 0.9
     rows = rng.integers(0, 2, n) * LENGTH + rng.integers(0, LENGTH - horizon + 1, n)
     envs = rng.integers(0, ENVS, n)
@@ -274,14 +301,18 @@ def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
     np.testing.assert_array_equal(m["reward_epochs"], SURF_MICRO.surf.reward_update)  # no early stop
     np.testing.assert_array_equal(state.reward.pool.count, 3 * SURF_MICRO.surf.pool_size)  # 3 sessions
     true, crop, horizon = state.buffer.true_reward, SURF_MICRO.surf.crop, SURF_MICRO.query.segment_length
-    data = state.reward.data
+    data, stored = state.reward.data, horizon + 2 * crop
+    assert data.frames_a.shape[2] == stored + STACK - 1 and state.reward.pool.action_a.shape[2] == stored
     for seed in range(SEEDS):
         assert int(data.count[seed]) == 12
+        buffer = jax.tree.map(lambda x, s=seed: x[s], state.buffer)
         for i in range(12):
-            returns = [  # the teacher sees the central H of the stored H + 2c steps
-                sum(float(true[seed, int(row[seed, i]) + crop + h, int(env[seed, i])]) for h in range(horizon))
-                for row, env in ((data.row_a, data.env_a), (data.row_b, data.env_b))
+            places = [
+                _place_of(buffer, frames[seed, i], action[seed, i], stored)
+                for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b))
             ]
+            # the teacher sees the central H of the stored H + 2c steps
+            returns = [sum(float(true[seed, row + crop + h, env]) for h in range(horizon)) for row, env in places]
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
     leaves = zip(jax.tree.leaves(start), jax.tree.leaves(state.reward.params), strict=True)
     moved = [not np.allclose(a, b) for a, b in leaves]
@@ -396,16 +427,15 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
     envs = rng.integers(0, ENVS, (2, pairs))
     seg_a = SegmentPlaces(jnp.asarray(starts[0], jnp.int32), jnp.asarray(envs[0], jnp.int32))
     seg_b = SegmentPlaces(jnp.asarray(starts[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
-    reward = pixel_reward.add_labels(ts.reward, seg_a, seg_b, jnp.ones(pairs), jnp.ones(pairs))
+    reward = pixel_reward.add_labels(ts.reward, ts.buffer, seg_a, seg_b, jnp.ones(pairs), jnp.ones(pairs))
     ts = ts.replace(reward=reward)
     params, buffer = ts.reward.params, ts.buffer
     members = REWARD.ensemble_size
     # A BT minibatch: every member on the three pairs; its per-step rewards give the spread.
     tile = lambda x: jnp.tile(x[None], (members, 1))  # noqa: E731
     seg_m = [SegmentPlaces(tile(s.row), tile(s.env)) for s in (seg_a, seg_b)]
-    _, bt = pixel_reward.bt_loss(
-        REWARD, params, buffer, *seg_m, jnp.ones((members, pairs)), jnp.ones((members, pairs)), h
-    )
+    seg_m = [_frames(buffer, seg, h) for seg in seg_m]
+    _, bt = pixel_reward.bt_loss(REWARD, params, *seg_m, jnp.ones((members, pairs)), jnp.ones((members, pairs)))
     (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))
     loss, metrics = term(params, bt, jax.random.key(2))
 
@@ -439,15 +469,17 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
 def _stored_labels(rng, count: int, capacity: int, horizon: int):
     """A fresh ensemble holding ``count`` random pairs of ``horizon``-step segments, and its frame replay."""
     buffer, _, _, _ = _filled_buffer(rng, 3 * LENGTH)
-    state = pixel_reward.init(REWARD, jax.random.PRNGKey(11), (SIZE, SIZE, 3 * STACK), ACTIONS, capacity)
+    shape = (SIZE, SIZE, 3 * STACK)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(11), shape, ACTIONS, capacity, horizon)
 
     def places(n):
         rows = rng.integers(0, 3, n) * LENGTH + rng.integers(0, LENGTH - horizon + 1, n)
         return SegmentPlaces(jnp.asarray(rows, jnp.int32), jnp.asarray(rng.integers(0, ENVS, n), jnp.int32))
 
     labels = jnp.asarray(rng.choice([0.0, 0.5, 1.0], count), jnp.float32)
-    state = pixel_reward.add_labels(state, places(count), places(count), labels, jnp.ones(count))
-    pool = pixel_reward.append_places(pixel_reward.empty_places(6), places(6), places(6), jnp.zeros(6), jnp.ones(6))
+    state = pixel_reward.add_labels(state, buffer, places(count), places(count), labels, jnp.ones(count))
+    pool = pixel_reward.empty_store(6, horizon, shape, ACTIONS)
+    pool = pixel_reward.append_segments(pool, buffer, places(6), places(6), jnp.zeros(6), jnp.ones(6))
     return state.replace(pool=pool), buffer, places
 
 
@@ -456,7 +488,7 @@ def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentP
     segments ``seg``, normalised)."""
     if kind == "surf":
         surf_cfg = SURFConfig(crop=1, ratio=1, threshold=0.5, weight=0.7)
-        return (pixel_reward.pseudo_label_term(cfg, surf_cfg, buffer, state.pool, horizon),)
+        return (pixel_reward.pseudo_label_term(cfg, surf_cfg, state.pool),)
     if kind == "rebel":
         length = 3
         rows = pixel_reward.segment_rows(seg.row, length)
@@ -487,9 +519,7 @@ def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     for loop in (False, True):
         cfg = dataclasses.replace(REWARD, member_loop=loop)
         terms = _epoch_terms(kind, cfg, state, buffer, value_segments, horizon)
-        epoch = jax.jit(
-            lambda st, key, cfg=cfg, terms=terms: pixel_reward.train_epoch(cfg, st, buffer, key, horizon, terms, crop)
-        )
+        epoch = jax.jit(lambda st, key, cfg=cfg, terms=terms: pixel_reward.train_epoch(cfg, st, key, terms, crop))
         out[loop] = jax.device_get(epoch(state, jax.random.PRNGKey(12)))
     (vmapped, metrics_vmap), (looped, metrics_loop) = out[False], out[True]
     for name in ("accuracy", "loss"):
@@ -512,12 +542,13 @@ def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     seg_a, seg_b = (
         SegmentPlaces(*(jnp.reshape(x, (members, 4)) for x in (p.row, p.env))) for p in (places(12), places(12))
     )
+    seg_a, seg_b = _frames(buffer, seg_a, horizon), _frames(buffer, seg_b, horizon)
     labels, weight = jnp.ones((members, 4)), jnp.ones((members, 4))
     key = jax.random.PRNGKey(13)
-    pseudo = pixel_reward.pseudo_label_term(REWARD, SURFConfig(crop=1, threshold=0.5), buffer, state.pool, horizon)
+    pseudo = pixel_reward.pseudo_label_term(REWARD, SURFConfig(crop=1, threshold=0.5), state.pool)
 
     def losses(params, seg_a, seg_b, labels, weight, chosen):
-        loss, bt = pixel_reward.bt_loss(REWARD, params, buffer, seg_a, seg_b, labels, weight, horizon, 1, key, chosen)
+        loss, bt = pixel_reward.bt_loss(REWARD, params, seg_a, seg_b, labels, weight, 1, key, chosen)
         return loss, bt["logits"], pseudo(params, bt, key)[0]
 
     whole, whole_logits, whole_pseudo = losses(state.params, seg_a, seg_b, labels, weight, None)

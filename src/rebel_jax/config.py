@@ -138,7 +138,8 @@ class TrainConfig:
     eval_episodes: int = 10
     """Deterministic evaluation episodes on the true reward."""
     buffer_capacity: int = 0
-    """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref)."""
+    """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref), on pixel tasks
+    ``pixel_train.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
     seed: int = 0
     """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
 
@@ -306,8 +307,9 @@ class Config:
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)
             _check_round_multiple(self.feedback.interval, "feedback.interval", steps)
+            # State tasks' labels are replay places; pixel tasks' label store keeps copies (pixel_reward).
             _check(
-                self.train.capacity >= self.train.total_steps,
+                pixels or self.train.capacity >= self.train.total_steps,
                 "train.buffer_capacity",
                 self.train.buffer_capacity,
                 f"0 or >= train.total_steps={self.train.total_steps} (relabelling and queries assume no eviction)",

@@ -318,6 +318,38 @@ def row_stacks(buffer: FrameBuffer, row: jax.Array, env: jax.Array) -> jax.Array
     return stacks.reshape(*shape, *stacks.shape[1:])
 
 
+def segment_frames(buffer: FrameBuffer, row: jax.Array, env: jax.Array, length: int) -> jax.Array:
+    """The frames of ``length``-step segments, each frame once: ``length + stack - 1`` per segment.
+
+    Segment ``i`` is rows ``row[i] .. row[i] + length - 1`` (modulo the rows) of env ``env[i]``, inside one
+    episode. Its stacks share frames: step ``j``'s stack is frames ``j .. j + stack - 1`` of the result
+    (:func:`segment_stacks`), the first ``stack - 1`` clamped to the reset frame as the stacks are. SURF's
+    ``get_segment`` returns the same ``L + stack - 1`` frames (replay_buffer_drqv2.py:231-242).
+
+    Args:
+        buffer: the buffer.
+        row, env: (N,) int first rows and environments.
+        length: agent steps per segment (static).
+
+    Returns:
+        (N, length + stack - 1, H, W, 3) uint8 frames, oldest first.
+    """
+    start = row % buffer.rows
+    newest, k = buffer.frame_index[start], buffer.episode_step[start]
+    # Frame i is the newest frame of step i - (stack - 1), not earlier than the reset frame newest - k.
+    i = jnp.arange(length + buffer.stack - 1)
+    frame = newest[:, None] - k[:, None] + jnp.maximum(k[:, None] + i - (buffer.stack - 1), 0)
+    return buffer.frames[frame % buffer.frame_rows, env[:, None]]
+
+
+def segment_stacks(frames: jax.Array, stack: int) -> jax.Array:
+    """(..., L, H, W, 3 * stack) the stacks of segments kept as frames (..., L + stack - 1, H, W, 3)
+    (:func:`segment_frames`): step ``j``'s stack is frames ``j .. j + stack - 1``."""
+    steps = frames.shape[-4] - stack + 1
+    window = jnp.arange(steps)[:, None] + jnp.arange(stack)
+    return channel_stack(jnp.take(frames, window, axis=-4))
+
+
 def relabel(buffer: FrameBuffer, reward_fn, chunk_rows: int = 64) -> FrameBuffer:
     """Recomputes ``reward`` of every row with ``reward_fn(obs stacks (n, E, H, W, C), action (n, E, A)) -> (n, E)``.
 

@@ -14,9 +14,16 @@ Read from alinlab/SURF 866630a, branch ``pixel`` (``pixel_reward_model.py``, ``p
 - Segments of 50 agent steps (config_pebble.yaml:37 ``segment: 50``), cut from the last 20 stored
   episodes (``reward_max_episodes: 20``, config_pebble.yaml:56; ``get_queries``, pixel_reward_model.py:540-552)
   with a start uniform over all ``L - H + 1`` starts (:547).
-- The label store keeps *indices* of segments in the replay and gathers their frames when training
-  (``buffer_seg1_index``, pixel_reward_model.py:201-203, :855-859): this module does the same, so a
-  label costs four int32 and a float, not ``2 x 50`` frame stacks.
+- SURF's label store keeps *indices* of segments in its replay (``buffer_seg1_index``, ``buffer_seg2_index``:
+  ``(reward_capacity, 2)`` uint32 (episode, start), pixel_reward_model.py:200-203, written by ``put_queries``,
+  :554-575) and gathers the frames at every use (``get_segment_batch``, :856-859; replay_buffer_drqv2.py:231-253:
+  ``L + stack - 1`` frames and ``L`` actions per segment). That needs a replay that never evicts: SURF's holds
+  1M transitions (config_pebble.yaml:18), more than its runs' 500k agent steps. This module keeps
+  *copies* instead (:class:`PixelLabels`): each labelled segment's ``L + stack - 1`` frames, each stored once
+  as uint8 as in the frame replay, and its ``L`` actions, gathered from the replay when the label is added.
+  The frames are those SURF would gather at every use, so the replay may be a ring of recent transitions
+  (``pixel_train``). SURF's unlabelled pool (``u_buffer_seg*_index``, pixel_reward_model_semi.py:69-74) is
+  kept the same way.
 - A session trains ``reward_update`` epochs (README: 20) of minibatches of 16 pairs
   (``train_batch_size = 16``, pixel_reward_model.py:214), each member its own permutation (:816-820,
   :855), stopping once the members' mean epoch accuracy exceeds 0.97 (pixel_train_PEBBLE.py:269-278).
@@ -107,20 +114,27 @@ class PixelRewardNet(nn.Module):
 
 @flax.struct.dataclass
 class PixelLabels:
-    """Labelled pairs as segment places in the frame replay (SURF's ``buffer_seg*_index``)."""
+    """Labelled pairs as copies of their segments (SURF keeps indices, ``buffer_seg*_index``,
+    pixel_reward_model.py:200-203; see the module docstring): ``S`` agent steps per segment, whose
+    ``S + stack - 1`` frames are stored once each (:func:`frame_replay.segment_frames`)."""
 
-    row_a: jax.Array
-    """(C,) int32 first buffer row of segment a."""
-    env_a: jax.Array
-    """(C,) int32 its environment."""
-    row_b: jax.Array
-    """(C,) int32 first buffer row of segment b."""
-    env_b: jax.Array
-    """(C,) int32 its environment."""
+    frames_a: jax.Array
+    """(C, S + stack - 1, H, W, 3) uint8 segment a's frames, oldest first."""
+    action_a: jax.Array
+    """(C, S, A) float32 its actions."""
+    frames_b: jax.Array
+    """(C, S + stack - 1, H, W, 3) uint8 segment b's frames."""
+    action_b: jax.Array
+    """(C, S, A) float32 its actions."""
     labels: jax.Array
     """(C,) ``P(seg_b preferred)``."""
     ptr: jax.Array
     count: jax.Array
+
+    @property
+    def capacity(self) -> int:
+        """C, pairs (static)."""
+        return self.labels.shape[0]
 
 
 @flax.struct.dataclass
@@ -131,17 +145,32 @@ class PixelRewardState:
     opt_state: Any
     data: PixelLabels
     pool: PixelLabels | None = None
-    """SURF's unlabelled pairs (places; ``labels`` unused), or None."""
+    """SURF's unlabelled pairs (copies, as ``data``; ``labels`` unused), or None."""
 
 
 @flax.struct.dataclass
 class SegmentPlaces:
-    """N segments of H steps: start row and environment each (the frames stay in the replay)."""
+    """N segments of H steps in the replay: start row and environment each (queries while a session runs)."""
 
     row: jax.Array
-    """(N,) int32 first row."""
+    """(N,) int32 first row (taken modulo the replay's rows where read)."""
     env: jax.Array
     """(N,) int32 environment."""
+
+
+@flax.struct.dataclass
+class SegmentFrames:
+    """Segments as data: ``S + stack - 1`` frames (stored once) and ``S`` actions each, any leading shape."""
+
+    frames: jax.Array
+    """(..., S + stack - 1, H, W, 3) uint8, oldest first."""
+    action: jax.Array
+    """(..., S, A)."""
+
+    def stacks(self) -> jax.Array:
+        """(..., S, H, W, 3 * stack) the observation stacks (:func:`frame_replay.segment_stacks`)."""
+        stack = self.frames.shape[-4] - self.action.shape[-2] + 1
+        return frame_replay.segment_stacks(self.frames, stack)
 
 
 def network(cfg: PixelRewardConfig) -> PixelRewardNet:
@@ -149,20 +178,36 @@ def network(cfg: PixelRewardConfig) -> PixelRewardNet:
 
 
 def init(
-    cfg: PixelRewardConfig, key: jax.Array, obs_shape: tuple[int, int, int], action_size: int, capacity: int
+    cfg: PixelRewardConfig,
+    key: jax.Array,
+    obs_shape: tuple[int, int, int],
+    action_size: int,
+    capacity: int,
+    length: int,
 ) -> PixelRewardState:
-    """Fresh members (one key each) and an empty store of ``capacity`` labels."""
+    """Fresh members (one key each) and an empty store of ``capacity`` labelled pairs of ``length``-step
+    segments (``obs_shape`` (H, W, 3 stack) sizes their frames)."""
     keys = jax.random.split(key, cfg.ensemble_size)
     obs, action = jnp.zeros((1, *obs_shape), jnp.uint8), jnp.zeros((1, action_size))
     params = jax.vmap(network(cfg).init, in_axes=(0, None, None))(keys, obs, action)
-    return PixelRewardState(params=params, opt_state=optax.adam(cfg.lr).init(params), data=empty_places(capacity))
+    data = empty_store(capacity, length, obs_shape, action_size)
+    return PixelRewardState(params=params, opt_state=optax.adam(cfg.lr).init(params), data=data)
 
 
-def empty_places(capacity: int) -> PixelLabels:
-    """An empty store of ``capacity`` pairs."""
-    zeros = jnp.zeros((capacity,), jnp.int32)
+def empty_store(capacity: int, length: int, obs_shape: tuple[int, int, int], action_size: int) -> PixelLabels:
+    """An empty store of ``capacity`` pairs of ``length``-step segments of stacks ``obs_shape`` (H, W, 3 stack)."""
+    height, width, channels = obs_shape
+    frames = jnp.zeros((capacity, length + channels // 3 - 1, height, width, 3), jnp.uint8)
+    action = jnp.zeros((capacity, length, action_size), jnp.float32)
     scalar = jnp.zeros((), jnp.int32)
-    return PixelLabels(zeros, zeros, zeros, zeros, jnp.zeros((capacity,)), scalar, scalar)
+    return PixelLabels(frames, action, frames, action, jnp.zeros((capacity,)), scalar, scalar)
+
+
+def store_bytes(capacity: int, length: int, height: int, width: int, action_size: int, stack: int = 3) -> int:
+    """Bytes of a store of ``capacity`` pairs (:func:`empty_store`): 200 pairs of 50 steps at 84x84 with 6
+    actions, 440 MB; SURF's indices were 16 bytes a pair (pixel_reward_model.py:201-203)."""
+    per_segment = (length + stack - 1) * frame_bytes(height, width) + length * action_size * 4
+    return capacity * (2 * per_segment + 4) + 8
 
 
 def predict(cfg: PixelRewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -176,70 +221,104 @@ def mean_reward(cfg: PixelRewardConfig, params: Any, obs: jax.Array, action: jax
 
 
 def segment_rows(start: jax.Array, horizon: int) -> jax.Array:
-    """(..., H) rows of the segments starting at ``start`` (...)."""
+    """(..., H) rows of the segments starting at ``start`` (...), before the replay's modulo."""
     return start[..., None] + jnp.arange(horizon)
 
 
-def member_step_rewards(
-    cfg: PixelRewardConfig, member_params: Any, buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int
-) -> jax.Array:
-    """(N, H) one member's learned rewards ``r(s_h, a_h)`` on segments gathered from the replay."""
-    rows = segment_rows(seg.row, horizon)
-    env = jnp.broadcast_to(seg.env[:, None], rows.shape)
-    obs = frame_replay.row_stacks(buffer, rows, env)
-    return network(cfg).apply(member_params, obs, buffer.action[rows, env])
+def gather_segments(buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int) -> SegmentFrames:
+    """The frames and actions of ``horizon``-step segments at places ``seg`` (N,), copied from the replay
+    (SURF's ``get_segment``, replay_buffer_drqv2.py:231-242: ``L + stack - 1`` frames, ``L`` actions)."""
+    rows = segment_rows(seg.row, horizon) % buffer.rows
+    frames = frame_replay.segment_frames(buffer, seg.row, seg.env, horizon)
+    return SegmentFrames(frames=frames, action=buffer.action[rows, seg.env[:, None]])
 
 
-def member_returns(
-    cfg: PixelRewardConfig, member_params: Any, buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int
-) -> jax.Array:
-    """(N,) one member's learned returns ``sum_h r(s_h, a_h)`` of segments gathered from the replay."""
-    return jnp.sum(member_step_rewards(cfg, member_params, buffer, seg, horizon), axis=-1)
+def member_step_rewards(cfg: PixelRewardConfig, member_params: Any, seg: SegmentFrames) -> jax.Array:
+    """(..., S) one member's learned rewards ``r(s_h, a_h)`` on segments (stacks rebuilt from their frames)."""
+    return network(cfg).apply(member_params, seg.stacks(), seg.action)
+
+
+def member_returns(cfg: PixelRewardConfig, member_params: Any, seg: SegmentFrames) -> jax.Array:
+    """(...,) one member's learned returns ``sum_h r(s_h, a_h)`` of segments."""
+    return jnp.sum(member_step_rewards(cfg, member_params, seg), axis=-1)
+
+
+def _chunked_returns(cfg: PixelRewardConfig, params: Any, n: int, segments: Callable) -> jax.Array:
+    """(M, n) every member's returns of ``n`` segments, ``segments(index (chunk,)) -> SegmentFrames`` giving
+    ``cfg.chunk`` of them at a time (one chunk's frames and stacks in memory; padding repeats the last)."""
+    chunks = -(-n // cfg.chunk)
+    index = jnp.minimum(jnp.arange(chunks * cfg.chunk), n - 1).reshape(chunks, cfg.chunk)
+
+    def one(part):
+        return jax.vmap(member_returns, in_axes=(None, 0, None))(cfg, params, segments(part))
+
+    returns = jax.lax.map(one, index)  # (chunks, M, chunk)
+    return jnp.moveaxis(returns, 1, 0).reshape(cfg.ensemble_size, -1)[:, :n]
 
 
 def ensemble_returns(
     cfg: PixelRewardConfig, params: Any, buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int
 ) -> jax.Array:
-    """(M, N) every member's returns, ``cfg.chunk`` segments at a time (one chunk's stacks in memory)."""
-    n = seg.row.shape[0]
-    chunks = -(-n // cfg.chunk)
-    pad = chunks * cfg.chunk - n
-    padded = jax.tree.map(lambda x: jnp.pad(x, (0, pad)).reshape(chunks, cfg.chunk), seg)
+    """(M, N) every member's returns of segments at replay places, ``cfg.chunk`` segments gathered at a time."""
 
-    def one(part):
-        return jax.vmap(member_returns, in_axes=(None, 0, None, None, None))(cfg, params, buffer, part, horizon)
+    def segments(index):
+        return gather_segments(buffer, jax.tree.map(lambda x: x[index], seg), horizon)
 
-    returns = jax.lax.map(one, padded)  # (chunks, M, chunk)
-    return jnp.moveaxis(returns, 1, 0).reshape(cfg.ensemble_size, -1)[:, :n]
+    return _chunked_returns(cfg, params, seg.row.shape[0], segments)
+
+
+def stored_side(data: PixelLabels, index: jax.Array) -> SegmentFrames:
+    """Segments ``index`` of both sides of the store, side a first: ``i < C`` is pair ``i``'s a, else pair
+    ``i - C``'s b (no concatenated copy of the store)."""
+    c = data.capacity
+    pair, first = index % c, (index < c)
+    frames = jnp.where(first[:, None, None, None, None], data.frames_a[pair], data.frames_b[pair])
+    action = jnp.where(first[:, None, None], data.action_a[pair], data.action_b[pair])
+    return SegmentFrames(frames=frames, action=action)
+
+
+def stored_returns(cfg: PixelRewardConfig, params: Any, data: PixelLabels) -> jax.Array:
+    """(M, 2C) every member's returns of the stored segments, a sides then b sides, by chunks."""
+    return _chunked_returns(cfg, params, 2 * data.capacity, lambda index: stored_side(data, index))
 
 
 def place_rewards(cfg: PixelRewardConfig, params: Any, buffer: frame_replay.FrameBuffer, place, action) -> jax.Array:
     """(M, ...) members' rewards at replay places ``place`` (..., 2) = (row, env) with actions ``action`` (..., A):
     the ``predict_fn`` of REBEL's value term on pixels (the stacks are gathered here, not carried)."""
-    obs = frame_replay.row_stacks(buffer, place[..., 0], place[..., 1])
+    obs = frame_replay.row_stacks(buffer, place[..., 0] % buffer.rows, place[..., 1])
     return predict(cfg, params, obs, action)
+
+
+def frame_rewards(cfg: PixelRewardConfig, params: Any, frames: jax.Array, action: jax.Array) -> jax.Array:
+    """(M, N, S) members' rewards on segments given as frames (N, S + stack - 1, H, W, 3) and actions
+    (N, S, A): the ``predict_fn`` of REBEL's ``V*`` on the stored segments."""
+    return predict(cfg, params, SegmentFrames(frames, action).stacks(), action)
 
 
 def true_returns(buffer: frame_replay.FrameBuffer, seg: SegmentPlaces, horizon: int) -> jax.Array:
     """(N, H) the stored task rewards of the segments (what the teacher reads)."""
-    rows = segment_rows(seg.row, horizon)
+    rows = segment_rows(seg.row, horizon) % buffer.rows
     return buffer.true_reward[rows, seg.env[:, None]]
 
 
 def sample_segments(
     key: jax.Array, buffer: frame_replay.FrameBuffer, n: int, horizon: int, episode_length: int, recent_episodes: int
 ) -> SegmentPlaces:
-    """n segments uniform over the last ``recent_episodes`` complete episodes, starts uniform in [0, L - H].
+    """n segments uniform over the last ``recent_episodes`` complete episodes the replay holds, starts
+    uniform in [0, L - H].
 
-    The trainer's environments start their episodes together at vector step 0 and the buffer never
-    wraps (its rows hold the whole run), so episode ``b`` of env ``e`` is rows ``[b L, (b + 1) L)``;
-    episodes rank by ``b`` then ``e``, the last ``recent_episodes`` of the complete ones are eligible
-    (SURF: the last ``reward_max_episodes``, pixel_reward_model.py:542-546) and the start takes any of
-    the ``L - H + 1`` places (pixel_reward_model.py:547).
+    The trainer's environments start their episodes together every ``L`` vector steps, so the newest row
+    ``ptr - 1``'s agent step ``k`` places the episode ends: the last complete one ends ``(k + 1) mod L`` rows
+    before the newest row's end, and the ``size`` rows the replay holds contain ``(size - (k + 1) mod L) // L``
+    complete episodes per env (a ring that wrapped holds a part of its oldest episode; it is never drawn).
+    Episodes rank by age ``b`` (oldest held first) then env ``e``; the last ``recent_episodes`` of the
+    complete ones are eligible (SURF: the last ``reward_max_episodes``, pixel_reward_model.py:540-552) and
+    the start takes any of the ``L - H + 1`` places (:547). Before the replay wraps, episode ``b`` is rows
+    ``[b L, (b + 1) L)``.
 
     Args:
         key: PRNG key.
-        buffer: a frame replay that has not wrapped.
+        buffer: a frame replay (a ring; rows are returned modulo its rows).
         n: segments (static).
         horizon: H (static).
         episode_length: agent steps L per episode (static).
@@ -249,12 +328,16 @@ def sample_segments(
         :class:`SegmentPlaces` (n,).
     """
     key_episode, key_start = jax.random.split(key)
-    num_envs = buffer.num_envs
-    complete = (buffer.size // episode_length) * num_envs
+    num_envs, rows = buffer.num_envs, buffer.rows
+    newest = (buffer.ptr - 1) % rows
+    partial = (buffer.episode_step[newest] + 1) % episode_length  # rows of the running episode
+    held = jnp.maximum(buffer.size - partial, 0) // episode_length  # complete episodes per env
+    complete = held * num_envs
     low = jnp.maximum(complete - recent_episodes, 0)
     flat = jax.random.randint(key_episode, (n,), low, jnp.maximum(complete, 1))
     offset = jax.random.randint(key_start, (n,), 0, episode_length - horizon + 1)
-    row = (flat // num_envs) * episode_length + offset
+    first = newest - partial - held * episode_length + 1  # first row of the oldest complete episode held
+    row = (first + (flat // num_envs) * episode_length + offset) % rows
     return SegmentPlaces(row=row.astype(jnp.int32), env=(flat % num_envs).astype(jnp.int32))
 
 
@@ -293,29 +376,42 @@ def select(
 
 
 def add_labels(
-    state: PixelRewardState, seg_a: SegmentPlaces, seg_b: SegmentPlaces, labels: jax.Array, mask: jax.Array
+    state: PixelRewardState,
+    buffer: frame_replay.FrameBuffer,
+    seg_a: SegmentPlaces,
+    seg_b: SegmentPlaces,
+    labels: jax.Array,
+    mask: jax.Array,
 ) -> PixelRewardState:
-    """Appends the kept pairs (mask 1) at ``ptr`` (SURF's ``put_queries``, pixel_reward_model.py:554-575)."""
-    return state.replace(data=append_places(state.data, seg_a, seg_b, labels, mask))
+    """Appends the kept pairs (mask 1) at ``ptr``, their frames and actions copied from ``buffer`` (SURF's
+    ``put_queries`` stores the places, pixel_reward_model.py:554-575)."""
+    return state.replace(data=append_segments(state.data, buffer, seg_a, seg_b, labels, mask))
 
 
-def append_places(
-    data: PixelLabels, seg_a: SegmentPlaces, seg_b: SegmentPlaces, labels: jax.Array, mask: jax.Array
+def append_segments(
+    data: PixelLabels,
+    buffer: frame_replay.FrameBuffer,
+    seg_a: SegmentPlaces,
+    seg_b: SegmentPlaces,
+    labels: jax.Array,
+    mask: jax.Array,
 ) -> PixelLabels:
-    """``data`` with the pairs of mask 1 written at ``ptr`` onwards (wrapping)."""
-    capacity = data.labels.shape[0]
+    """``data`` with the pairs of mask 1 written at ``ptr`` onwards (wrapping), gathered from ``buffer``
+    (``S`` steps each, the store's length). Pairs of mask 0 are gathered but dropped."""
+    capacity, length = data.capacity, data.action_a.shape[1]
     keep = mask > 0
     slot = jnp.where(keep, (data.ptr + jnp.cumsum(keep.astype(jnp.int32)) - 1) % capacity, capacity)
     kept = jnp.sum(keep.astype(jnp.int32))
+    new_a, new_b = gather_segments(buffer, seg_a, length), gather_segments(buffer, seg_b, length)
 
     def write(store, new):
         return store.at[slot].set(new.astype(store.dtype), mode="drop")
 
     return data.replace(
-        row_a=write(data.row_a, seg_a.row),
-        env_a=write(data.env_a, seg_a.env),
-        row_b=write(data.row_b, seg_b.row),
-        env_b=write(data.env_b, seg_b.env),
+        frames_a=write(data.frames_a, new_a.frames),
+        action_a=write(data.action_a, new_a.action),
+        frames_b=write(data.frames_b, new_b.frames),
+        action_b=write(data.action_b, new_b.action),
         labels=write(data.labels, labels),
         ptr=(data.ptr + kept) % capacity,
         count=jnp.minimum(data.count + kept, capacity),
@@ -323,20 +419,12 @@ def append_places(
 
 
 def member_step_pairs(
-    cfg: PixelRewardConfig,
-    params: Any,
-    buffer: frame_replay.FrameBuffer,
-    seg_a: SegmentPlaces,
-    seg_b: SegmentPlaces,
-    horizon: int,
+    cfg: PixelRewardConfig, params: Any, seg_a: SegmentFrames, seg_b: SegmentFrames
 ) -> tuple[jax.Array, jax.Array]:
-    """(M, B, H) each member's per-step rewards on both segments of its own pairs (fields of ``seg_*`` are (M, B))."""
+    """(M, B, S) each member's per-step rewards on both segments of its own pairs (fields of ``seg_*`` lead (M, B))."""
 
     def one(member_params, a, b):
-        return (
-            member_step_rewards(cfg, member_params, buffer, a, horizon),
-            member_step_rewards(cfg, member_params, buffer, b, horizon),
-        )
+        return member_step_rewards(cfg, member_params, a), member_step_rewards(cfg, member_params, b)
 
     return jax.vmap(one)(params, seg_a, seg_b)
 
@@ -344,19 +432,17 @@ def member_step_pairs(
 def bt_loss(
     cfg: PixelRewardConfig,
     params: Any,
-    buffer: frame_replay.FrameBuffer,
-    seg_a: SegmentPlaces,
-    seg_b: SegmentPlaces,
+    seg_a: SegmentFrames,
+    seg_b: SegmentFrames,
     labels: jax.Array,
     weight: jax.Array,
-    horizon: int,
     crop: int = 0,
     key: jax.Array | None = None,
     members: jax.Array | None = None,
 ) -> tuple[jax.Array, dict]:
     """The BT term: the sum over members of each member's weighted mean cross-entropy on its pairs.
 
-    With ``crop > 0`` (SURF) the segments are ``horizon = H + 2 crop`` long and each member sums its
+    With ``crop > 0`` (SURF) the segments are ``S = H + 2 crop`` long and each member sums its
     rewards over fresh random crops (:func:`rebel_jax.surf.crop_masks`, drawn from ``key``), SURF's
     ``get_cropping_mask`` (pixel_reward_model.py:822-833, applied at :901-904).
 
@@ -366,21 +452,23 @@ def bt_loss(
     Args:
         params: the parameters of M members (leading axis): the whole ensemble, or one member of it
             (``pixel_reward.member_loop``).
-        seg_a, seg_b, labels, weight: (M, B) each member's pairs.
+        seg_a, seg_b: each member's segments, fields leading (M, B).
+        labels, weight: (M, B) each member's pairs' labels and weights.
         members: (M,) int32 the ensemble indices of ``params``' members; None: all ``ensemble_size``.
             Every draw from ``key`` is made for the whole ensemble and these members' rows are kept, so a
             member's crops do not depend on which other members are computed with it.
 
     Returns:
         The loss and ``{"bt_loss", "bt_accuracy", "logits", "rewards_a", "rewards_b", "weight", "members"}``:
-        the members' per-step rewards on their pairs (M, B, H), uncropped, and the pairs' weights, which
+        the members' per-step rewards on their pairs (M, B, S), uncropped, and the pairs' weights, which
         REBEL's ``rebel.normalize`` reads (:func:`rebel_jax.agent_preference.reward_spread`), and
         ``members``, which SURF's pseudo-label term reads.
     """
     members = jnp.arange(cfg.ensemble_size) if members is None else members
-    rewards_a, rewards_b = member_step_pairs(cfg, params, buffer, seg_a, seg_b, horizon)
+    rewards_a, rewards_b = member_step_pairs(cfg, params, seg_a, seg_b)
     if crop:
-        mask_a, mask_b = surf.crop_masks(key, (cfg.ensemble_size, labels.shape[1]), horizon, crop)
+        length = rewards_a.shape[-1]
+        mask_a, mask_b = surf.crop_masks(key, (cfg.ensemble_size, labels.shape[1]), length, crop)
         mask_a, mask_b = mask_a[members], mask_b[members]
         logits = jnp.sum(rewards_b * mask_b, -1) - jnp.sum(rewards_a * mask_a, -1)
     else:
@@ -402,13 +490,12 @@ class _Carry:
 def train_epoch(
     cfg: PixelRewardConfig,
     state: PixelRewardState,
-    buffer: frame_replay.FrameBuffer,
     key: jax.Array,
-    horizon: int,
     terms: Sequence[Callable] = (),
     crop: int = 0,
 ) -> tuple[PixelRewardState, dict]:
-    """One epoch: per-member permutations of the stored labels in minibatches of ``batch_size``.
+    """One epoch: per-member permutations of the stored labels in minibatches of ``batch_size``, each
+    minibatch's segments read from the label store's copies (SURF gathers them from its replay, :856-859).
 
     SURF's ``train_reward`` (pixel_reward_model.py:835-923): ``ceil(count / 16)`` minibatches, member m
     reading slots ``perm_m[i B : (i + 1) B]``; the accuracy counts each minibatch's hard labels right
@@ -442,7 +529,7 @@ def train_epoch(
 
     def loss_fn(params, seg_a, seg_b, labels, weight, step_key, members):
         key_crop, key_terms = jax.random.split(step_key)
-        loss, metrics = bt_loss(cfg, params, buffer, seg_a, seg_b, labels, weight, horizon, crop, key_crop, members)
+        loss, metrics = bt_loss(cfg, params, seg_a, seg_b, labels, weight, crop, key_crop, members)
         for i, term in enumerate(terms):
             term_loss, _ = term(params, metrics, jax.random.fold_in(key_terms, i))
             loss = loss + term_loss
@@ -468,8 +555,8 @@ def train_epoch(
         start = carry.step * b
         slots = jax.lax.dynamic_slice(order, (0, start), (cfg.ensemble_size, b))
         weight = jnp.broadcast_to(((start + jnp.arange(b)) < data.count).astype(jnp.float32), slots.shape)
-        seg_a = SegmentPlaces(data.row_a[slots], data.env_a[slots])
-        seg_b = SegmentPlaces(data.row_b[slots], data.env_b[slots])
+        seg_a = SegmentFrames(data.frames_a[slots], data.action_a[slots])  # (M, B, S + stack - 1, H, W, 3)
+        seg_b = SegmentFrames(data.frames_b[slots], data.action_b[slots])
         labels = data.labels[slots]
         step_key = jax.random.fold_in(key_terms, carry.step)
         grads, logits, loss = ensemble_grads(carry.params, seg_a, seg_b, labels, weight, step_key)
@@ -493,9 +580,7 @@ def train_epoch(
 def train(
     cfg: PixelRewardConfig,
     state: PixelRewardState,
-    buffer: frame_replay.FrameBuffer,
     key: jax.Array,
-    horizon: int,
     terms: Sequence[Callable] = (),
     crop: int = 0,
     max_epochs: int | None = None,
@@ -517,7 +602,7 @@ def train(
 
     def body(carry):
         st, epoch, _, _ = carry
-        st, metrics = train_epoch(cfg, st, buffer, jax.random.fold_in(key, epoch), horizon, terms, crop)
+        st, metrics = train_epoch(cfg, st, jax.random.fold_in(key, epoch), terms, crop)
         return st, epoch + 1, metrics["accuracy"], metrics["loss"]
 
     st, epochs, accuracy, loss = jax.lax.while_loop(
@@ -537,14 +622,9 @@ def frame_bytes(height: int, width: int) -> int:
     return height * width * 3
 
 
-def pseudo_label_term(
-    cfg: PixelRewardConfig,
-    surf_cfg: surf.SURFConfig,
-    buffer: frame_replay.FrameBuffer,
-    pool: PixelLabels,
-    horizon: int,
-) -> Callable:
-    """SURF's pseudo-label term on the unlabelled pool (places), as :func:`rebel_jax.surf.pseudo_label_term`.
+def pseudo_label_term(cfg: PixelRewardConfig, surf_cfg: surf.SURFConfig, pool: PixelLabels) -> Callable:
+    """SURF's pseudo-label term on the unlabelled pool (copies of ``H + 2 crop``-step segments, as the label
+    store), as :func:`rebel_jax.surf.pseudo_label_term`.
 
     Each step every member draws ``surf.ratio x batch_size`` pool pairs (SURF's ``mu``, 1 in its pixel
     config, cfgs/config_pebble_semi.yaml:67), labels them from its own sums over the central ``H``
@@ -555,7 +635,7 @@ def pseudo_label_term(
         ``(params, batch, key) -> (loss, metrics)``, ``batch`` the BT term's metrics: its ``members`` name
         the ensemble members of ``params`` (all of them, or one with ``pixel_reward.member_loop``).
     """
-    c = surf_cfg.crop
+    c, horizon = surf_cfg.crop, pool.action_a.shape[1]
     central = slice(c, horizon - c)
 
     def loss_fn(params, batch, key):
@@ -568,12 +648,8 @@ def pseudo_label_term(
         index, mask_a, mask_b = index[members], mask_a[members], mask_b[members]
 
         def one(member_params, idx, m_a, m_b):
-            reward_a = member_step_rewards(
-                cfg, member_params, buffer, SegmentPlaces(pool.row_a[idx], pool.env_a[idx]), horizon
-            )
-            reward_b = member_step_rewards(
-                cfg, member_params, buffer, SegmentPlaces(pool.row_b[idx], pool.env_b[idx]), horizon
-            )
+            reward_a = member_step_rewards(cfg, member_params, SegmentFrames(pool.frames_a[idx], pool.action_a[idx]))
+            reward_b = member_step_rewards(cfg, member_params, SegmentFrames(pool.frames_b[idx], pool.action_b[idx]))
             logits = jnp.sum(reward_b * m_b, -1) - jnp.sum(reward_a * m_a, -1)
             central_logits = jnp.sum(reward_b[:, central], -1) - jnp.sum(reward_a[:, central], -1)
             return logits, jax.lax.stop_gradient(central_logits)

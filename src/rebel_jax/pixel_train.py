@@ -35,9 +35,18 @@ branch ``pixel``):
   otherwise run the 3 encoders on every one of its ``batch_size x 2`` stacks at every update;
 - at the first session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
   follow (``agent.reset_critic()``, ``update_after_reset(gradient_update=reset_update)``, :413-420);
-- the label store holds segment places, and sessions gather frames from the replay, so the replay
-  must hold the whole run (``train.buffer_capacity`` 0 = ``train.total_steps``: 21,168 bytes per
-  84x84 frame and environment-step, about 10.6 GB per seed at 500k agent steps).
+- the label store keeps copies of its segments (:class:`rebel_jax.pixel_reward.PixelLabels`: the
+  ``H + stack - 1`` frames of an ``H``-step segment, each once as uint8, and its actions), taken from the
+  replay when the teacher answers; SURF keeps replay indices (``buffer_seg*_index``,
+  pixel_reward_model.py:200-203) in a replay of 1M transitions (config_pebble.yaml:18), which never evicts in
+  its 500k-step runs. With copies the replay needs no more than DrQ-v2's: ``train.buffer_capacity`` 0 is
+  :data:`DEFAULT_CAPACITY` here too (a ring of the last 100k transitions, 2.13 GB per seed at 84x84, where
+  the whole run was 10.6 GB), and queries, SURF's pool and REBEL's replay segments come from the complete
+  episodes it still holds (``pixel_reward.sample_segments``). The store is sized by the label budget:
+  ``labels x 2`` segments of 52 frames (50 steps), 440 MB per seed for 200 labels, 2.2 GB for 1,000
+  (``pixel_reward.store_bytes``); SURF's pool the same per pair. What changes against SURF is the agent's
+  replay (the last 100k transitions, not the run), as for ``--algo drqv2``; the labelled frames are SURF's.
+  Each session relabels every row the ring holds. ``--buffer-capacity 500000`` keeps the whole run.
 """
 
 from __future__ import annotations
@@ -72,8 +81,9 @@ every written row of the replay, per step."""
 METRICS = ("critic_loss", "actor_loss", "q", "target_q", "std")
 
 DEFAULT_CAPACITY = 100_000
-"""Replay transitions per seed when ``train.buffer_capacity`` is 0 (at most ``train.total_steps``): 2.13 GB of
-84x84 frames per seed (:mod:`rebel_jax.frame_replay`). DrQ-v2 keeps 1M (config.yaml:18), 21 GB per seed."""
+"""Replay transitions per seed when ``train.buffer_capacity`` is 0 (at most ``train.total_steps``), for DrQ-v2
+and the preference runs alike: 2.13 GB of 84x84 frames per seed (:mod:`rebel_jax.frame_replay`). DrQ-v2 keeps
+1M (config.yaml:18), 21 GB per seed; SURF's pixel PEBBLE the same (config_pebble.yaml:18)."""
 
 
 @struct.dataclass
@@ -133,25 +143,27 @@ class PixelTrainer:
         self.updates_per_step = max(1, self.num_train // every)
         self.update_period = max(1, every // self.num_train)  # vector steps between updates
         self.preference = cfg.preference
-        if self.preference:  # Labels point into the replay: it holds the whole run (Config.validate checks).
-            self.capacity = cfg.train.capacity
+        self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
+        if self.preference:  # The label store keeps copies: the replay is a ring of recent episodes.
             self.horizon = cfg.query.segment_length
             self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
             self.stored = self.horizon + 2 * self.crop  # SURF stores H + 2 c steps (size_segment, :195)
             sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
             self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0
             ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
+            # The ring holds a complete episode whatever the running one's step: 2 L - 1 rows.
+            ok = ok and self.capacity // self.num_train >= 2 * self.episode_length - 1
             value_length = cfg.rebel.segment_length if cfg.rebel.source == "replay" else cfg.rebel.horizon
             ok = ok and (cfg.algo != "rebel" or value_length <= self.episode_length)
             if not ok:
                 raise ValueError(
                     f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
                     f"rebel.segment_length, rebel.horizon) <= {self.episode_length} agent steps per "
-                    f"episode and a complete episode before the first session (train.seed_steps / num_envs = "
-                    f"{cfg.feedback_start // self.num_train} vector steps)"
+                    f"episode, a complete episode before the first session (train.seed_steps / num_envs = "
+                    f"{cfg.feedback_start // self.num_train} vector steps) and one in the replay at any step "
+                    f"(2 x {self.episode_length} - 1 rows; train.buffer_capacity {self.capacity} / num_envs = "
+                    f"{self.capacity // self.num_train} rows)"
                 )
-        else:
-            self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
         self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, self.episode_length, True)
         self.trace_count = 0
@@ -186,9 +198,10 @@ class PixelTrainer:
             return ts
         key, key_reward = jax.random.split(key)
         shape, labels = self.env.observation_shape, self.cfg.feedback.labels
-        reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, self.env.action_size, labels)
+        actions = self.env.action_size
+        reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, actions, labels, self.stored)
         if self.pool_capacity:
-            reward = reward.replace(pool=pixel_reward.empty_places(self.pool_capacity))
+            reward = reward.replace(pool=pixel_reward.empty_store(self.pool_capacity, self.stored, shape, actions))
         lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
         ts = ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
         if self.onpolicy_value:
@@ -334,7 +347,7 @@ class PixelTrainer:
         correct = ((new_logits > 0) == (labels > 0.5)) * hard
         accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
         kept = jnp.sum(mask)
-        stored = pixel_reward.add_labels(ts.reward, seg_a, seg_b, labels, mask)
+        stored = pixel_reward.add_labels(ts.reward, ts.buffer, seg_a, seg_b, labels, mask)
         if (
             self.cfg.algo == "surf"
         ):  # Grow the pool, then reward_update passes, no early stop (pixel_train_PEBBLE_semi.py:275-281).
@@ -352,16 +365,21 @@ class PixelTrainer:
                 jax.tree.map(lambda x: x[scfg.pool_size :], pool),
             )
             ones = jnp.full((scfg.pool_size,), (kept > 0).astype(jnp.float32))
-            stored = stored.replace(pool=pixel_reward.append_places(stored.pool, pool_a, pool_b, ones * 0, ones))
-            terms = (pixel_reward.pseudo_label_term(rcfg, scfg, ts.buffer, stored.pool, self.stored),)
+            pool = pixel_reward.append_segments(stored.pool, ts.buffer, pool_a, pool_b, ones * 0, ones)
+            stored = stored.replace(pool=pool)
+            terms = (pixel_reward.pseudo_label_term(rcfg, scfg, stored.pool),)
             trained, train_metrics = pixel_reward.train(
-                rcfg, stored, ts.buffer, key_train, self.stored, terms, self.crop, scfg.reward_update, float("inf")
+                rcfg, stored, key_train, terms, self.crop, scfg.reward_update, float("inf")
             )
         else:
             rebel = self.cfg.algo == "rebel"
             terms = self._value_terms(ts.replace(reward=stored), key_value, agent_step) if rebel else ()
-            trained, train_metrics = pixel_reward.train(rcfg, stored, ts.buffer, key_train, h, terms)
-        reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
+            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms)
+        # Only the parameters wait for a kept label; the stores are ``stored`` either way (a select over
+        # them would copy their frames).
+        learned = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.params, ts.reward.params)
+        opt_state = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.opt_state, ts.reward.opt_state)
+        reward = stored.replace(params=learned, opt_state=opt_state)
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
         )
@@ -411,7 +429,7 @@ class PixelTrainer:
 
         def act(inputs):
             row, env, key = inputs
-            return self.agent.act(ts.sac, frame_replay.row_stacks(buffer, row, env), key, agent_step)
+            return self.agent.act(ts.sac, frame_replay.row_stacks(buffer, row % buffer.rows, env), key, agent_step)
 
         keys = jax.random.split(key_actions, rebel.num_segments)
         actions = jax.lax.map(act, (rows, envs, keys))  # one segment's stacks at a time
@@ -431,11 +449,11 @@ class PixelTrainer:
         ``lower_bound``: ``lambda * V`` (:func:`~rebel_jax.agent_preference.agent_value_term`) on
         :meth:`value_trajectories`. ``penalty``: ``lambda * (V* - V)``
         (:func:`~rebel_jax.agent_preference.value_gap_term`), ``V*`` from the ``rebel.best_segments``
-        labelled segments (places, both sides of every stored pair) of highest ensemble-mean learned return
-        under the parameters at the session's start, with their stored actions; their
-        ``best_segments x segment_length`` stacks are gathered and scored in every step. ``rebel.normalize``
-        divides by :func:`~rebel_jax.agent_preference.reward_spread` of the per-step rewards the BT term
-        computed on the minibatch (no extra encoder pass).
+        labelled segments (both sides of every stored pair, read from the label store's copies) of highest
+        ensemble-mean learned return under the parameters at the session's start, with their stored actions;
+        their ``best_segments x (segment_length + 2)`` frames are kept and their stacks scored in every step.
+        ``rebel.normalize`` divides by :func:`~rebel_jax.agent_preference.reward_spread` of the per-step rewards
+        the BT term computed on the minibatch (no extra encoder pass).
 
         Args:
           ts: the state, its label store holding this session's labels.
@@ -450,18 +468,26 @@ class PixelTrainer:
         common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn, spread_fn=spread_fn)
         if rebel.form == "lower_bound":
             return (agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, rebel.gamma, **common),)
-        data, buffer, h = ts.reward.data, ts.buffer, self.horizon
-        both = pixel_reward.SegmentPlaces(
-            row=jnp.concatenate([data.row_a, data.row_b]), env=jnp.concatenate([data.env_a, data.env_b])
-        )
-        filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
-        returns = jnp.mean(pixel_reward.ensemble_returns(rcfg, ts.reward.params, buffer, both, h), axis=0)
+        data = ts.reward.data
+        filled = jnp.tile(jnp.arange(data.capacity) < data.count, 2)  # a sides, then b sides
+        returns = jnp.mean(pixel_reward.stored_returns(rcfg, ts.reward.params, data), axis=0)
         index, valid = agent_preference.top_segments(returns, filled, rebel.best_segments)
-        rows = pixel_reward.segment_rows(both.row[index], h)
-        envs = jnp.broadcast_to(both.env[index][:, None], rows.shape)
-        best = (jnp.stack([rows, envs], axis=-1), buffer.action[rows, envs], valid)
+        best = pixel_reward.stored_side(data, index)
+
+        def best_predict_fn(params, frames, action):
+            return pixel_reward.frame_rewards(rcfg, params, frames, action)
+
         term = agent_preference.value_gap_term(
-            rcfg, ts.lam, obs, actions, *best, rebel.gamma, best_predict_fn=self._place_rewards(buffer), **common
+            rcfg,
+            ts.lam,
+            obs,
+            actions,
+            best.frames,
+            best.action,
+            valid,
+            rebel.gamma,
+            best_predict_fn=best_predict_fn,
+            **common,
         )
         return (term,)
 
