@@ -25,6 +25,10 @@
 #       with --surf.reward-update RU. RU=1000 repeats the 390.4 run (now with the reward_saturated
 #       metric; sessions after the budget no longer train, ~1,600 s of rounds); RU=100 tests the
 #       saturated-reward reading of its miss (RESULTS.md);
+#   SET "drqv2_seed" with TASK=walker|cheetah and SEED=k: DrQ-v2 on pixels, one seed, 500k frames
+#       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
+#       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
+#       and its replay checkpoint (2.1 GB per seed) cannot travel. One seed per job is about a fifth;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
@@ -69,6 +73,13 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
+    wait; finish; exit 0 ;;
+  drqv2_seed)  # DrQ-v2 on pixels, one seed per job: seed_loop runs seeds one after another anyway
+    case ${TASK:?set TASK=walker or cheetah} in
+      walker) task=(--task walker_walk_pixels --drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000) ;;
+      cheetah) task=(--task cheetah_run_pixels) ;;
+    esac
+    launch drqv2_${TASK}_500kframes_seed${SEED:?set SEED} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 "${task[@]}"
     wait; finish; exit 0 ;;
   pebble_env40)
     launch pebble_walker_100_utd1_bf16_seed1_env40 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 --num-envs 40
