@@ -564,3 +564,16 @@ def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
         assert not np.isclose(float(other[2]), float(alone[m][2]), rtol=1e-3, atol=1e-5)
     np.testing.assert_allclose(sum(float(a[0]) for a in alone), float(whole), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(sum(float(a[2]) for a in alone), float(whole_pseudo), rtol=1e-5, atol=1e-6)
+
+
+def test_a_session_trains_the_traced_number_of_epochs():
+    """``pixel_train`` passes ``max_epochs`` 0 for a session without new labels (SURF and B-Pref hold none once
+    the budget is spent): no epoch runs and the members stay; a traced 2 runs exactly 2."""
+    state, _, _ = _stored_labels(np.random.default_rng(5), 8, 12, 4)
+    train = jax.jit(lambda st, most: pixel_reward.train(REWARD, st, jax.random.PRNGKey(3), (), 0, most, float("inf")))
+    for most in (0, 2):
+        trained, metrics = train(state, jnp.int32(most))
+        assert int(metrics["epochs"]) == most
+        pairs = zip(jax.tree.leaves(state.params), jax.tree.leaves(trained.params), strict=True)
+        moved = [not np.array_equal(a, b) for a, b in pairs]
+        assert all(moved) if most else not any(moved)

@@ -583,11 +583,11 @@ def train(
     key: jax.Array,
     terms: Sequence[Callable] = (),
     crop: int = 0,
-    max_epochs: int | None = None,
+    max_epochs: int | jax.Array | None = None,
     stop_accuracy: float | None = None,
 ) -> tuple[PixelRewardState, dict]:
-    """A session: epochs (``fold_in(key, e)``) until ``max_epochs`` or accuracy > ``stop_accuracy``
-    (pixel_train_PEBBLE.py:267-278); nothing while no label is stored.
+    """A session: epochs (``fold_in(key, e)``) until ``max_epochs`` (may be traced) or accuracy >
+    ``stop_accuracy`` (pixel_train_PEBBLE.py:267-278); nothing while no label is stored.
 
     Returns:
         The state and ``{"epochs", "train_accuracy", "loss"}`` of the last epoch.

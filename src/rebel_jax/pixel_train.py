@@ -368,15 +368,16 @@ class PixelTrainer:
             pool = pixel_reward.append_segments(stored.pool, ts.buffer, pool_a, pool_b, ones * 0, ones)
             stored = stored.replace(pool=pool)
             terms = (pixel_reward.pseudo_label_term(rcfg, scfg, stored.pool),)
-            trained, train_metrics = pixel_reward.train(
-                rcfg, stored, key_train, terms, self.crop, scfg.reward_update, float("inf")
-            )
+            epochs = jnp.where(kept > 0, scfg.reward_update, 0)  # none without new labels, as on state tasks
+            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms, self.crop, epochs, float("inf"))
         else:
             rebel = self.cfg.algo == "rebel"
             terms = self._value_terms(ts.replace(reward=stored), key_value, agent_step) if rebel else ()
-            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms)
+            epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
+            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms, max_epochs=epochs)
         # Only the parameters wait for a kept label; the stores are ``stored`` either way (a select over
-        # them would copy their frames).
+        # them would copy their frames). A session without one trains no epoch (``epochs`` above): SURF and
+        # B-Pref hold no session once the budget is spent, and its training would be discarded here.
         learned = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.params, ts.reward.params)
         opt_state = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.opt_state, ts.reward.opt_state)
         reward = stored.replace(params=learned, opt_state=opt_state)
