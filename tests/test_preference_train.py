@@ -19,7 +19,7 @@ from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
-from rebel_jax.train import SESSION_METRICS, Trainer, compiled, saturated_fraction, seed_keys
+from rebel_jax.train import SESSION_METRICS, Trainer, compiled, saturated_fraction, seed_keys, within_budget
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a
 # feedback session at the start of rounds 2, 3 and 4 (env steps 80, 120, 160). On the probe task,
@@ -265,3 +265,67 @@ def test_saturated_fraction_counts_rewards_near_the_outputs_bounds(output, rewar
     want = np.mean([r < low + margin or r > high - margin for r in reward])
     assert want == 0.5  # three of six near a bound
     np.testing.assert_allclose(saturated_fraction(jnp.asarray(reward), output), want)
+
+
+def _bpref_asked_masks(labels: int, queries: int, kept: list[np.ndarray]) -> list[np.ndarray]:
+    """B-Pref's accounting (train_PEBBLE.py ``learn_reward`` / ``run``), as a plain loop: a session asks
+    ``min(mb_size, max_feedback - total_feedback)`` pairs (``set_batch``), the teacher keeps some, and
+    ``total_feedback += mb_size``; no session once ``total_feedback >= max_feedback``."""
+    total, out = 0, []
+    for answered in kept:
+        if total >= labels:
+            break
+        size = min(queries, labels - total)
+        out.append(np.where(np.arange(queries) < size, answered, 0.0))
+        total += queries
+    return out
+
+
+def _answered_masks(labels: int, kept: list[np.ndarray]) -> list[np.ndarray]:
+    """The ``answered`` rule as a loop: answered pairs count until ``labels`` are stored."""
+    stored, out = 0, []
+    for answered in kept:
+        mask = np.zeros_like(answered)
+        for i, k in enumerate(answered):
+            if k and stored < labels:
+                mask[i], stored = 1.0, stored + 1
+        out.append(mask)
+    return out
+
+
+@pytest.mark.parametrize("budget", ["asked", "answered"])
+def test_within_budget_is_bprefs_accounting_or_the_answered_rule(budget):
+    feedback = FeedbackConfig(labels=25, per_session=10, budget=budget)
+    rng = np.random.default_rng(3)
+    kept = [(rng.random(10) < 0.6).astype(np.float32) for _ in range(6)]
+    if budget == "asked":
+        want = _bpref_asked_masks(25, 10, kept)
+    else:
+        want = _answered_masks(25, kept)
+    got, stored = [], 0
+    for index, answered in enumerate(kept):
+        if feedback.sessions is not None and index >= feedback.sessions:
+            break
+        mask = np.asarray(within_budget(feedback, jnp.asarray(answered), jnp.int32(stored), jnp.int32(index)))
+        got.append(mask)
+        stored += int(mask.sum())
+    assert len(got) == len(want)
+    for ours, theirs in zip(got, want, strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    assert feedback.sessions == (3 if budget == "asked" else None)
+
+
+def test_asked_budget_holds_ceil_labels_over_queries_sessions_with_a_skipping_teacher():
+    """``budget asked``: 32 labels of 16 per session is 2 sessions though the schedule has 3 and the teacher
+    skips some pairs; the labels used are the answered ones of those 2 sessions."""
+    cfg = dataclasses.replace(
+        MICRO_PEBBLE,
+        feedback=FeedbackConfig(labels=32, per_session=16, interval=40, budget="asked"),
+        teacher=TeacherConfig(eps_skip=0.5),
+    )
+    _, _, metrics = _run(cfg, seed_keys(4, 2))
+    held = [m for m in metrics if np.all(m["session"] == 1.0)]
+    assert len(held) == 2 and sum(bool(Trainer(cfg).session_due(r)[0]) for r in range(ROUNDS)) == 2
+    skipped = sum(m["session_skipped"] for m in held)
+    assert np.all(skipped > 0)
+    np.testing.assert_array_equal(metrics[-1]["labels_used"], 32 - skipped)

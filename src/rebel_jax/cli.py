@@ -54,7 +54,7 @@ from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.train import Trainer, compiled, seed_keys
+from rebel_jax.train import Trainer, compiled, seed_keys, session_due
 
 RUN_FILES = (
     "config.json",
@@ -652,10 +652,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
 
 # -- the command line ------------------------------------------------------------------------
 def feedback_sessions(cfg: Config) -> int:
-    """Feedback sessions in a run (rounds that start on the schedule, as ``Trainer.session_due``)."""
-    steps = (r * cfg.train.steps_per_round for r in range(cfg.train.num_rounds))
-    start, interval = cfg.feedback_start, cfg.feedback.interval
-    return sum(1 for s in steps if s >= start and (s - start) % interval == 0)
+    """Feedback sessions in a run (:func:`rebel_jax.train.session_due`)."""
+    return sum(bool(session_due(cfg, r)[0]) for r in range(cfg.train.num_rounds))
 
 
 def _check_args(args: Args, preset: Config) -> None:

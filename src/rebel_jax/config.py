@@ -181,16 +181,23 @@ class FeedbackConfig:
     """When the teacher is asked, and how much (B-Pref's schedule).
 
     The first session comes at env step ``train.seed_steps + pretrain.steps`` (the end of
-    unsupervised pre-training, as B-Pref), then one every ``interval`` steps while the seed
-    has labels left. Only answered pairs count against the budget: a skipped pair does not.
+    unsupervised pre-training, as B-Pref), then one every ``interval`` steps while the budget
+    lasts; ``budget`` says what it counts.
     """
 
     labels: int = 100
-    """Total label budget per seed (answered pairs)."""
+    """Total label budget per seed (pairs; ``budget`` says which)."""
     per_session: int = 0
     """Pairs asked per session; 0 means ``labels // 10`` (B-Pref: 10 sessions, e.g. 10 for 100 labels)."""
     interval: int = 20_000
     """Environment steps between feedback sessions; a multiple of ``train.steps_per_round``."""
+    budget: Literal["answered", "asked"] = "answered"
+    """What counts against ``labels``. ``asked``, B-Pref's: every pair put to the teacher, skipped or not
+    (``learn_reward``: ``self.total_feedback += self.reward_model.mb_size``; the last session asks what is
+    left, ``set_batch(max_feedback - total_feedback)``), and no session once it is spent (``run``: ``if
+    self.total_feedback < self.cfg.max_feedback``), so ``ceil(labels / queries)`` sessions. ``answered``:
+    only the pairs the teacher answered, so a seed whose teacher skips is asked again until it has
+    ``labels`` answers. The two agree for a teacher that never skips (the oracle)."""
 
     @property
     def queries(self) -> int:
@@ -200,6 +207,13 @@ class FeedbackConfig:
         _check(self.labels >= 1, "feedback.labels", self.labels, ">= 1")
         _check(self.per_session >= 0, "feedback.per_session", self.per_session, ">= 0 (0: labels // 10)")
         _check(self.interval >= 1, "feedback.interval", self.interval, ">= 1")
+        _check(self.budget in ("answered", "asked"), "feedback.budget", self.budget, "answered, asked")
+
+    @property
+    def sessions(self) -> int | None:
+        """Sessions the budget allows: ``ceil(labels / queries)`` when it counts asked pairs, else None
+        (a skipping teacher may need more)."""
+        return -(-self.labels // self.queries) if self.budget == "asked" else None
 
 
 def _check_round_multiple(value: int, field: str, steps_per_round: int) -> None:
@@ -357,7 +371,11 @@ def _demo() -> Config:
 
 
 PRESETS: dict[str, Config] = {
-    "paper": Config(query=QueryConfig(sampling="disagreement"), pretrain=PretrainConfig(running_std="bpref")),
+    "paper": Config(
+        query=QueryConfig(sampling="disagreement"),
+        pretrain=PretrainConfig(running_std="bpref"),
+        feedback=FeedbackConfig(budget="asked"),
+    ),
     "tiny": _tiny(),
     "demo": _demo(),
 }

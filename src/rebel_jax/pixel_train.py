@@ -62,7 +62,16 @@ from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
 from rebel_jax.queries import Segments
-from rebel_jax.train import EpisodeStats, _all_finite, init_trajectory, record_trajectory, reward_training_metrics
+from rebel_jax.train import (
+    EpisodeStats,
+    _all_finite,
+    init_trajectory,
+    record_trajectory,
+    reward_training_metrics,
+    session_due,
+    session_index,
+    within_budget,
+)
 
 PIXEL_SESSION_METRICS = (
     "session",
@@ -293,10 +302,7 @@ class PixelTrainer:
 
     def session_due(self, round_index: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Whether round ``round_index`` starts with a feedback session, and whether it is the first."""
-        step = round_index * self.cfg.train.steps_per_round
-        start = self.cfg.feedback_start
-        due = (step >= start) & ((step - start) % self.cfg.feedback.interval == 0)
-        return due, step == start
+        return session_due(self.cfg, round_index)
 
     def select(self, ts: PixelTrainState, key: jax.Array, first: jax.Array):
         """The session's query pairs as segment places (uniform at the first session)."""
@@ -315,8 +321,9 @@ class PixelTrainer:
             first,
         )
 
-    def teach(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b):
-        """The scripted teacher on the stored true rewards of the segments, masked to the remaining budget.
+    def teach(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b, index: jax.Array):
+        """The scripted teacher on the stored true rewards of the segments, masked to the remaining budget at
+        session ``index`` (:func:`rebel_jax.train.within_budget`).
 
         The margin (skip / equal thresholds) is ``H x`` the mean true reward of the written rows.
         """
@@ -329,8 +336,7 @@ class PixelTrainer:
         true_a = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_a, self.horizon))
         true_b = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_b, self.horizon))
         labels, mask, _ = teachers.label(teachers.TeacherConfig(**ts.teacher), key, true_a, true_b, margin)
-        remaining = self.cfg.feedback.labels - ts.reward.data.count
-        return labels, mask * (jnp.cumsum(mask) <= remaining)
+        return labels, within_budget(self.cfg.feedback, mask, ts.reward.data.count, index)
 
     def _central(self, seg: pixel_reward.SegmentPlaces) -> pixel_reward.SegmentPlaces:
         return seg.replace(row=seg.row + self.crop)
@@ -505,12 +511,12 @@ class PixelTrainer:
 
         return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
 
-    def feedback_session(self, ts: PixelTrainState, first: jax.Array, agent_step: jax.Array):
-        """select -> teach -> learn, with :data:`PIXEL_SESSION_METRICS`."""
+    def feedback_session(self, ts: PixelTrainState, first: jax.Array, agent_step: jax.Array, index: jax.Array):
+        """select -> teach -> learn at session ``index``, with :data:`PIXEL_SESSION_METRICS`."""
         key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
         seg_a, seg_b = self.select(ts, key_select, first)
-        labels, mask = self.teach(ts, key_teach, seg_a, seg_b)
+        labels, mask = self.teach(ts, key_teach, seg_a, seg_b, index)
         ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first, agent_step)
         return ts, self._session_summary(ts, dict(metrics, session=1.0))
 
@@ -536,7 +542,7 @@ class PixelTrainer:
             agent_step = round_index * self.cfg.train.steps_per_round
             ts, session = jax.lax.cond(
                 due,
-                lambda ts: self.feedback_session(ts, first, agent_step),
+                lambda ts: self.feedback_session(ts, first, agent_step, session_index(self.cfg, round_index)),
                 lambda ts: (ts, self._session_summary(ts, {})),
                 ts,
             )

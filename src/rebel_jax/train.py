@@ -47,7 +47,7 @@ from flax import struct
 from jax.sharding import NamedSharding, PartitionSpec
 
 from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
-from rebel_jax.config import Config
+from rebel_jax.config import Config, FeedbackConfig
 from rebel_jax.envs import DMCEnv, PointProbe, State, VmapWrapper, make_env
 from rebel_jax.queries import Segments
 from rebel_jax.sac import SAC, SACState
@@ -360,8 +360,9 @@ class Trainer:
         num = self.cfg.feedback.queries
         return queries.select_queries(query, key, ts.buffer, num, self.cfg.env.episode_length, pref_probs, first)
 
-    def teach(self, ts: TrainState, key: jax.Array, seg_a: Segments, seg_b: Segments):
-        """The scripted teacher's answers on the central steps, masked to the seed's remaining budget.
+    def teach(self, ts: TrainState, key: jax.Array, seg_a: Segments, seg_b: Segments, index: jax.Array):
+        """The scripted teacher's answers on the central steps, masked to the seed's remaining budget at
+        session ``index`` (:func:`within_budget`).
 
         Returns:
           labels (N,), mask (N,) and the teacher's ``num_skipped`` / ``num_equal`` counts.
@@ -370,9 +371,7 @@ class Trainer:
         margin = queries.reward_margin(ts.buffer, self.horizon, self.cfg.env.episode_length, query.recent_episodes)
         teacher = teachers.TeacherConfig(**ts.teacher)
         labels, mask, info = teachers.label(teacher, key, self._central(seg_a), self._central(seg_b), margin)
-        remaining = self.cfg.feedback.labels - ts.reward.data.count
-        within = jnp.cumsum(mask) <= remaining  # Skipped pairs do not count against the budget.
-        return labels, mask * within, info
+        return labels, within_budget(self.cfg.feedback, mask, ts.reward.data.count, index), info
 
     def value_trajectories(self, ts: TrainState, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """REBEL's V trajectories (``rebel.source``): ``(obs (N, H, obs_size), actions (N, H, act_size))``.
@@ -489,10 +488,10 @@ class Trainer:
         keys = jax.random.split(key_updates, self.cfg.pretrain.reset_updates)
         return jax.lax.scan(one, sac_state, keys)[0]
 
-    def feedback_session(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, dict]:
-        """select -> teach -> learn, with the session's metrics (:data:`SESSION_METRICS`)."""
+    def feedback_session(self, ts: TrainState, first: jax.Array, index: jax.Array) -> tuple[TrainState, dict]:
+        """select -> teach -> learn at session ``index``, with the session's metrics (:data:`SESSION_METRICS`)."""
         ts, asked = self.session_queries(ts, first)
-        labels, mask, info = self.teach(ts, asked.key_teach, asked.seg_a, asked.seg_b)
+        labels, mask, info = self.teach(ts, asked.key_teach, asked.seg_a, asked.seg_b, index)
         return self.session_learn(ts, asked, labels, mask, first, info)
 
     def session_queries(self, ts: TrainState, first: jax.Array) -> tuple[TrainState, SessionQueries]:
@@ -528,12 +527,13 @@ class Trainer:
         out["labels_used"] = ts.reward.data.count.astype(jnp.float32)
         return out
 
+    def session_index(self, round_index: jax.Array) -> jax.Array:
+        """The index (0-based) of the session on the schedule at round ``round_index`` (if it has one)."""
+        return session_index(self.cfg, round_index)
+
     def session_due(self, round_index: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Whether round ``round_index`` starts with a feedback session, and whether it is the first."""
-        step = round_index * self.cfg.train.steps_per_round
-        start = self.cfg.feedback_start
-        due = (step >= start) & ((step - start) % self.cfg.feedback.interval == 0)
-        return due, step == start
+        return session_due(self.cfg, round_index)
 
     # -- the round ------------------------------------------------------------------------
     def round(self, ts: TrainState, round_index: jax.Array) -> tuple[TrainState, dict]:
@@ -557,9 +557,10 @@ class Trainer:
             ts, session = jax.lax.cond(
                 due,
                 self.feedback_session,
-                lambda ts, first: (ts, self._session_summary(ts, {})),
+                lambda ts, first, index: (ts, self._session_summary(ts, {})),
                 ts,
                 first,
+                self.session_index(round_index),
             )
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
@@ -676,6 +677,44 @@ def reward_training_metrics(accuracy_new: jax.Array, train_metrics: dict, kept: 
     metrics = {k: jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in training.items()}
     metrics["session_labels"] = kept
     return metrics
+
+
+def session_index(cfg: Config, round_index):
+    """The index (0-based) of the feedback session on the schedule at round ``round_index`` (if it has one)."""
+    step = round_index * cfg.train.steps_per_round
+    return (step - cfg.feedback_start) // cfg.feedback.interval
+
+
+def session_due(cfg: Config, round_index):
+    """Whether round ``round_index`` starts with a feedback session, and whether it is the first: at
+    ``cfg.feedback_start``, then every ``feedback.interval`` steps; under ``feedback.budget`` ``asked`` none
+    after the ``feedback.sessions`` the budget allows (B-Pref holds none once it is spent)."""
+    step = round_index * cfg.train.steps_per_round
+    start = cfg.feedback_start
+    due = (step >= start) & ((step - start) % cfg.feedback.interval == 0)
+    if cfg.feedback.sessions is not None:
+        due = due & (session_index(cfg, round_index) < cfg.feedback.sessions)
+    return due, step == start
+
+
+def remaining_budget(feedback: FeedbackConfig, stored, index):
+    """Pairs the seed may still count at session ``index`` (0-based) with ``stored`` labels held
+    (``feedback.budget``): ``labels - index * queries`` asked, or ``labels - stored`` answered."""
+    return feedback.labels - (index * feedback.queries if feedback.budget == "asked" else stored)
+
+
+def within_budget(feedback: FeedbackConfig, mask: jax.Array, stored: jax.Array, index: jax.Array) -> jax.Array:
+    """``mask`` (N,) limited to the seed's remaining budget (``feedback.budget``) at session ``index`` (0-based),
+    with ``stored`` labels held so far.
+
+    ``asked`` (B-Pref): the first ``labels - index * queries`` pairs of the session, answered or skipped
+    (``learn_reward``'s ``total_feedback += mb_size``; ``set_batch(max_feedback - total_feedback)`` in the
+    last session). ``answered``: the answered pairs while ``labels - stored`` last.
+    """
+    remaining = remaining_budget(feedback, stored, index)
+    if feedback.budget == "asked":
+        return mask * (jnp.arange(mask.shape[-1]) < remaining)
+    return mask * (jnp.cumsum(mask, axis=-1) <= remaining)
 
 
 def saturated_fraction(reward: jax.Array, output: str) -> jax.Array:

@@ -40,8 +40,8 @@ def to_label(answer: str, left: str) -> tuple[float, float]:
     """The (label, mask) of an answer, given which segment (``"a"`` or ``"b"``) was shown on the left.
 
     ``label`` is P(segment b preferred): 0 for a, 1 for b, 0.5 for equal (B-Pref's ``equal``
-    teacher); a skip has ``mask = 0`` and label 0 (B-Pref's ``skip`` teacher: dropped, and not
-    counted against the budget).
+    teacher); a skip has ``mask = 0`` and label 0 (B-Pref's ``skip`` teacher: dropped; it counts against
+    the budget only as an asked pair, under ``feedback.budget`` ``asked``).
     """
     if left not in ("a", "b"):
         raise LabelError(f"left={left!r} is invalid: allowed 'a' or 'b'")
@@ -99,7 +99,7 @@ class SessionAnswers:
 
     @property
     def kept(self) -> int:
-        """Answers that count against the budget (all but skips)."""
+        """Answers the reward model keeps (all but skips)."""
         return sum(1 for r in self.answers.values() if r["mask"] > 0)
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from rebel_jax.human import clips as clips_lib
 from rebel_jax.human.labels import LabelError, LabelFile, SessionAnswers, now, query_id
 from rebel_jax.human.server import Labelling, Query, Server, Session
+from rebel_jax.train import remaining_budget, within_budget
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +53,7 @@ class HumanOptions:
 def _compiled(trainer):
     """Jitted, column-vmapped ``session_queries``, ``teach`` and ``session_learn`` (once per trainer)."""
     queries = jax.jit(jax.vmap(trainer.session_queries, in_axes=(0, None)))
-    teach = jax.jit(jax.vmap(trainer.teach))
+    teach = jax.jit(jax.vmap(trainer.teach, in_axes=(0, 0, 0, 0, None)))
     learn = jax.jit(jax.vmap(trainer.session_learn, in_axes=(0, 0, 0, 0, None, 0)))
     return queries, teach, learn
 
@@ -109,8 +110,9 @@ class HostTeacher:
                 self.labelling.set_training(round_index, used)
             return state, {}
         first = jnp.asarray(first)
+        index = int(self.trainer.session_index(round_index))
         state, asked = self._queries(state, first)
-        scripted, scripted_mask, _ = self._teach(state, asked.key_teach, asked.seg_a, asked.seg_b)
+        scripted, scripted_mask, _ = self._teach(state, asked.key_teach, asked.seg_a, asked.seg_b, jnp.int32(index))
         scripted, scripted_mask = np.asarray(scripted)[0], np.asarray(scripted_mask)[0]
         num = scripted.shape[0]
         records = []
@@ -125,14 +127,14 @@ class HostTeacher:
                     "scripted": float(scripted[i]) if scripted_mask[i] > 0 else None,
                 }
             )
-        remaining = self.trainer.cfg.feedback.labels - used
+        remaining = int(remaining_budget(self.trainer.cfg.feedback, used, index))
         answers = self._answers(state, round_index, records, remaining, asked)
         labels, mask = np.zeros(num, np.float32), np.zeros(num, np.float32)
         for i, rec in enumerate(records):
             answer = answers.answers.get(rec["query"])
             if answer is not None:
                 labels[i], mask[i] = answer["label"], answer["mask"]
-        mask *= np.cumsum(mask) <= remaining  # The scripted teachers' budget rule (Trainer.teach).
+        mask = np.asarray(within_budget(self.trainer.cfg.feedback, mask, used, index))  # As Trainer.teach.
         equal = (labels == 0.5) & (mask > 0)
         asked_count = sum(1 for rec in records if rec["query"] in answers.answers)
         info = {
