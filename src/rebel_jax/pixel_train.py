@@ -381,12 +381,9 @@ class PixelTrainer:
             terms = self._value_terms(ts.replace(reward=stored), key_value, agent_step) if rebel else ()
             epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
             trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms, max_epochs=epochs)
-        # Only the parameters wait for a kept label; the stores are ``stored`` either way (a select over
-        # them would copy their frames). A session without one trains no epoch (``epochs`` above): SURF and
-        # B-Pref hold no session once the budget is spent, and its training would be discarded here.
-        learned = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.params, ts.reward.params)
-        opt_state = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained.opt_state, ts.reward.opt_state)
-        reward = stored.replace(params=learned, opt_state=opt_state)
+        # A session without a kept label trains no epoch (``epochs`` above; SURF and B-Pref hold no session
+        # once the budget is spent), so its members and Adam state come back as they were: no select needed.
+        reward = trained
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
         )
