@@ -52,6 +52,7 @@ RUNS = [
     ("baselines/surf_walker_100_utd1", None, 661, "SURF on rung 4 (utd 1)"),
     ("baselines/pebble_walker_100_utd1_bf16_seed1", None, 453, "4 in bf16, five new seeds (--seed 1)"),
     ("baselines/surf_walker_100_utd1_bf16", None, 661, "SURF on rung 4 in bf16 (same seeds)"),
+    ("baselines/pebble_walker_1000_bf16", None, None, "PEBBLE, 1,000 labels, rung 4 in bf16"),
     ("baselines/sac_cheetah_fixed", None, None, "SAC, cheetah_run, fixed reset"),
     ("baselines/pebble_cheetah_100_1m_bf16", None, 546, "PEBBLE, cheetah_run, 1M (bf16)"),
     ("baselines/surf_cheetah_100_1m_bf16_stopped270k", None, 557, "SURF, cheetah_run (bf16), stopped at 270k"),
