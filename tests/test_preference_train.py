@@ -255,6 +255,21 @@ def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_se
     )
 
 
+def test_round_reward_metrics_describe_the_rounds_own_transitions(pebble_run):
+    trainer, state, metrics = pebble_run
+    rows = trainer.steps_per_round
+    for seed in range(state.buffer.reward.shape[0]):
+        ptr, capacity = int(state.buffer.ptr[seed]), state.buffer.reward.shape[1]
+        index = [(ptr - rows + k) % capacity for k in range(rows)]  # The last round's rows.
+        learned = np.asarray(state.buffer.learned_reward[seed])[index].ravel()
+        true = np.asarray(state.buffer.reward[seed])[index].ravel()
+        np.testing.assert_allclose(metrics[-1]["round_learned_mean"][seed], learned.mean(), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(metrics[-1]["round_learned_saturated"][seed], np.mean(np.abs(learned) > 0.9))
+        np.testing.assert_allclose(
+            metrics[-1]["round_reward_correlation"][seed], np.corrcoef(learned, true)[0, 1], rtol=1e-4, atol=1e-6
+        )
+
+
 @pytest.mark.parametrize(
     "output, reward, low, high",
     [("tanh", [-0.95, -0.5, 0.0, 0.89, 0.91, 0.99], -1.0, 1.0), ("sigmoid", [0.01, 0.04, 0.06, 0.5, 0.94, 0.96], 0, 1)],

@@ -129,3 +129,11 @@ def test_relabel_equals_per_transition_loop(chunk_rows):
     np.testing.assert_allclose(relabelled.learned_reward, expected, rtol=1e-6, atol=1e-6)
     for name in set(FIELDS) - {"learned_reward"}:
         np.testing.assert_array_equal(getattr(relabelled, name), getattr(buffer, name))
+
+
+@pytest.mark.parametrize("total, rows", [(3, 2), (11, 3), (8, 4)])
+def test_latest_rows_are_the_last_written_oldest_first(total, rows):
+    steps = _steps(total)
+    buffer = _fill(replay.init(4 * E, E, OBS, ACT), steps)  # A ring of 4 rows: 11 steps wrap it twice.
+    latest = np.asarray(replay.latest(buffer.obs, buffer.ptr, rows))
+    np.testing.assert_array_equal(latest, steps.obs[total - rows : total])

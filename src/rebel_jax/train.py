@@ -95,6 +95,15 @@ steps cannot rank one good behaviour above a better one.
 """
 
 
+ROUND_REWARD_METRICS = ("round_learned_mean", "round_learned_saturated", "round_reward_correlation")
+"""Per-round metrics of the preference methods, on the training transitions of the round (every
+round, also after the label budget is spent, when the session metrics stop): the learned reward's
+mean, its saturated fraction (as ``reward_saturated``), and its per-step correlation with the true
+reward. They follow the learned reward along the states the improving policy reaches: a learned
+reward near its ceiling there (mean close to 1 for tanh) no longer tells faster running from fast.
+"""
+
+
 @struct.dataclass
 class EpisodeStats:
     """Running true returns of the current episodes and the last finished ones.
@@ -569,8 +578,20 @@ class Trainer:
         summary = {k: jnp.sum(v * weight) for k, v in metrics.items()}
         summary["train_return"] = ts.episodes.train_return
         summary["eval_return"] = ts.episodes.eval_return
+        if self.preference:
+            summary.update(self._round_reward_metrics(ts.buffer))
         summary["diverged"] = _diverged(ts, summary, episodes_before)
         return ts, {**summary, **session}
+
+    def _round_reward_metrics(self, buffer: replay.Buffer) -> dict[str, jax.Array]:
+        """:data:`ROUND_REWARD_METRICS` on the transitions this round wrote (the policy's own, this round)."""
+        learned = replay.latest(buffer.learned_reward, buffer.ptr, self.steps_per_round).reshape(-1)
+        true = replay.latest(buffer.reward, buffer.ptr, self.steps_per_round).reshape(-1)
+        return {
+            "round_learned_mean": jnp.mean(learned),
+            "round_learned_saturated": saturated_fraction(learned, self.reward_cfg.output),
+            "round_reward_correlation": _pearson(learned, true),
+        }
 
     # -- frozen-policy evaluation ----------------------------------------------------------
     def evaluate(self, actor_params, key: jax.Array, random_actions: bool | jax.Array = False) -> jax.Array:
