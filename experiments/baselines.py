@@ -22,7 +22,7 @@ from rebel_jax.plots import load_runs, plot_curves
 
 ROOT = pathlib.Path(__file__).parents[1]
 RESULTS = ROOT / "results"
-STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000, 750_000, 1_000_000)
+STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000, 750_000, 790_000, 1_000_000)
 """Steps at which every run's return is reported (where the run got that far)."""
 
 # (log directory under results/runs, the columns of a grid run that are this method, published
@@ -57,6 +57,12 @@ RUNS = [
     ("baselines/pebble_cheetah_100_1m_bf16", None, 546, "PEBBLE, cheetah_run, 1M (bf16)"),
     ("baselines/surf_cheetah_100_1m_bf16_stopped270k", None, 557, "SURF, cheetah_run (bf16), stopped at 270k"),
     ("baselines/surf_cheetah_100_1m_bf16", None, 557, "SURF, cheetah_run, 1M (bf16)"),
+    (
+        "baselines/surf_cheetah_100_1m_bf16_ru100_stopped790k",
+        None,
+        557,
+        "SURF, cheetah_run, reward_update 100 (bf16), stopped at 790k",
+    ),
 ]
 
 
@@ -80,7 +86,12 @@ def _at_steps(run: pathlib.Path, columns: list[int]) -> dict[int, list[float]]:
 def diagnostics(run: pathlib.Path, columns: list[int]) -> dict:
     """What a curve did besides its end, from ``metrics.jsonl``: the best in-batch evaluation mean and its
     step, the mean Q and critic loss over the last 10 rounds, and each seed's last learned-vs-true
-    segment-return correlation (``reward_correlation_return``, logged at sessions)."""
+    segment-return correlation (``reward_correlation_return``, logged at sessions).
+
+    Over the last 10 rounds also the learned reward that the critic implies, ``q * (1 - gamma) - gamma *
+    alpha * entropy`` (the soft Bellman fixed point with a constant reward; an estimate for runs that
+    predate the per-round metrics), and where logged the per-round ``round_learned_mean`` and
+    ``round_learned_saturated`` on the policy's own transitions (``train.ROUND_REWARD_METRICS``)."""
     records = _records(run)
 
     def series(key: str) -> list[tuple[int, list[float]]]:
@@ -96,12 +107,18 @@ def diagnostics(run: pathlib.Path, columns: list[int]) -> dict:
     best_step, best = max(((s, float(np.mean(v))) for s, v in evals), key=lambda sv: sv[1])
     last = lambda key: round(float(np.mean([v for _, values in series(key)[-10:] for v in values])), 3)  # noqa: E731
     correlations = series("reward_correlation_return")
+    gamma = json.loads((run / "config.json").read_text())["sac"]["gamma"]
+    q, alpha, entropy = (np.asarray([v for _, v in series(k)[-10:]]) for k in ("q", "alpha", "entropy"))
+    logged = lambda key: last(key) if series(key) else None  # noqa: E731
     return {
         "best_eval_mean": round(best, 1),
         "best_eval_step": best_step,
         "q_last10": last("q"),
         "critic_loss_last10": last("critic_loss"),
         "reward_correlation_return": [round(v, 2) for v in correlations[-1][1]] if correlations else None,
+        "implied_reward_last10": round(float(np.mean(q * (1 - gamma) - gamma * alpha * entropy)), 3),
+        "round_learned_mean_last10": logged("round_learned_mean"),
+        "round_learned_saturated_last10": logged("round_learned_saturated"),
     }
 
 
@@ -131,6 +148,7 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
         "pool": cfg["query"].get("pool", "rows") if cfg["algo"] != "sac" else None,
         "reward_init": cfg["reward"].get("init", "lecun") if cfg["algo"] != "sac" else None,
         "reset_updates": cfg["pretrain"].get("reset_updates", 0) if cfg["algo"] != "sac" else None,
+        "surf_reward_update": cfg["surf"]["reward_update"] if cfg["algo"] == "surf" else None,
         "num_envs": cfg["env"]["num_envs"],
         "utd": cfg["sac"]["utd"],
         "precision": cfg["sac"]["precision"],
@@ -221,6 +239,7 @@ FIGURES = {  # task -> (rung name in RUNS -> legend label), for results/baseline
         "SAC, cheetah_run, fixed reset": "SAC, true reward (40 envs, utd 0.25)",
         "PEBBLE, cheetah_run, 1M (bf16)": "PEBBLE (B-Pref's protocol, bf16)",
         "SURF, cheetah_run, 1M (bf16)": "PEBBLE+SURF (B-Pref's protocol, bf16)",
+        "SURF, cheetah_run, reward_update 100 (bf16), stopped at 790k": "PEBBLE+SURF, reward_update 100 (to 790k)",
     },
 }
 PUBLISHED = {  # task -> (name -> (published mean, its step))

@@ -17,14 +17,14 @@
 #   SET "pebble_cheetah1m" / "surf_cheetah1m": cheetah_run, 100 labels, 1M steps (~100k vector
 #       steps x (1.3 ms env + 10 bf16 updates) = about 21 min);
 #   SET "pebble1000": walker_walk PEBBLE with 1,000 labels (100 per session, B-Pref's
-#       scripts/walker_walk/1000/oracle/run_PEBBLE.sh), about 20 min;
+#       scripts/walker_walk/1000/oracle/run_PEBBLE.sh); ran in the sixth session (948.1, 1,325 s);
 #   SET "pebble_env40" (fifth session): the "pebble500bf16" job (same seeds) at 40 envs instead of 10, for
 #       the 12-minute target and the smallest num_envs that keeps B-Pref's curve;
 #       It was refused: num_envs <= 10 under query.pool episodes (RESULTS.md);
 #   SET "surf_cheetah_ru" with RU=<steps factor> (after the fifth session): the SURF cheetah 1M job
-#       with --surf.reward-update RU. RU=1000 repeats the 390.4 run (now with the reward_saturated
-#       metric; sessions after the budget no longer train, ~1,600 s of rounds); RU=100 tests the
-#       saturated-reward reading of its miss (RESULTS.md);
+#       with --surf.reward-update RU. RU=100 ran in the sixth session to 790k (620.8, RESULTS.md;
+#       12.4 s rounds, about 1,520 s to 1M); its 1M figure is owed. A first call on a fresh machine
+#       needs LIMIT <= 480 (install and compile fit in the call's 600 s);
 #   SET "drqv2_seed" with TASK=walker|cheetah and SEED=k: DrQ-v2 on pixels, one seed, 500k frames
 #       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
 #       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
