@@ -357,3 +357,29 @@ def test_baselines_pool_only_runs_that_differ_in_precision_and_seed(tmp_path, mo
         baselines.pooled("pooled", [a, c])
     with pytest.raises(ValueError, match="total_steps"):
         baselines.pooled("pooled", [a, b | {"complete": False}])
+
+
+def test_baselines_diagnostics_against_a_hand_computation(tmp_path, monkeypatch):
+    baselines = _baselines_module(monkeypatch)
+    rng = np.random.default_rng(0)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"sac": {"gamma": 0.9}}))
+    logged = []
+    for i in range(14):  # 14 rounds of 3 seeds; the per-round reward metrics only in the last 4.
+        record = {k: rng.uniform(0.1, 2.0, 3).tolist() for k in ("q", "alpha", "entropy", "critic_loss")}
+        record |= {"env_steps": 1000 * (i + 1), "eval_return": rng.uniform(0, 900, 3).tolist()}
+        if i >= 10:
+            record |= {"round_learned_mean": rng.uniform(-1, 1, 3).tolist()}
+        logged.append(record)
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in logged))
+    out = baselines.diagnostics(run, [0, 2])  # The columns of one method.
+    last = logged[-10:]
+    col = lambda key, rows: np.array([[r[key][c] for c in (0, 2)] for r in rows])  # noqa: E731
+    implied = col("q", last) * 0.1 - 0.9 * col("alpha", last) * col("entropy", last)
+    assert out["implied_reward_last10"] == round(float(implied.mean()), 3)
+    assert out["q_last10"] == round(float(col("q", last).mean()), 3)
+    assert out["round_learned_mean_last10"] == round(float(col("round_learned_mean", logged[10:]).mean()), 3)
+    assert out["round_learned_saturated_last10"] is None  # not logged
+    best = max(range(14), key=lambda i: col("eval_return", [logged[i]]).mean())
+    assert out["best_eval_step"] == logged[best]["env_steps"]
