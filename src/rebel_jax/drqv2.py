@@ -1,7 +1,7 @@
 """DrQ-v2: the pixel agent of SURF's pixel experiments, as pure, jittable, vmappable functions.
 
 One :meth:`DrQV2.update` is DrQ-v2's ``DrQV2Agent.update`` (facebookresearch/drqv2 c0c650b,
-drqv2.py:230-262; the same code in alinlab/SURF 866630a branch ``pixel``, agent/drqv2.py:311-342):
+drqv2.py:230-262; the same code in alinlab/SURF 214bc1d, branch ``pixel``, agent/drqv2.py:311-342):
 
 1. random shifts of ``obs`` and ``next_obs``, each with its own shifts (drqv2.py:240-242);
 2. ``obs`` encoded with gradient, ``next_obs`` without (drqv2.py:243-246);

@@ -2,7 +2,7 @@
 
 A frame-stack observation of ``stack`` frames would store every frame ``stack`` times, and twice
 more as ``next_obs``; this buffer keeps a ring of single frames and rebuilds stacks and n-step
-transitions when sampling, as SURF's pixel branch does with its episodes (alinlab/SURF 866630a,
+transitions when sampling, as SURF's pixel branch does with its episodes (alinlab/SURF 214bc1d,
 branch ``pixel``, replay_buffer_drqv2.py:191-214: frames ``max(idx - stack, 0) .. idx`` padded with
 the episode's first frame; DrQ-v2's ``nstep`` reward loop, facebookresearch/drqv2 c0c650b
 replay_buffer.py:150-160).

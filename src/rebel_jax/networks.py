@@ -222,7 +222,7 @@ def mlp_flops(in_size: int, hidden: int, depth: int, out: int) -> int:
 # -- pixel networks (DrQ-v2) -------------------------------------------------------------------
 # Yarats et al. 2021, "Mastering Visual Continuous Control: Improved Data-Augmented Reinforcement
 # Learning" (facebookresearch/drqv2 c0c650b, drqv2.py); the same modules in SURF's pixel branch
-# (alinlab/SURF 866630a, agent/drqv2.py).
+# (alinlab/SURF 214bc1d, branch ``pixel``, agent/drqv2.py).
 
 
 class Encoder(nn.Module):

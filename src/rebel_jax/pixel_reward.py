@@ -1,6 +1,6 @@
 """The pixel reward ensemble of SURF's pixel branch, learned from preferences on frame-replay segments.
 
-Read from alinlab/SURF 866630a, branch ``pixel`` (``pixel_reward_model.py``, ``pixel_train_PEBBLE.py``,
+Read from alinlab/SURF 214bc1d, branch ``pixel`` (``pixel_reward_model.py``, ``pixel_train_PEBBLE.py``,
 ``replay_buffer_drqv2.py``, ``cfgs/config_pebble.yaml``, ``README.md``):
 
 - Each of the 3 members (``ensemble_size``, config_pebble.yaml:47) is a ``RewardPredictor``

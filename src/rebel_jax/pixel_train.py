@@ -20,7 +20,7 @@ pixel_train_drqv2.py the same), counted in agent steps per seed (one transition,
 Transitions go to :mod:`rebel_jax.frame_replay` (each frame once); updates sample DrQ-v2's n-step
 transitions from it.
 
-``--algo pebble`` on a pixel task follows SURF's ``pixel_train_PEBBLE.py`` (alinlab/SURF 866630a,
+``--algo pebble`` on a pixel task follows SURF's ``pixel_train_PEBBLE.py`` (alinlab/SURF 214bc1d,
 branch ``pixel``):
 
 - no unsupervised phase (README's ``num_unsup_frames=0``): the first feedback session comes right
