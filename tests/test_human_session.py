@@ -58,9 +58,10 @@ def _scripted_answer(query) -> str:
 class Robot(threading.Thread):
     """Answers every query shown on the page, through its HTTP API, as the scripted teacher would."""
 
-    def __init__(self, host: HostTeacher, stop_after: int | None = None):
+    def __init__(self, host: HostTeacher, stop_after: int | None = None, skip: tuple[str, ...] = ()):
         super().__init__(daemon=True)
         self.host, self.stop_after, self.asked, self.done = host, stop_after, [], threading.Event()
+        self.skip = skip  # Queries it skips instead.
 
     def post(self, path: str, body: dict) -> None:
         request = urllib.request.Request(self.host.server.url + path, data=json.dumps(body).encode(), method="POST")
@@ -78,7 +79,8 @@ class Robot(threading.Thread):
                 if self.stop_after is not None and len(self.asked) == self.stop_after:
                     return  # The labeller's tab is closed; the trainer "crashes".
                 self.asked.append(pending[0].id)
-                self.post("api/answer", {"query": pending[0].id, "answer": _scripted_answer(pending[0])})
+                answer = "skip" if pending[0].id in self.skip else _scripted_answer(pending[0])
+                self.post("api/answer", {"query": pending[0].id, "answer": answer})
             time.sleep(0.01)
 
 
@@ -230,6 +232,33 @@ def test_unanswered_sessions_time_out_and_replay(tmp_path):
         tmp_path / "replay", "replay", options=HumanOptions(labels=tmp_path / "labels.jsonl")
     )
     _assert_same_run(replayed, replayed_metrics, state, metrics, exact=True)
+
+
+def test_asked_budget_shows_only_the_pairs_it_counts_and_a_skip_spends_one(tmp_path):
+    """``--budget asked`` with 6 labels of 4 per session: round 3's session shows 2 pairs (B-Pref's
+    shrunken last batch). A skipped pair is spent: the session ends after those 2 answers, and the one
+    kept label enters training."""
+    cfg = parse([*FLAGS, "--teacher", "human", "--labels", "6", "--budget", "asked"]).config
+    trainer = Trainer(cfg, host_teacher=True)
+    init, round_fn, _ = compiled(trainer)
+    host = HostTeacher(trainer, "human", tmp_path, HumanOptions(port=0, labeller="robot"), resume=False)
+    robot = Robot(host, skip=("r3-q0",))
+    robot.start()
+    state, metrics = init(KEYS), []
+    try:
+        for r in range(cfg.train.num_rounds):
+            state, session = host.before_round(state, r)
+            state, m = round_fn(state, jnp.int32(r))
+            metrics.append({**jax.device_get(m), **session})
+    finally:
+        robot.done.set()
+        host.close()
+    assert robot.asked == [f"r2-q{i}" for i in range(4)] + ["r3-q0", "r3-q1"]
+    assert [metrics[r]["session_labels"][0] for r in SESSIONS] == [4, 1]
+    assert [metrics[r]["session_skipped"][0] for r in SESSIONS] == [0, 1]
+    assert metrics[3]["session_unanswered"][0] == 0 and int(state.reward.data.count[0]) == 5
+    records = [json.loads(line) for line in (tmp_path / "labels.jsonl").read_text().splitlines()]
+    assert [(r["round"], r["reason"]) for r in records if r["kind"] == "close"] == [(2, "finished"), (3, "finished")]
 
 
 # -- a person's browser: the CLI run with --teacher human, labelled in headless Chromium --------------

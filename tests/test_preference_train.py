@@ -19,7 +19,16 @@ from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
-from rebel_jax.train import SESSION_METRICS, Trainer, compiled, saturated_fraction, seed_keys, within_budget
+from rebel_jax.train import (
+    SESSION_METRICS,
+    Trainer,
+    compiled,
+    offered_pairs,
+    remaining_budget,
+    saturated_fraction,
+    seed_keys,
+    within_budget,
+)
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a
 # feedback session at the start of rounds 2, 3 and 4 (env steps 80, 120, 160). On the probe task,
@@ -344,3 +353,21 @@ def test_asked_budget_holds_ceil_labels_over_queries_sessions_with_a_skipping_te
     skipped = sum(m["session_skipped"] for m in held)
     assert np.all(skipped > 0)
     np.testing.assert_array_equal(metrics[-1]["labels_used"], 32 - skipped)
+
+
+@pytest.mark.parametrize("labels, queries", [(100, 10), (25, 10), (7, 3)])
+def test_offered_pairs_follow_bprefs_shrunken_last_session(labels, queries):
+    """Under ``asked`` a person sees B-Pref's batch sizes, and every pair shown counts."""
+    feedback = FeedbackConfig(labels=labels, per_session=queries, budget="asked")
+    sizes, total = [], 0
+    while total < labels:  # train_PEBBLE.py: mb_size, cut to max_feedback - total_feedback.
+        size = queries if total + queries <= labels else labels - total
+        sizes.append(size)
+        total += size
+    ours = [offered_pairs(feedback, int(remaining_budget(feedback, 0, i)), queries) for i in range(feedback.sessions)]
+    assert ours == sizes
+    for index, size in enumerate(ours):  # A skip is a shown pair too: the first `size` pairs are the counted ones.
+        kept = within_budget(feedback, jnp.ones(queries), jnp.int32(0), jnp.int32(index))
+        np.testing.assert_array_equal(kept, np.arange(queries) < size)
+    answered = dataclasses.replace(feedback, budget="answered")
+    assert offered_pairs(answered, 1, queries) == queries  # A skipped pair leaves its place to the next.

@@ -724,6 +724,15 @@ def remaining_budget(feedback: FeedbackConfig, stored, index):
     return feedback.labels - (index * feedback.queries if feedback.budget == "asked" else stored)
 
 
+def offered_pairs(feedback: FeedbackConfig, remaining: int, queries: int) -> int:
+    """How many of a session's ``queries`` pairs a person is shown, ``remaining`` being
+    :func:`remaining_budget`: under ``asked`` only the first ``remaining`` (B-Pref's
+    ``train_PEBBLE.py`` shrinks the last session's batch to ``max_feedback - total_feedback``, its
+    "corner case: new total feed > max feed"), which are also the only ones :func:`within_budget`
+    counts; under ``answered`` all of them, a skipped pair leaving its place to the next."""
+    return max(0, min(remaining, queries)) if feedback.budget == "asked" else queries
+
+
 def within_budget(feedback: FeedbackConfig, mask: jax.Array, stored: jax.Array, index: jax.Array) -> jax.Array:
     """``mask`` (N,) limited to the seed's remaining budget (``feedback.budget``) at session ``index`` (0-based),
     with ``stored`` labels held so far.

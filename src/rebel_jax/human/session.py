@@ -28,7 +28,7 @@ import numpy as np
 from rebel_jax.human import clips as clips_lib
 from rebel_jax.human.labels import LabelError, LabelFile, SessionAnswers, now, query_id
 from rebel_jax.human.server import Labelling, Query, Server, Session
-from rebel_jax.train import remaining_budget, within_budget
+from rebel_jax.train import offered_pairs, remaining_budget, within_budget
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +128,8 @@ class HostTeacher:
                 }
             )
         remaining = int(remaining_budget(self.trainer.cfg.feedback, used, index))
-        answers = self._answers(state, round_index, records, remaining, asked)
+        offered = records[: offered_pairs(self.trainer.cfg.feedback, remaining, num)]
+        answers = self._answers(state, round_index, offered, remaining, asked)
         labels, mask = np.zeros(num, np.float32), np.zeros(num, np.float32)
         for i, rec in enumerate(records):
             answer = answers.answers.get(rec["query"])
@@ -146,7 +147,7 @@ class HostTeacher:
         both = (mask > 0) & (scripted_mask > 0)
         agree = np.where(both, labels == scripted, False).sum() / max(both.sum(), 1)
         metrics["human_agreement"] = np.asarray([agree if both.any() else np.nan], np.float32)
-        metrics["session_unanswered"] = np.asarray([num - asked_count], np.float32)
+        metrics["session_unanswered"] = np.asarray([len(offered) - asked_count], np.float32)
         if self.labelling is not None:
             self.labelling.set_training(round_index, int(np.asarray(state.reward.data.count)[0]))
         return state, metrics
