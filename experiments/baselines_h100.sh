@@ -29,12 +29,18 @@
 #       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
 #       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
 #       and its replay checkpoint (2.1 GB per seed) cannot travel. One seed per job is about a fifth;
+#   SET "rebel_ablation" with LAMS="<lambda> <lambda>" (issue 10's ablation, planned): REBEL as the paper
+#       defines it (on-policy V from the reset, whole episode, gamma 0.99, lower bound, not normalised) at
+#       two lambdas in one program of 10 columns (5 seeds each); about 26 min by the update's cost at 10
+#       columns (1.93 ms) and the walker's env step (BENCHMARKS.md), so one program per machine. The grid
+#       +-0.01, +-0.1, +-1 is three such programs;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
+limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (a fresh machine's took ~30 s).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
@@ -70,6 +76,10 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   rebel_walker)
     launch rebel_walker_100_lam${LAM:?set LAM}_bf16 --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --rebel.normalize --precision bf16 --seed 2
+    wait; finish; exit 0 ;;
+  rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound)
+    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')_bf16
+    launch "$name" --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2
     wait; finish; exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
