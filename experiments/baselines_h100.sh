@@ -23,16 +23,16 @@
 #       It was refused: num_envs <= 10 under query.pool episodes (RESULTS.md);
 #   SET "surf_cheetah_ru" with RU=<steps factor> (after the fifth session): the SURF cheetah 1M job
 #       with --surf.reward-update RU. RU=100 ran in the sixth session to 790k (620.8, RESULTS.md;
-#       12.4 s rounds, about 1,520 s to 1M); its 1M figure is owed. A first call on a fresh machine
-#       needs LIMIT <= 480 (install and compile fit in the call's 600 s);
+#       12.4 s rounds, about 1,520 s to 1M); its 1M figure is owed. Its first call on a fresh machine with
+#       LIMIT 560 passed the call's 600 s and lost its work; 480 was safe;
 #   SET "drqv2_seed" with TASK=walker|cheetah and SEED=k: DrQ-v2 on pixels, one seed, 500k frames
 #       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
 #       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
 #       and its replay checkpoint (2.1 GB per seed) cannot travel. One seed per job is about a fifth;
 #   SET "rebel_ablation" with LAMS="<lambda> <lambda>" (issue 10's ablation, planned): REBEL as the paper
 #       defines it (on-policy V from the reset, whole episode, gamma 0.99, lower bound, not normalised) at
-#       two lambdas in one program of 10 columns (5 seeds each); about 26 min by the update's cost at 10
-#       columns (1.93 ms) and the walker's env step (BENCHMARKS.md), so one program per machine. The grid
+#       two lambdas in one program of 10 columns (5 seeds each); estimated (not measured) at about 27 min from
+#       the update's cost at 10 columns (1.93 ms) and the walker's env step (BENCHMARKS.md): one program per machine. The grid
 #       +-0.01, +-0.1, +-1 is three such programs;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
@@ -40,7 +40,7 @@
 set -u
 limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
-limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (a fresh machine's took ~30 s).
+limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (its time on a fresh machine is not measured).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
