@@ -317,10 +317,10 @@ def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
     np.testing.assert_allclose(result["flat"][1], np.stack([result["flat"][0]] * 2))  # No spread, no band.
 
 
-def _baselines_module(monkeypatch):
-    """``experiments/baselines.py``, importable with its sibling ``analysis``."""
+def _experiment(monkeypatch, name: str):
+    """``experiments/<name>.py``, importable with its siblings."""
     monkeypatch.syspath_prepend(str(_PATH.parent))
-    spec = importlib.util.spec_from_file_location("baselines", _PATH.parent / "baselines.py")
+    spec = importlib.util.spec_from_file_location(name, _PATH.parent / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -342,7 +342,7 @@ def _fake_run(root: pathlib.Path, name: str, returns: list[float], changes: dict
 
 
 def test_baselines_pool_only_runs_that_differ_in_precision_and_seed(tmp_path, monkeypatch):
-    baselines = _baselines_module(monkeypatch)
+    baselines = _experiment(monkeypatch, "baselines")
     monkeypatch.setattr(baselines, "RESULTS", tmp_path)
     a = _fake_run(tmp_path, "a", [100.0, 300.0])
     b = _fake_run(tmp_path, "b", [500.0, 700.0, 900.0], {("sac", "precision"): "bf16", ("train", "seed"): 1})
@@ -360,7 +360,7 @@ def test_baselines_pool_only_runs_that_differ_in_precision_and_seed(tmp_path, mo
 
 
 def test_baselines_diagnostics_against_a_hand_computation(tmp_path, monkeypatch):
-    baselines = _baselines_module(monkeypatch)
+    baselines = _experiment(monkeypatch, "baselines")
     rng = np.random.default_rng(0)
     run = tmp_path / "run"
     run.mkdir()
@@ -383,3 +383,38 @@ def test_baselines_diagnostics_against_a_hand_computation(tmp_path, monkeypatch)
     assert out["round_learned_saturated_last10"] is None  # not logged
     best = max(range(14), key=lambda i: col("eval_return", [logged[i]]).mean())
     assert out["best_eval_step"] == logged[best]["env_steps"]
+
+
+def _fake_curve_run(run: pathlib.Path, algo: str, slope: float, seeds: int, lams: list | None = None) -> None:
+    """A run directory whose every seed's evaluation return is ``slope * env_steps / 1000``."""
+    run.mkdir(parents=True)
+    rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
+    cfg = {"algo": algo, "env": {"task": "walker_walk", "num_envs": 10}, "feedback": {"labels": 100},
+           "teacher": {}, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"}}  # fmt: skip
+    meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
+    (run / "config.json").write_text(json.dumps(cfg))
+    (run / "meta.json").write_text(json.dumps(meta | {"columns": seeds}))
+    steps = range(10_000, 200_001, 10_000)
+    lines = [json.dumps({"env_steps": s, "eval_return": [slope * s / 1000] * seeds}) for s in steps]
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    monkeypatch.setattr(rebel, "RESULTS", tmp_path)
+    _fake_curve_run(tmp_path / "runs" / "pebble", "pebble", 1.0, 3)
+    _fake_curve_run(tmp_path / "runs" / "grid", "rebel", 2.0, 3, lams=[0.1] * 3)  # twice as fast
+    rows = {r["method"]: r for r in rebel.rows("walker_walk", [tmp_path / "runs" / n for n in ("pebble", "grid")])}
+    assert set(rows) == {"pebble", "rebel lam=0.1"}
+    # Final returns: the mean of the last 10 evaluations (110k..200k): 155 and 310; threshold 0.8 * 155 = 124.
+    pebble, grid = rows["pebble"], rows["rebel lam=0.1"]
+    assert pebble["final_returns"] == [155.0] * 3 and grid["final_returns"] == [310.0] * 3
+    assert pebble["threshold"] == grid["threshold"] == 124.0
+    assert (pebble["steps_to_threshold"], grid["steps_to_threshold"]) == (124_000, 62_000)
+    assert grid["efficiency_vs_pebble"] == 2.0 and grid["efficiency_ci"] == [2.0, 2.0]
+    assert pebble["efficiency_vs_pebble"] == 1.0
+    assert (grid["lam"], grid["estimator"], grid["variant"]) == (0.1, "onpolicy", "lower_bound, raw, tanh output")
+    assert (pebble["estimator"], pebble["variant"]) == (None, None)
+    assert grid["log"] == ["results/runs/grid"] and grid["seeds"] == 3
+    with pytest.raises(ValueError, match="no PEBBLE run"):
+        rebel.rows("walker_walk", [tmp_path / "runs" / "grid"])

@@ -1,0 +1,146 @@
+"""``results/rebel.json``: REBEL against SAC, PEBBLE and PEBBLE+SURF on the faithful baselines (issue 10).
+
+Usage:
+  python experiments/rebel.py
+
+Each task's run directories (``RUNS``) are split into methods by ``compare.methods`` (a ``--lam-grid``
+run into its lambdas; seeds of one method in several directories merged, as ``compare.gather``). One
+row per method:
+
+- ``final_returns``: per seed the mean of its last 10 evaluations (``analysis.final_returns``, the
+  convention of ``compare.py``; ``baselines.json`` reports the end-of-run frozen evaluation instead);
+- ``iqm_ci``: the 95% percentile-bootstrap interval of the IQM over seeds;
+- ``steps_to_threshold``: the env steps (interpolated) at which the seed-mean curve first reaches the task's
+  ``threshold``, ``analysis.common_threshold`` of the methods' final means (80% of the lowest);
+- ``efficiency_vs_pebble``: PEBBLE's steps to the threshold over the method's
+  (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
+  paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``).
+
+``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
+(``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
+output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+from analysis import (
+    distinct_evaluations,
+    final_returns,
+    mean_curve,
+    sample_efficiency_ratio,
+    sample_efficiency_ratio_ci,
+    steps_to_reach,
+)
+from compare import compare, gather
+
+RESULTS = pathlib.Path(__file__).parents[1] / "results"
+RUNS = {  # task -> run directories under results/runs (REBEL's runs join them as they land)
+    "walker_walk": [
+        "sac_walker_walk",
+        "baselines/pebble_walker_100_utd1",
+        "baselines/pebble_walker_100_utd1_bf16_seed1",
+        "baselines/surf_walker_100_utd1_bf16",
+    ],
+    "cheetah_run": [
+        "baselines/sac_cheetah_fixed",
+        "baselines/pebble_cheetah_100_1m_bf16",
+        "baselines/surf_cheetah_100_1m_bf16",
+    ],
+}
+PEBBLE = ("pebble", "pebble (rebel lam=0)")
+"""Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
+
+
+def _round(x: float, digits: int = 2) -> float | str | None:
+    """JSON-safe: NaN (undefined) as null, an infinite ratio (only one method reaches) as "inf"."""
+    if math.isnan(x):
+        return None
+    return round(float(x), digits) if math.isfinite(x) else "inf"
+
+
+def _setting(run_dir: pathlib.Path, algo: str) -> tuple[str | None, str | None]:
+    """``(estimator, variant)`` of a REBEL run's term; None for the other algorithms."""
+    cfg = json.loads((run_dir / "config.json").read_text())
+    if algo != "rebel":
+        return None, None
+    rebel = cfg["rebel"]
+    variant = [rebel["form"], "normalized" if rebel["normalize"] else "raw", f"{cfg['reward']['output']} output"]
+    return rebel["source"], ", ".join(variant)
+
+
+def rows(task: str, run_dirs: list[pathlib.Path]) -> list[dict]:
+    """One row per method of ``task``'s runs (see the module docstring)."""
+    curves, infos = gather(run_dirs)
+    reference = next((label for label in PEBBLE if label in curves), None)
+    if reference is None:
+        raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
+    stats = compare(curves, reference)
+    threshold = stats["threshold"]
+    logs = {label: [] for label in curves}
+    for run_dir in run_dirs:
+        for label in gather([run_dir])[0]:
+            logs[label].append(run_dir)
+    out = []
+    for label, (steps, returns) in curves.items():
+        m, info = stats["methods"][label], infos[label]
+        mean_steps, mean_returns = mean_curve(distinct_evaluations((steps, returns)))
+        efficiency = sample_efficiency_ratio(
+            distinct_evaluations((steps, returns)), distinct_evaluations(curves[reference]), threshold
+        )
+        ci = sample_efficiency_ratio_ci((steps, returns), curves[reference], threshold)
+        estimator, variant = _setting(logs[label][0], info["algo"])
+        out.append(
+            {
+                "method": label,
+                "task": info["task"],
+                "algo": info["algo"],
+                "lam": info["lam"],
+                "estimator": estimator,
+                "variant": variant,
+                "labels": info["labels"],
+                "teacher": info["teacher"],
+                "num_envs": info["num_envs"],
+                "utd": info["utd"],
+                "seeds": m["seeds"],
+                "env_steps": m["env_steps"],
+                "final_returns": [round(v, 2) for v in final_returns(returns)],
+                "mean": round(m["mean"], 2),
+                "std": round(m["std"], 2),
+                "iqm": round(m["iqm"], 2),
+                "iqm_ci": [_round(v) for v in m["iqm_ci"]],
+                "threshold": round(threshold, 2),
+                "steps_to_threshold": _round(steps_to_reach(mean_steps, mean_returns, threshold), None),
+                "efficiency_vs_pebble": _round(efficiency),
+                "efficiency_ci": [_round(v) for v in ci],
+                "device": info["device"],
+                "date": info["date"],
+                "command": info["command"],
+                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in logs[label]],
+            }
+        )
+    return out
+
+
+def main() -> None:
+    table = [row for task, logs in RUNS.items() for row in rows(task, [RESULTS / "runs" / log for log in logs])]
+    (RESULTS / "rebel.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
+    print(
+        "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for r in table:
+        low, high = r["iqm_ci"]
+        e_low, e_high = r["efficiency_ci"]
+        print(
+            f"| {r['task']} | {r['method']} | {r['seeds']} | {r['env_steps']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
+            f"| {r['iqm']:.1f} [{low}, {high}] | {r['steps_to_threshold']} ({r['threshold']:.0f}) "
+            f"| {r['efficiency_vs_pebble']} [{e_low}, {e_high}] |"
+        )
+
+
+if __name__ == "__main__":
+    main()
