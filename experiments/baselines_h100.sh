@@ -29,6 +29,13 @@
 #       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
 #       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
 #       and its replay checkpoint (2.1 GB per seed) cannot travel. One seed per job is about a fifth;
+#   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
+#       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
+#       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
+#       no reset update), 1 = + disagreement, 2 = + torch init, 3 = + complete-episode pool at 10 envs and
+#       the reset update (utd 0.3); rung 4 is "pebble500bf16". All at pretrain.running_std exact, as the
+#       rung-4 runs. Rungs 0-2 (40 envs, 125k updates) are estimated at about 9 min each, rung 3 about
+#       15 min (not measured);
 #   SET "rebel_ablation" with LAMS="<lambda> <lambda>" (issue 10's ablation, planned): REBEL as the paper
 #       defines it (on-policy V from the reset, whole episode, gamma 0.99, lower bound, not normalised) at
 #       two lambdas in one program of 10 columns (5 seeds each); estimated (not measured) at about 27 min from
@@ -76,6 +83,16 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   rebel_walker)
     launch rebel_walker_100_lam${LAM:?set LAM}_bf16 --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --rebel.normalize --precision bf16 --seed 2
+    wait; finish; exit 0 ;;
+  ladder)
+    rung=(--pretrain.running-std exact)
+    case ${RUNG:?set RUNG=0..3} in
+      0) rung+=(--query.sampling uniform --reward.init lecun --query.pool rows --num-envs 40 --utd 0.25 --pretrain.reset-updates 0) ;;
+      1) rung+=(--reward.init lecun --query.pool rows --num-envs 40 --utd 0.25 --pretrain.reset-updates 0) ;;
+      2) rung+=(--query.pool rows --num-envs 40 --utd 0.25 --pretrain.reset-updates 0) ;;
+      3) rung+=(--utd 0.3) ;;
+    esac
+    launch pebble_walker_100_rung${RUNG}_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 "${rung[@]}"
     wait; finish; exit 0 ;;
   rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound)
     name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')_bf16
