@@ -162,6 +162,43 @@ def test_resume_with_checkpoint_every_0_extends_a_run_to_more_steps(whole, tmp_p
     assert [p.name.split("-")[0] for p in (damaged / "checkpoints_damaged").iterdir()] == [str(ROUNDS - 1)]
 
 
+def test_resume_refuses_a_checkpoint_of_another_state_and_keeps_the_run(whole, tmp_path, capsys):
+    """A checkpoint that reads but holds other leaves (written by other code) is not "damaged": nothing is
+    moved aside, the log is not cut back to round 0, and the error says which code wrote it."""
+    from rebel_jax.checkpoint import Checkpointer
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(whole, run_dir)
+    shutil.rmtree(run_dir / "checkpoints")
+    other = Checkpointer(run_dir / "checkpoints")
+    other.save(ROUNDS, {"params": jnp.zeros(3), "buffer": jnp.ones((2, 5))})
+    other.close()
+    before = {name: (run_dir / name).read_bytes() for name in ("config.json", "meta.json", "metrics.jsonl")}
+    with pytest.raises(SystemExit) as exit_info:
+        _main(run_dir, "--resume", "--total-steps", str(40 * (ROUNDS + 1)))
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    commit = json.loads(before["meta.json"])["git_commit"]
+    assert f"checkpoint {ROUNDS} in" in err and "holds another state (" in err and f"git_commit {commit}" in err, err
+    assert {name: (run_dir / name).read_bytes() for name in before} == before
+    assert _steps_on_disk(run_dir) == [ROUNDS] and not (tmp_path / "run" / "checkpoints_damaged").exists()
+
+
+def test_checkpoint_of_other_shapes_is_a_mismatch_not_damage(tmp_path):
+    from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
+
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, {"a": jnp.zeros(3), "b": jnp.ones(2)})
+    with pytest.raises(CheckpointMismatch, match=r"leaf 0: saved \(3,\), now \(4,\)"):
+        ckpt.restore({"a": jnp.zeros(4), "b": jnp.ones(2)})
+    with pytest.raises(CheckpointMismatch, match="2 leaves saved, 3 now"):
+        ckpt.restore({"a": jnp.zeros(3), "b": jnp.ones(2), "c": jnp.ones(1)})
+    assert ckpt.steps() == [1] and not (tmp_path / "checkpoints_damaged").exists()
+    step, state = ckpt.restore({"a": jnp.ones(3), "b": jnp.zeros(2)})
+    assert step == 1 and float(state["a"].sum()) == 0.0 and float(state["b"].sum()) == 2.0
+    ckpt.close()
+
+
 def _poison_seed_1_before_round(round_index: int):
     """A ``train.compiled`` whose round receives seed 1's actor parameters as NaN at ``round_index``."""
     from rebel_jax import train

@@ -4,7 +4,8 @@ Orbax writes each checkpoint into a temporary directory and renames it only once
 array is on disk, so a save interrupted by a kill never appears as a valid step. A step
 that is on disk but cannot be read back (a file truncated or deleted afterwards) is moved
 aside to ``<directory>_damaged/`` by :meth:`Checkpointer.restore`, which then falls back to
-the previous step.
+the previous step. A step that reads but holds a state of other leaves or shapes than asked for
+(written by other code) is neither: :class:`CheckpointMismatch` says so, and nothing is moved.
 
 With several processes (``--distributed``) every process calls :meth:`Checkpointer.save` and
 :meth:`Checkpointer.restore` with the same steps: each writes and reads its own devices' part of
@@ -28,6 +29,18 @@ from jax.experimental import multihost_utils
 def _nonempty_leaves(tree) -> dict[str, jax.Array]:
     """Leaves by flat index, without zero-size arrays (which orbax refuses; MJX data has some)."""
     return {str(i): x for i, x in enumerate(jax.tree.leaves(tree)) if x.size}
+
+
+class CheckpointMismatch(ValueError):
+    """A checkpoint's saved leaves differ in number or shape from the state it is restored into."""
+
+
+def mismatch(stored: dict[str, tuple[int, ...]], like) -> list[str]:
+    """The differences between a step's :meth:`Checkpointer.stored_shapes` and the leaves of ``like``."""
+    wanted = {k: tuple(x.shape) for k, x in _nonempty_leaves(like).items()}
+    if stored.keys() != wanted.keys():
+        return [f"{len(stored)} leaves saved, {len(wanted)} now"]
+    return [f"leaf {k}: saved {stored[k]}, now {wanted[k]}" for k in sorted(wanted, key=int) if stored[k] != wanted[k]]
 
 
 class Checkpointer:
@@ -73,12 +86,16 @@ class Checkpointer:
 
         Raises:
           FileNotFoundError: if there is no complete step, or none could be read.
+          CheckpointMismatch: if a step's saved leaves differ from ``like``'s (after ``adapt``) in
+            number or shape; no step is moved aside then.
         """
         if step is not None:
             return step, self._restore(like, step, adapt)
         for candidate in reversed(self.steps()):
             try:
                 return candidate, self._restore(like, candidate, adapt)
+            except CheckpointMismatch:
+                raise
             except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
                 reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
                 moved = self._set_aside(candidate)
@@ -91,8 +108,13 @@ class Checkpointer:
         raise FileNotFoundError(f"no readable checkpoint in {self.directory}")
 
     def _restore(self, like, step: int, adapt: Callable | None):
-        if adapt is not None:
-            like = adapt(like, self.stored_shapes(step))
+        stored = self.stored_shapes(step)
+        if adapt is not None and stored.keys() == _nonempty_leaves(like).keys():  # The same leaves: adapt shapes.
+            like = adapt(like, stored)
+        differences = mismatch(stored, like)
+        if differences:
+            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
+            raise CheckpointMismatch(f"checkpoint {step} in {self.directory} holds another state ({shown})")
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _nonempty_leaves(like))
         saved = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
         leaves, treedef = jax.tree.flatten(like)

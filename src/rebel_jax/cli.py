@@ -49,7 +49,7 @@ import numpy as np
 import tyro
 
 from rebel_jax import plots, sweep, teachers, video
-from rebel_jax.checkpoint import Checkpointer
+from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger, write_json
@@ -405,6 +405,12 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
         return 0, state
     try:
         start, restored = ckpt.restore(state, adapt=adapt)
+    except CheckpointMismatch as err:  # Other code wrote it: refuse, and keep the run's logs as they are.
+        commit = json.loads((run_dir / "meta.json").read_text()).get("git_commit", "unknown")
+        raise ConfigError(
+            f"--resume: {err}. It was written by other code (meta.json: git_commit {commit}); resume it "
+            "with that code, or start a new --run-dir"
+        ) from err
     except FileNotFoundError as err:
         print(f"note: --resume: {err}; starting the run from scratch", file=sys.stderr)
         return 0, state
@@ -788,6 +794,6 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(status)
     try:
         return run(args, run_dir, command_line(argv), bool(resuming))
-    except HumanError as err:  # No OpenGL for the clips, a label file of another run, ...
+    except (*HumanError, ConfigError) as err:  # No OpenGL for the clips, a checkpoint of other code, ...
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
