@@ -15,3 +15,6 @@ $PY experiments/compare.py results/runs/sac_cheetah_run_utd025 $P/rebel_cheetah_
 $PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos --name rebel_lambda_ablation_walker_walk --threshold 100
 $PY experiments/compare.py $P/rebel_walker_100_neg $S/teachers_pebble_walker_100_200k --name teachers_walker_walk_180k --max-steps 180000 --methods "pebble (rebel lam=0)" "pebble (rebel lam=0), noisy" "pebble (rebel lam=0), mistake" "pebble (rebel lam=0), skip" "pebble (rebel lam=0), equal" "pebble (rebel lam=0), myopic" --threshold 60
 $PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos $S/rebel_mean_walker_100_200k --name rebel_estimator_walker_walk_200k --max-steps 200000 --methods "pebble (rebel lam=0)" "rebel lam=0.01" "rebel lam=-0.01" "rebel lam=0.01 (mean estimator)" "rebel lam=-0.01 (mean estimator)" "rebel lam=0.001 (mean estimator)" "rebel lam=-0.001 (mean estimator)" --threshold 60
+# The faithful-protocol tables (issues 9 and 10): results/baselines.json (+ figures) and results/rebel.json.
+$PY experiments/baselines.py
+$PY experiments/rebel.py
