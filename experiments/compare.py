@@ -8,8 +8,9 @@ Each run directory (``python -m rebel_jax.train``) contributes one method per gr
 REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is
 labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
 its teachers (``..., noisy``); other runs are labelled by their algo, and budgets other than
-100 labels are named (``pebble 1000 labels``). ``--methods`` keeps a subset in a given order;
-``--max-steps`` cuts every curve (to compare runs of different lengths at equal steps).
+100 labels are named (``pebble 1000 labels``), as is a SURF ``reward_update`` other than 1000.
+``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
+different lengths at equal steps).
 Run directories of the same method (e.g. seeds split over several GPU calls with different
 ``--seed``) are merged. Writes ``DIR/NAME.json`` (per method: final returns per seed, mean,
 std, IQM with its 95% percentile-bootstrap interval, mean curve, and the sample-efficiency
@@ -97,6 +98,8 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
                 label += f" ({cfg['rebel']['estimator']} estimator)"
         if cfg["algo"] != "sac" and cfg["feedback"]["labels"] != 100:
             label += f" {cfg['feedback']['labels']} labels"
+        if cfg["algo"] == "surf" and cfg.get("surf", {}).get("reward_update", 1000) != 1000:  # SURF's walker value
+            label += f" (reward_update {cfg['surf']['reward_update']})"
         label += f", {teacher}" if teacher else ""
         out.setdefault(label, ([], _info(run_dir, lam, teacher)))[0].append(i)
     return {label: ((steps, returns[:, idx]), info) for label, (idx, info) in out.items()}

@@ -72,6 +72,21 @@ def test_labels_name_other_budgets_and_curves_can_be_cut(tmp_path):
     assert infos["pebble 1000 labels, skip"]["lam"] is None
 
 
+def test_surf_labels_name_a_reward_update_other_than_its_walker_value(tmp_path):
+    for name, steps in (("walker_value", 1000), ("other", 100)):
+        write_grid_run(tmp_path / name, algo="surf")
+        cfg = json.loads((tmp_path / name / "config.json").read_text())
+        cfg["surf"]["reward_update"] = steps
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+    curves, _ = compare.gather([tmp_path / "walker_value", tmp_path / "other"])
+    assert list(curves) == [
+        "surf, noisy",
+        "surf, skip",
+        "surf (reward_update 100), noisy",
+        "surf (reward_update 100), skip",
+    ]
+
+
 def test_runs_of_the_same_method_merge_their_seeds(tmp_path):
     write_grid_run(tmp_path / "a")
     write_grid_run(tmp_path / "b")
