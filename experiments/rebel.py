@@ -35,7 +35,7 @@ from analysis import (
     sample_efficiency_ratio_ci,
     steps_to_reach,
 )
-from compare import compare, gather
+from compare import compare, gather, methods
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS = {  # task -> run directories under results/runs (REBEL's runs join them as they land)
@@ -83,15 +83,14 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> list[dict]:
     threshold = stats["threshold"]
     logs = {label: [] for label in curves}
     for run_dir in run_dirs:
-        for label in gather([run_dir])[0]:
+        for label in methods(run_dir):
             logs[label].append(run_dir)
     out = []
     for label, (steps, returns) in curves.items():
         m, info = stats["methods"][label], infos[label]
-        mean_steps, mean_returns = mean_curve(distinct_evaluations((steps, returns)))
-        efficiency = sample_efficiency_ratio(
-            distinct_evaluations((steps, returns)), distinct_evaluations(curves[reference]), threshold
-        )
+        distinct = distinct_evaluations((steps, returns))
+        mean_steps, mean_returns = mean_curve(distinct)
+        efficiency = sample_efficiency_ratio(distinct, distinct_evaluations(curves[reference]), threshold)
         ci = sample_efficiency_ratio_ci((steps, returns), curves[reference], threshold)
         estimator, variant = _setting(logs[label][0], info["algo"])
         out.append(

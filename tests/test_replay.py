@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import replay
+from rebel_jax import queries, replay
 
 E, OBS, ACT = 3, 4, 2
 
@@ -135,5 +135,5 @@ def test_relabel_equals_per_transition_loop(chunk_rows):
 def test_latest_rows_are_the_last_written_oldest_first(total, rows):
     steps = _steps(total)
     buffer = _fill(replay.init(4 * E, E, OBS, ACT), steps)  # A ring of 4 rows: 11 steps wrap it twice.
-    latest = np.asarray(replay.latest(buffer.obs, buffer.ptr, rows))
+    latest = np.asarray(buffer.obs[queries.window_index(buffer, rows)])
     np.testing.assert_array_equal(latest, steps.obs[total - rows : total])

@@ -113,8 +113,8 @@ def window_rows(buffer: Any, segment_length: int, episode_length: int, recent_ep
     return min(capacity, max(segment_length, rows))
 
 
-def _window_index(buffer: Any, rows: int) -> jax.Array:
-    """Absolute buffer rows of the window, oldest first: (W,) int32."""
+def window_index(buffer: Any, rows: int) -> jax.Array:
+    """Absolute buffer rows of the last ``rows`` written before ``ptr`` (the window), oldest first: (W,) int32."""
     capacity = buffer.episode_step.shape[0]
     return (buffer.ptr - rows + jnp.arange(rows)) % capacity
 
@@ -133,7 +133,7 @@ def valid_starts(buffer: Any, segment_length: int, episode_length: int, recent_e
     """
     rows = window_rows(buffer, segment_length, episode_length, recent_episodes)
     horizon = segment_length
-    index = _window_index(buffer, rows)
+    index = window_index(buffer, rows)
     steps = buffer.episode_step[index]  # (W, E)
     offset = jnp.arange(rows)
     filled = offset >= rows - buffer.size  # The last `size` rows of the window are written.
@@ -176,7 +176,7 @@ def sample_row_segments(
     rows, num_envs = valid.shape
     flat = _draw_flat(key, valid, n)
     start, env = flat // num_envs, flat % num_envs
-    index = _window_index(buffer, rows)
+    index = window_index(buffer, rows)
     time = index[(start[:, None] + jnp.arange(segment_length)) % rows]  # (n, H) absolute rows.
     return _gather(buffer, time, env[:, None])
 
@@ -185,10 +185,10 @@ def episode_ends(buffer: Any, segment_length: int, episode_length: int) -> jax.A
     """Which buffer cells (oldest row first) hold the last transition of an episode of >= H steps.
 
     Returns:
-      (T, E) bool over the rows ``_window_index(buffer, T)``; only filled rows can be true.
+      (T, E) bool over the rows ``window_index(buffer, T)``; only filled rows can be true.
     """
     capacity = buffer.episode_step.shape[0]
-    index = _window_index(buffer, capacity)
+    index = window_index(buffer, capacity)
     steps = buffer.episode_step[index]
     flagged = (buffer.terminal[index] + buffer.truncated[index]) > 0
     last = flagged | (steps == episode_length - 1)
@@ -225,7 +225,7 @@ def sample_episode_segments(
     total = jnp.sum(ends.astype(jnp.int32))
     flat = _draw_flat(key_episode, ends, n, low=total - recent_episodes)
     end, env = flat // num_envs, flat % num_envs  # Window rows, oldest first.
-    index = _window_index(buffer, capacity)
+    index = window_index(buffer, capacity)
     length = buffer.episode_step[index[end], env] + 1
     offset = jax.random.randint(key_start, (n,), 0, jnp.maximum(length - segment_length, 1))
     first = end - (length - 1) + offset
@@ -368,7 +368,7 @@ def reward_margin(buffer: Any, segment_length: int, episode_length: int, recent_
       Scalar margin (0 if nothing is filled).
     """
     rows = window_rows(buffer, segment_length, episode_length, recent_episodes)
-    reward = buffer.reward[_window_index(buffer, rows)]  # (W, E)
+    reward = buffer.reward[window_index(buffer, rows)]  # (W, E)
     filled = (jnp.arange(rows) >= rows - buffer.size)[:, None]
     total = jnp.sum(jnp.where(filled, reward, 0.0))
     count = jnp.sum(filled) * reward.shape[1]

@@ -202,18 +202,6 @@ def sample(buffer: Buffer, key: jax.Array, batch_size: int, use_learned_reward: 
     )
 
 
-def latest(field: jax.Array, ptr: jax.Array, rows: int) -> jax.Array:
-    """The ``rows`` rows of a (T, E, ...) ``field`` written last before ``ptr``, oldest first.
-
-    Args:
-        field: a buffer field.
-        ptr: the buffer's next row to write.
-        rows: how many (at most T; the ring's order is kept across its wrap).
-    """
-    index = (ptr - rows + jnp.arange(min(rows, field.shape[0]))) % field.shape[0]
-    return field[index]
-
-
 def _chunked(x: jax.Array, chunk_rows: int) -> jax.Array:
     """(T, E, ...) -> (ceil(T / chunk_rows), chunk_rows * E, ...), padding T with zeros."""
     pad = -x.shape[0] % chunk_rows

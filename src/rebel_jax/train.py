@@ -585,8 +585,8 @@ class Trainer:
 
     def _round_reward_metrics(self, buffer: replay.Buffer) -> dict[str, jax.Array]:
         """:data:`ROUND_REWARD_METRICS` on the transitions this round wrote (the policy's own, this round)."""
-        learned = replay.latest(buffer.learned_reward, buffer.ptr, self.steps_per_round).reshape(-1)
-        true = replay.latest(buffer.reward, buffer.ptr, self.steps_per_round).reshape(-1)
+        rows = queries.window_index(buffer, min(self.steps_per_round, buffer.rows))
+        learned, true = buffer.learned_reward[rows].reshape(-1), buffer.reward[rows].reshape(-1)
         return {
             "round_learned_mean": jnp.mean(learned),
             "round_learned_saturated": saturated_fraction(learned, self.reward_cfg.output),
