@@ -16,6 +16,8 @@ row per method:
   (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
   paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``).
 
+Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds.
+
 ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
 output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
@@ -31,6 +33,7 @@ from analysis import (
     distinct_evaluations,
     final_returns,
     mean_curve,
+    plot_curves,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
     steps_to_reach,
@@ -73,9 +76,27 @@ def _setting(run_dir: pathlib.Path, algo: str) -> tuple[str | None, str | None]:
     return rebel["source"], ", ".join(variant)
 
 
-def rows(task: str, run_dirs: list[pathlib.Path]) -> list[dict]:
-    """One row per method of ``task``'s runs (see the module docstring)."""
+def figure(task: str, curves: dict, path: pathlib.Path) -> None:
+    """Every method's mean +- std evaluation curve over seeds, against env steps, as B-Pref reports."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot_curves(ax, curves)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | None = None) -> list[dict]:
+    """One row per method of ``task``'s runs (see the module docstring); the task's figure if a path is given."""
     curves, infos = gather(run_dirs)
+    if figure_path is not None:
+        figure(task, curves, figure_path)
     reference = next((label for label in PEBBLE if label in curves), None)
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
@@ -126,7 +147,11 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> list[dict]:
 
 
 def main() -> None:
-    table = [row for task, logs in RUNS.items() for row in rows(task, [RESULTS / "runs" / log for log in logs])]
+    table = [
+        row
+        for task, logs in RUNS.items()
+        for row in rows(task, [RESULTS / "runs" / log for log in logs], RESULTS / f"rebel_{task}.png")
+    ]
     (RESULTS / "rebel.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
     print(
         "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] |"

@@ -404,8 +404,10 @@ def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
     monkeypatch.setattr(rebel, "RESULTS", tmp_path)
     _fake_curve_run(tmp_path / "runs" / "pebble", "pebble", 1.0, 3)
     _fake_curve_run(tmp_path / "runs" / "grid", "rebel", 2.0, 3, lams=[0.1] * 3)  # twice as fast
-    rows = {r["method"]: r for r in rebel.rows("walker_walk", [tmp_path / "runs" / n for n in ("pebble", "grid")])}
+    run_dirs = [tmp_path / "runs" / n for n in ("pebble", "grid")]
+    rows = {r["method"]: r for r in rebel.rows("walker_walk", run_dirs, tmp_path / "rebel_walker_walk.png")}
     assert set(rows) == {"pebble", "rebel lam=0.1"}
+    assert (tmp_path / "rebel_walker_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Final returns: the mean of the last 10 evaluations (110k..200k): 155 and 310; threshold 0.8 * 155 = 124.
     pebble, grid = rows["pebble"], rows["rebel lam=0.1"]
     assert pebble["final_returns"] == [155.0] * 3 and grid["final_returns"] == [310.0] * 3
