@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,3 +151,66 @@ def test_wrong_action_shape_says_what_was_expected():
 def test_unknown_solver_is_rejected():
     with pytest.raises(ValueError, match="dm_control"):
         make_env("walker_walk", solver="fastest")
+
+
+# A falling box and sphere on a plane: contacts, so MJX's Newton solver iterates; compiles in seconds.
+_CONTACT_XML = """
+<mujoco>
+  <option timestep="0.005" iterations="4" ls_iterations="8"/>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1"/>
+    <body pos="0 0 0.12"><freejoint/><geom type="box" size="0.1 0.1 0.1"/></body>
+    <body pos="0.5 0 0.12"><freejoint/><geom type="sphere" size="0.1"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("unroll", [False, True])
+def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch(unroll):
+    """``_mjx.newton_trips`` replaces MJX's Newton ``while_loop`` by known trips with the same results."""
+    import mujoco
+    from mujoco import mjx
+
+    from rebel_jax.envs._mjx import newton_trips
+
+    model = mujoco.MjModel.from_xml_string(_CONTACT_XML)
+    m = mjx.put_model(model)
+    qvel = jax.random.normal(jax.random.PRNGKey(0), (4, model.nv))
+    data = jax.vmap(lambda v: mjx.make_data(m).replace(qvel=v))(qvel)
+
+    def steps(d):
+        return jax.lax.fori_loop(0, 30, lambda _, x: jax.vmap(mjx.step, (None, 0))(m, x), d)
+
+    def with_trips(d):
+        with newton_trips(model.opt.iterations, unroll=unroll) as replaced:
+            out = steps(d)
+        assert replaced == [model.opt.iterations]  # the one Newton loop of mjx.step, traced once
+        return out
+
+    expected, got = jax.jit(steps)(data), jax.jit(with_trips)(data)
+    assert float(jnp.min(expected.qpos[:, 2])) < 0.11  # the box rests on the plane: the solver had work
+    for name in ("qpos", "qvel", "qacc", "qfrc_constraint"):
+        if unroll:  # XLA fuses the unrolled trips differently: float32 rounding, grown over 30 steps of contact
+            np.testing.assert_allclose(getattr(got, name), getattr(expected, name), rtol=1e-4, atol=1e-4, err_msg=name)
+        else:
+            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), err_msg=name)
+
+
+@pytest.mark.parametrize("loop", ["while", "trips"])
+def test_walker_step_has_a_while_loop_only_with_mjx_newton_loop(loop):
+    """The traced walker step: MJX's Newton ``while_loop`` under ``while``, known trips only under ``trips``."""
+    env = make_env("walker_walk", solver=f"default:{loop}")
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    jaxpr = str(jax.make_jaxpr(env.step)(state, jnp.zeros(6)))
+    assert ("while[" in jaxpr) == (loop == "while")
+
+
+def test_solver_strings_name_the_newton_loop():
+    from rebel_jax.envs import SOLVERS, parse_solver
+
+    assert parse_solver("default") == SOLVERS["default"]
+    assert parse_solver("default:trips") == dataclasses.replace(SOLVERS["default"], newton_loop="trips")
+    assert parse_solver("2/5/noeulerdamp:unrolled").newton_loop == "unrolled"
+    with pytest.raises(ValueError, match="NEWTON_LOOP"):
+        parse_solver("default:fast")

@@ -1,4 +1,4 @@
-"""``mujoco.mjx``, imported with its optional-backend messages sent to logging.
+"""``mujoco.mjx``, imported with its optional-backend messages sent to logging; its Newton loop with known trips.
 
 Without the optional Warp backend (absent on the CPU machines and the GPU image alike),
 importing ``mujoco.mjx`` prints "Failed to import warp: No module named 'warp'" and the same
@@ -11,6 +11,12 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import types
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import jax
+import jax.numpy as jnp
 
 logger = logging.getLogger(__name__)
 
@@ -29,3 +35,58 @@ def import_quietly() -> None:
 
 
 import_quietly()
+
+
+class _Namespace(types.ModuleType):
+    """``module`` with some attributes replaced (``overrides``); every other attribute read from ``module``."""
+
+    def __init__(self, module: types.ModuleType, **overrides: Any):
+        super().__init__(module.__name__)
+        self._module = module
+        self.__dict__.update(overrides)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._module, name)
+
+
+@contextlib.contextmanager
+def newton_trips(iterations: int, unroll: bool = False) -> Iterator[list[int]]:
+    """While code is traced under it, MJX's Newton loop runs a known number of trips.
+
+    MJX's constraint solver (``mujoco/mjx/_src/solver.py``, ``solve``, mujoco 3.17) iterates with
+    ``jax.lax.while_loop(cond, body, ctx)``: its only data-dependent loop (the line search already
+    scans ``ls_iterations`` trips). On a GPU such a loop reads its predicate back to the host on every
+    trip, so the device drains between trips; here that happens 1 + ``iterations`` times per physics
+    substep. Under this context the loop is instead ``iterations`` trips of a ``fori_loop``, each
+    applying ``body`` where MJX's own stopping test ``cond`` still holds and keeping ``ctx`` where it
+    does not. The results are the same: ``cond`` stops MJX's loop after ``iterations`` trips at most
+    (``solver_niter >= iterations``), and a stopped state stays stopped since it no longer changes;
+    under ``vmap`` the ``while_loop`` already computes ``body`` for every member until all have stopped.
+    ``tests/test_envs.py`` checks the equality.
+
+    Args:
+      iterations: the model's ``opt.iterations``.
+      unroll: unroll the trips in the compiled program (no loop at all).
+
+    Yields:
+      A list that gets one entry per replaced loop traced, so that callers can check it applied.
+    """
+    from mujoco.mjx._src import solver
+
+    replaced: list[int] = []
+
+    def while_loop(cond: Callable, body: Callable, ctx: Any) -> Any:
+        replaced.append(iterations)
+
+        def trip(_: jax.Array, ctx: Any) -> Any:
+            going = cond(ctx)
+            return jax.tree.map(lambda new, old: jnp.where(going, new, old), body(ctx), ctx)
+
+        return jax.lax.fori_loop(0, iterations, trip, ctx, unroll=unroll)
+
+    original = solver.jax
+    solver.jax = _Namespace(jax, lax=_Namespace(jax.lax, while_loop=while_loop))
+    try:
+        yield replaced
+    finally:
+        solver.jax = original

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +24,7 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from rebel_jax.envs import models
+from rebel_jax.envs._mjx import newton_trips
 from rebel_jax.envs.rewards import tolerance
 
 
@@ -37,18 +39,28 @@ class Solver:
         it (MuJoCo default 1e-8; under ``vmap`` the loop runs until every member stops).
       eulerdamp: integrate joint damping implicitly in the Euler integrator, as
         MuJoCo does by default (MuJoCo Playground turns it off).
+      newton_loop: how the Newton iterations run in the compiled program, with the same results:
+        ``while``, MJX's ``while_loop`` (stops once every member has stopped; on a GPU it reads its
+        predicate back to the host on every trip); ``trips``, a loop of ``iterations`` trips
+        (``_mjx.newton_trips``); ``unrolled``, those trips unrolled.
     """
 
     iterations: int
     ls_iterations: int
     tolerance: float = 1e-8
     eulerdamp: bool = True
+    newton_loop: Literal["while", "trips", "unrolled"] = "while"
 
     def __post_init__(self):
         if self.iterations < 1 or self.ls_iterations < 1:
             raise ValueError(f"solver iterations and ls_iterations must be >= 1; got {self}")
         if not self.tolerance >= 0:
             raise ValueError(f"solver tolerance must be >= 0; got {self.tolerance}")
+        if self.newton_loop not in NEWTON_LOOPS:
+            raise ValueError(f"solver newton_loop must be one of {', '.join(NEWTON_LOOPS)}; got {self.newton_loop!r}")
+
+
+NEWTON_LOOPS = ("while", "trips", "unrolled")
 
 
 SOLVERS: dict[str, Solver] = {
@@ -249,7 +261,17 @@ class DMCEnv(Env):
         return self
 
     def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
-        return jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+        loop, iterations = self.solver.newton_loop, self.solver.iterations
+        if loop == "while":
+            return jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+        with newton_trips(iterations, unroll=loop == "unrolled") as replaced:
+            d = jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+        if iterations > 1 and not replaced:  # MJX runs a single iteration without a loop
+            raise RuntimeError(
+                f"solver newton_loop={loop!r} found no Newton while_loop to replace in mujoco {mujoco.__version__}'s "
+                "MJX solver; use newton_loop='while'"
+            )
+        return d
 
     def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
         d = _observed(d, self.sys)
@@ -289,16 +311,25 @@ class DMCEnv(Env):
 
 
 def parse_solver(solver: str | Solver) -> Solver:
-    """A :class:`Solver` from a preset name or ``"ITERATIONS/LS_ITERATIONS[/noeulerdamp]"``."""
+    """A :class:`Solver` from a preset name or ``"ITERATIONS/LS_ITERATIONS[/noeulerdamp]"``, then ``":NEWTON_LOOP"``."""
     if isinstance(solver, Solver):
         return solver
     if solver in SOLVERS:
         return SOLVERS[solver]
-    parts = solver.split("/")
-    if len(parts) in (2, 3) and all(p.isdigit() for p in parts[:2]) and parts[2:] in ([], ["noeulerdamp"]):
-        return Solver(int(parts[0]), int(parts[1]), eulerdamp=len(parts) == 2)
+    name, colon, loop = solver.partition(":")
+    if name in SOLVERS and loop in NEWTON_LOOPS:
+        return dataclasses.replace(SOLVERS[name], newton_loop=loop)
+    parts = name.split("/")
+    if (
+        len(parts) in (2, 3)
+        and all(p.isdigit() for p in parts[:2])
+        and parts[2:] in ([], ["noeulerdamp"])
+        and (loop in NEWTON_LOOPS or not colon)
+    ):
+        return Solver(int(parts[0]), int(parts[1]), eulerdamp=len(parts) == 2, newton_loop=loop or "while")
     raise ValueError(
-        f"unknown solver {solver!r}; valid: {', '.join(SOLVERS)}, 'ITERATIONS/LS_ITERATIONS[/noeulerdamp]' or a Solver"
+        f"unknown solver {solver!r}; valid: {', '.join(SOLVERS)}, 'ITERATIONS/LS_ITERATIONS[/noeulerdamp]' or a "
+        f"Solver, each optionally followed by ':NEWTON_LOOP' ({', '.join(NEWTON_LOOPS)})"
     )
 
 
