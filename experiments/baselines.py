@@ -63,6 +63,7 @@ RUNS = [
         557,
         "SURF, cheetah_run, reward_update 100 (bf16), stopped at 790k",
     ),
+    ("baselines/surf_cheetah_100_1m_bf16_ru100", None, 557, "SURF, cheetah_run, reward_update 100, 1M (bf16)"),
 ]
 
 
@@ -239,7 +240,7 @@ FIGURES = {  # task -> (rung name in RUNS -> legend label), for results/baseline
         "SAC, cheetah_run, fixed reset": "SAC, true reward (40 envs, utd 0.25)",
         "PEBBLE, cheetah_run, 1M (bf16)": "PEBBLE (B-Pref's protocol, bf16)",
         "SURF, cheetah_run, 1M (bf16)": "PEBBLE+SURF (B-Pref's protocol, bf16)",
-        "SURF, cheetah_run, reward_update 100 (bf16), stopped at 790k": "PEBBLE+SURF, reward_update 100 (to 790k)",
+        "SURF, cheetah_run, reward_update 100, 1M (bf16)": "PEBBLE+SURF, reward_update 100",
     },
 }
 PUBLISHED = {  # task -> (name -> (published mean, its step))

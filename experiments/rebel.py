@@ -52,7 +52,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "baselines/sac_cheetah_fixed",
         "baselines/pebble_cheetah_100_1m_bf16",
         "baselines/surf_cheetah_100_1m_bf16",
-        "baselines/surf_cheetah_100_1m_bf16_ru100_stopped790k",  # to 790k only (RESULTS.md)
+        "baselines/surf_cheetah_100_1m_bf16_ru100",
     ],
 }
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
