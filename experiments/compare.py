@@ -80,7 +80,8 @@ def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
 def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarray], dict]]:
     """The run's curves per method label: ``{label: ((steps, returns (evals, seeds)), info)}``.
 
-    A grid run (``--lam-grid``, ``--teacher-grid``) is split into one label per grid point.
+    A grid run (``--lam-grid``, ``--teacher-grid``) is split into one label per grid point; ``info["columns"]``
+    are the label's columns of the run's per-seed metrics.
     """
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text())
@@ -102,7 +103,7 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
             label += f" (reward_update {cfg['surf']['reward_update']})"
         label += f", {teacher}" if teacher else ""
         out.setdefault(label, ([], _info(run_dir, lam, teacher)))[0].append(i)
-    return {label: ((steps, returns[:, idx]), info) for label, (idx, info) in out.items()}
+    return {label: ((steps, returns[:, idx]), info | {"columns": idx}) for label, (idx, info) in out.items()}
 
 
 def gather(run_dirs: list[pathlib.Path], max_steps: int | None = None):

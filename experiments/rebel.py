@@ -18,6 +18,13 @@ row per method:
 
 Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds.
 
+``STOPPED`` lists REBEL runs that the device budget stopped early; they are not rows. For them and for
+every run above that logs them, ``rebel.json``'s ``on_policy_reward`` gives, per method, the learned
+reward on the policy's own training transitions (``train.ROUND_REWARD_METRICS``), averaged over the
+rounds from ``ON_POLICY_FROM`` steps and over seeds: its mean, the share of steps where it is
+saturated, and its per-step correlation with the true reward. Their returns at equal steps come from
+``compare.py --max-steps`` (RESULTS.md).
+
 ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
 output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
@@ -29,6 +36,7 @@ import json
 import math
 import pathlib
 
+import numpy as np
 from analysis import (
     distinct_evaluations,
     final_returns,
@@ -39,6 +47,9 @@ from analysis import (
     steps_to_reach,
 )
 from compare import compare, gather, methods
+
+from rebel_jax.plots import records as _records
+from rebel_jax.train import ROUND_REWARD_METRICS
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS = {  # task -> run directories under results/runs (REBEL's runs join them as they land)
@@ -55,6 +66,14 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "baselines/surf_cheetah_100_1m_bf16_ru100",
     ],
 }
+STOPPED = {  # task -> REBEL runs stopped early by the device budget (not rows; see the module docstring)
+    "walker_walk": [
+        "rebel/rebel_walker_100_lams_0.1_-0.1_bf16_stopped140k",
+        "rebel/rebel_walker_100_lams_0.01_-0.01_bf16_stopped140k",
+    ],
+}
+ON_POLICY_FROM = 40_000
+"""First env step of the rounds that ``on_policy_reward`` averages (after the first two feedback sessions)."""
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
 
@@ -146,13 +165,42 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     return out
 
 
+def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
+    """Per method of the run: ``train.ROUND_REWARD_METRICS`` over rounds from ``ON_POLICY_FROM`` and seeds.
+
+    Empty for a run that predates those metrics (or has no learned reward).
+    """
+    records = [r for r in _records(run_dir) if r["env_steps"] >= ON_POLICY_FROM and ROUND_REWARD_METRICS[0] in r]
+    if not records:
+        return []
+    out = []
+    for label, (_, info) in methods(run_dir).items():
+        cols = info["columns"]
+        means = {name: float(np.mean([np.asarray(r[name])[cols] for r in records])) for name in ROUND_REWARD_METRICS}
+        out.append(
+            {
+                "task": task,
+                "method": label,
+                "lam": info["lam"],
+                "seeds": len(cols),
+                "rounds": len(records),
+                "steps": [records[0]["env_steps"], records[-1]["env_steps"]],
+                **{name: round(v, 3) for name, v in means.items()},
+                "log": f"results/runs/{run_dir.relative_to(RESULTS / 'runs')}",
+            }
+        )
+    return out
+
+
 def main() -> None:
     table = [
         row
         for task, logs in RUNS.items()
         for row in rows(task, [RESULTS / "runs" / log for log in logs], RESULTS / f"rebel_{task}.png")
     ]
-    (RESULTS / "rebel.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
+    logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
+    reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
+    (RESULTS / "rebel.json").write_text(json.dumps({"rows": table, "on_policy_reward": reward}, indent=1) + "\n")
     print(
         "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] |"
     )
@@ -164,6 +212,15 @@ def main() -> None:
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['env_steps']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
             f"| {r['iqm']:.1f} [{low}, {high}] | {r['steps_to_threshold']} ({r['threshold']:.0f}) "
             f"| {r['efficiency_vs_pebble']} [{e_low}, {e_high}] |"
+        )
+    print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
+    print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")
+    print("|---|---|---|---:|---:|---:|---|")
+    for r in reward:
+        print(
+            f"| {r['task']} | {r['method']} | {r['steps'][0] // 1000}k-{r['steps'][1] // 1000}k "
+            f"| {r['round_learned_mean']:.2f} | {r['round_learned_saturated']:.2f} "
+            f"| {r['round_reward_correlation']:.2f} | `{r['log']}` |"
         )
 
 

@@ -420,3 +420,25 @@ def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
     assert grid["log"] == ["results/runs/grid"] and grid["seeds"] == 3
     with pytest.raises(ValueError, match="no PEBBLE run"):
         rebel.rows("walker_walk", [tmp_path / "runs" / "grid"])
+
+
+def test_rebel_on_policy_reward_averages_each_lambdas_columns_over_rounds_and_seeds(tmp_path, monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    monkeypatch.setattr(rebel, "RESULTS", tmp_path)
+    run = tmp_path / "runs" / "grid"
+    _fake_curve_run(run, "rebel", 1.0, 4, lams=[0.1, 0.1, -0.1, -0.1])
+    rng = np.random.default_rng(0)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    for row in rows:  # per-round metrics per column, from 30k on (earlier rounds predate them)
+        if row["env_steps"] >= 30_000:
+            row.update({name: rng.normal(size=4).tolist() for name in rebel.ROUND_REWARD_METRICS})
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = {r["method"]: r for r in rebel.on_policy_reward("walker_walk", run)}
+    used = [r for r in rows if r["env_steps"] >= rebel.ON_POLICY_FROM]
+    for label, cols in (("rebel lam=0.1", [0, 1]), ("rebel lam=-0.1", [2, 3])):
+        for name in rebel.ROUND_REWARD_METRICS:
+            expected = sum(r[name][c] for r in used for c in cols) / (2 * len(used))
+            assert out[label][name] == round(expected, 3)
+        assert out[label]["steps"] == [40_000, 200_000] and out[label]["rounds"] == 17 and out[label]["seeds"] == 2
+    _fake_curve_run(tmp_path / "runs" / "old", "pebble", 1.0, 3)
+    assert rebel.on_policy_reward("walker_walk", tmp_path / "runs" / "old") == []  # predates the metrics
