@@ -36,11 +36,12 @@
 #       the reset update (utd 0.3); rung 4 is "pebble500bf16". All at pretrain.running_std exact, as the
 #       rung-4 runs. Rungs 0-2 (40 envs, 125k updates) are estimated at about 9 min each, rung 3 about
 #       15 min (not measured);
-#   SET "rebel_ablation" with LAMS="<lambda> <lambda>" (issue 10's ablation, planned): REBEL as the paper
+#   SET "rebel_ablation" with LAMS="<lambda> <lambda>" (issue 10's ablation): REBEL as the paper
 #       defines it (on-policy V from the reset, whole episode, gamma 0.99, lower bound, not normalised) at
-#       two lambdas in one program of 10 columns (5 seeds each); estimated (not measured) at about 27 min from
-#       the update's cost at 10 columns (1.93 ms) and the walker's env step (BENCHMARKS.md): one program per machine. The grid
-#       +-0.01, +-0.1, +-1 is three such programs;
+#       two lambdas in one program of 10 columns (5 seeds each). Seventh session: LAMS "0.1 -0.1" and
+#       "0.01 -0.01" ran one call each and stopped at 140k (RESULTS.md); a round takes 30.3 s, so 500k is
+#       about 25 min of rounds plus ~2 min of compile: one program per machine, its calls chained at once.
+#       The grid +-0.001, +-0.01, +-0.1 (|lambda| >= 0.1 saturates the reward) is three such programs;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
