@@ -526,3 +526,35 @@ def test_rebel_form_validates():
     with pytest.raises(ValueError, match="rebel.best_segments"):
         agent_preference.AgentPreferenceConfig(form="penalty", best_segments=0).validate()
     agent_preference.AgentPreferenceConfig(form="penalty").validate()
+
+
+@pytest.mark.parametrize("estimator", ["discounted", "mean"])
+def test_a_constant_shift_of_the_reward_moves_the_lower_bound_and_not_the_penalty(estimator):
+    """The BT loss cannot see a constant shift c of the reward (RESULTS.md, REBEL's first runs).
+
+    The lower bound ``lambda sum_m V_m`` moves by ``lambda M c sum_{t<T} gamma^t`` (``discounted``) or
+    ``lambda M c / (1 - gamma)`` (``mean``), so its gradient pushes the reward along c; the penalty
+    ``lambda sum_m (V*_m - V_m)`` sums both values over as many steps and does not move.
+    """
+    params = _tiny_params(seed=42)
+    agent, best = _segments(43, 3, length=7), _segments(44, 4)
+    lam, gamma, shift = 0.3, 0.9, 0.7
+
+    def predict(c):
+        return lambda p, obs, action: rm.predict(TINY, p, obs, action) + c
+
+    def losses(c):
+        lower = agent_preference.agent_value_term(
+            TINY, lam, agent.obs, agent.action, gamma, estimator, predict_fn=predict(c)
+        )(params, None, None)[0]
+        penalty = agent_preference.value_gap_term(
+            TINY, lam, agent.obs, agent.action, best.obs, best.action, jnp.ones(4), gamma, estimator,
+            predict_fn=predict(c), best_predict_fn=predict(c),
+        )(params, None, None)[0]  # fmt: skip
+        return float(lower), float(penalty)
+
+    (lower_0, penalty_0), (lower_c, penalty_c) = losses(0.0), losses(shift)
+    steps = sum(gamma**t for t in range(7)) if estimator == "discounted" else 1 / (1 - gamma)
+    np.testing.assert_allclose(lower_c - lower_0, lam * TINY.ensemble_size * shift * steps, rtol=1e-4)
+    np.testing.assert_allclose(penalty_c, penalty_0, atol=1e-5)
+    assert abs(penalty_0) > 1e-3  # the penalty itself is not trivially zero
