@@ -42,6 +42,8 @@
 #       "0.01 -0.01" ran one call each and stopped at 140k (RESULTS.md); a round takes 30.3 s, so 500k is
 #       about 25 min of rounds plus ~2 min of compile: one program per machine, its calls chained at once.
 #       The grid +-0.001, +-0.01, +-0.1 (|lambda| >= 0.1 saturates the reward) is three such programs;
+#       FORM=penalty (the un-relaxed penalty, in which a constant shift of the reward cancels) and
+#       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
@@ -95,9 +97,11 @@ case "${2:-shared}" in
     esac
     launch pebble_walker_100_rung${RUNG}_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 "${rung[@]}"
     wait; finish; exit 0 ;;
-  rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound)
-    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')_bf16
-    launch "$name" --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2
+  rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound);
+    # FORM=penalty runs eq. "bilevel_rlhf_fo" instead, NORMALIZE=1 the scale-free form (both name the run)
+    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
+    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
+    launch "$name" --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}"
     wait; finish; exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
