@@ -385,11 +385,13 @@ def test_baselines_diagnostics_against_a_hand_computation(tmp_path, monkeypatch)
     assert out["best_eval_step"] == logged[best]["env_steps"]
 
 
-def _fake_curve_run(run: pathlib.Path, algo: str, slope: float, seeds: int, lams: list | None = None) -> None:
+def _fake_curve_run(
+    run: pathlib.Path, algo: str, slope: float, seeds: int, lams: list | None = None, task: str = "walker_walk"
+) -> None:
     """A run directory whose every seed's evaluation return is ``slope * env_steps / 1000``."""
     run.mkdir(parents=True)
     rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
-    cfg = {"algo": algo, "env": {"task": "walker_walk", "num_envs": 10}, "feedback": {"labels": 100},
+    cfg = {"algo": algo, "env": {"task": task, "num_envs": 10}, "feedback": {"labels": 100},
            "teacher": {}, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"}}  # fmt: skip
     meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
     (run / "config.json").write_text(json.dumps(cfg))
@@ -442,3 +444,25 @@ def test_rebel_on_policy_reward_averages_each_lambdas_columns_over_rounds_and_se
         assert out[label]["steps"] == [40_000, 200_000] and out[label]["rounds"] == 17 and out[label]["seeds"] == 2
     _fake_curve_run(tmp_path / "runs" / "old", "pebble", 1.0, 3)
     assert rebel.on_policy_reward("walker_walk", tmp_path / "runs" / "old") == []  # predates the metrics
+
+
+def test_pixel_rows_merge_one_seed_jobs_and_count_frames(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    runs = [tmp_path / "runs" / f"drqv2_seed{k}" for k in range(3)]
+    for k, run in enumerate(runs):  # one seed per job, as the drqv2_seed set runs them
+        _fake_curve_run(run, "drqv2", 1.0 + k, 1, task="walker_walk_pixels")
+    rows, curves = pixels.rows("walker_walk_pixels", runs)
+    assert len(rows) == 1
+    row = rows[0]
+    # Per seed the mean of the last 10 evaluations (110k..200k agent steps): 155 times the slope.
+    assert row["final_returns"] == [155.0, 310.0, 465.0] and row["mean"] == 310.0 and row["seeds"] == 3
+    assert row["frames"] == 2 * 200_000 and pixels.action_repeat("walker_walk_pixels") == 2
+    assert (row["task"], row["algo"], row["obs"]) == ("walker_walk", "drqv2", "pixels")
+    assert row["log"] == [f"results/runs/drqv2_seed{k}" for k in range(3)]
+    low, high = row["iqm_ci"]
+    assert low <= row["iqm"] <= high
+    frames, returns = curves["drqv2"]
+    assert frames[-1] == 400_000 and returns.shape == (20, 3)
+    pixels.figure("walker_walk_pixels", curves, tmp_path / "pixels_walker_walk.png")
+    assert (tmp_path / "pixels_walker_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,110 @@
+"""``results/pixels.json``: the pixel runs of issue 12 (DrQ-v2, and PEBBLE, SURF and REBEL on pixels).
+
+Usage:
+  python experiments/pixels.py
+
+One row per (task, method) of the run directories in ``RUNS``, split into methods and merged over
+directories by ``compare.gather`` (the ``drqv2_seed`` set of ``experiments/baselines_h100.sh`` runs one
+seed per job, so a method's seeds come from several directories). ``frames`` are the agent steps of the
+log times the task's action repeat (``PixelEnv.action_repeat``, 2): DrQ-v2 and SURF's pixel branch count
+frames. Per row, as issue 12's schema: ``final_returns`` (per seed the mean of its last 10 evaluations,
+``analysis.final_returns``), ``mean``, ``std``, ``iqm`` with ``iqm_ci`` (95% percentile bootstrap over
+seeds), ``device``, ``date``, ``command`` and ``log``. Also writes ``results/pixels_<task>.png``: each
+method's mean +- std evaluation return against frames.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+from analysis import plot_curves
+from compare import compare, gather, methods
+
+from rebel_jax.envs import make_env
+
+RESULTS = pathlib.Path(__file__).parents[1] / "results"
+RUNS: dict[str, list[str]] = {}
+"""Pixel task (``<task>_pixels``) -> its run directories under ``results/runs``; no pixel learning run has landed
+yet (BENCHMARKS.md, "Pixel runs": the device plans)."""
+
+
+def action_repeat(task: str) -> int:
+    """Frames per agent step of a pixel task."""
+    return make_env(task).action_repeat
+
+
+def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
+    """The task's rows and its curves against frames (``{label: (frames, returns)}``)."""
+    curves, infos = gather(run_dirs)
+    repeat = action_repeat(task)
+    frames = {label: (steps * repeat, returns) for label, (steps, returns) in curves.items()}
+    stats = compare(curves, None)["methods"]
+    logs = {label: [] for label in curves}
+    for run_dir in run_dirs:
+        for label in methods(run_dir):
+            logs[label].append(f"results/runs/{run_dir.relative_to(RESULTS / 'runs')}")
+    out = []
+    for label, m in stats.items():
+        info = infos[label]
+        out.append(
+            {
+                "task": task.removesuffix("_pixels"),
+                "algo": info["algo"],
+                "method": label,
+                "obs": "pixels",
+                "labels": info["labels"],
+                "seeds": m["seeds"],
+                "frames": m["env_steps"] * repeat,
+                "final_returns": [round(v, 2) for v in m["final_returns"]],
+                "mean": round(m["mean"], 2),
+                "std": round(m["std"], 2),
+                "iqm": round(m["iqm"], 2),
+                "iqm_ci": [round(v, 2) for v in m["iqm_ci"]],
+                "device": info["device"],
+                "date": info["date"],
+                "command": info["command"],
+                "log": logs[label],
+            }
+        )
+    return out, frames
+
+
+def figure(task: str, curves: dict, path: pathlib.Path) -> None:
+    """Each method's mean +- std evaluation return against frames, as DrQ-v2 and SURF draw them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot_curves(ax, curves)
+    ax.set_xlabel("frames (agent steps x action repeat)")
+    ax.set_title(f"{task}, pixels")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    if not RUNS:
+        print("no pixel run is listed in RUNS yet: nothing written")
+        return
+    table = []
+    for task, logs in RUNS.items():
+        task_rows, curves = rows(task, [RESULTS / "runs" / log for log in logs])
+        figure(task, curves, RESULTS / f"pixels_{task.removesuffix('_pixels')}.png")
+        table += task_rows
+    (RESULTS / "pixels.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
+    print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
+    print("|---|---|---:|---:|---:|---:|")
+    for r in table:
+        low, high = r["iqm_ci"]
+        print(
+            f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
+            f"| {r['iqm']:.1f} [{low}, {high}] |"
+        )
+
+
+if __name__ == "__main__":
+    main()
