@@ -447,6 +447,21 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
 
 
 # -- plots -------------------------------------------------------------------------------
+def curve_figure(curves: Mapping[str, Curve], path: pathlib.Path, title: str, xlabel: str | None = None) -> None:
+    """Writes ``path``: each label's mean +- std curve over seeds (``plot_curves``), titled, on one axes."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot_curves(ax, curves)
+    ax.legend(fontsize=8)
+    if xlabel is not None:
+        ax.set_xlabel(xlabel)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def plot_iqm(
     ax, scores: Mapping[str, ArrayLike], reps: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> dict[str, tuple[float, Interval]]:

@@ -109,14 +109,15 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
 def gather(run_dirs: list[pathlib.Path], max_steps: int | None = None):
     """Every method's curve (seeds of run directories with the same label merged) and its run info.
 
-    Returns ``(curves, infos)``, both keyed by label; curves stop at ``max_steps`` if given.
+    Returns ``(curves, infos)``, both keyed by label; curves stop at ``max_steps`` if given. A label's
+    info is that of its first run directory, with ``run_dirs``: every directory the label came from.
     """
     parts: dict[str, list] = {}
     infos: dict[str, dict] = {}
     for run_dir in run_dirs:
         for label, (curve, info) in methods(run_dir).items():
             parts.setdefault(label, []).append(curve)
-            infos.setdefault(label, info)
+            infos.setdefault(label, info | {"run_dirs": []})["run_dirs"].append(run_dir)
     curves = {label: merge_runs(*runs) for label, runs in parts.items()}
     if max_steps is not None:
         curves = {label: (steps[steps <= max_steps], r[steps <= max_steps]) for label, (steps, r) in curves.items()}
@@ -177,8 +178,8 @@ def main():
             raise SystemExit(f"error: --methods {missing} not among {list(curves)}")
         curves = {m: curves[m] for m in args.methods}
     result = compare(curves, args.reference, args.threshold)
-    for label, entry in result["methods"].items():
-        entry.update(infos[label])
+    for label, entry in result["methods"].items():  # What the numbers are (not gather's bookkeeping).
+        entry.update({k: v for k, v in infos[label].items() if k not in ("columns", "run_dirs")})
     args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))

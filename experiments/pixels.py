@@ -18,8 +18,8 @@ from __future__ import annotations
 import json
 import pathlib
 
-from analysis import plot_curves
-from compare import compare, gather, methods
+from analysis import curve_figure
+from compare import compare, gather
 
 from rebel_jax.envs import make_env
 
@@ -40,10 +40,6 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     repeat = action_repeat(task)
     frames = {label: (steps * repeat, returns) for label, (steps, returns) in curves.items()}
     stats = compare(curves, None)["methods"]
-    logs = {label: [] for label in curves}
-    for run_dir in run_dirs:
-        for label in methods(run_dir):
-            logs[label].append(f"results/runs/{run_dir.relative_to(RESULTS / 'runs')}")
     out = []
     for label, m in stats.items():
         info = infos[label]
@@ -64,7 +60,7 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
                 "device": info["device"],
                 "date": info["date"],
                 "command": info["command"],
-                "log": logs[label],
+                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
             }
         )
     return out, frames
@@ -72,18 +68,7 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
 
 def figure(task: str, curves: dict, path: pathlib.Path) -> None:
     """Each method's mean +- std evaluation return against frames, as DrQ-v2 and SURF draw them."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_curves(ax, curves)
-    ax.set_xlabel("frames (agent steps x action repeat)")
-    ax.set_title(f"{task}, pixels")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)")
 
 
 def main() -> None:

@@ -38,10 +38,10 @@ import pathlib
 
 import numpy as np
 from analysis import (
+    curve_figure,
     distinct_evaluations,
     final_returns,
     mean_curve,
-    plot_curves,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
     steps_to_reach,
@@ -95,36 +95,16 @@ def _setting(run_dir: pathlib.Path, algo: str) -> tuple[str | None, str | None]:
     return rebel["source"], ", ".join(variant)
 
 
-def figure(task: str, curves: dict, path: pathlib.Path) -> None:
-    """Every method's mean +- std evaluation curve over seeds, against env steps, as B-Pref reports."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_curves(ax, curves)
-    ax.legend(fontsize=8)
-    ax.set_title(f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | None = None) -> list[dict]:
     """One row per method of ``task``'s runs (see the module docstring); the task's figure if a path is given."""
     curves, infos = gather(run_dirs)
     if figure_path is not None:
-        figure(task, curves, figure_path)
+        curve_figure(curves, figure_path, f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
     reference = next((label for label in PEBBLE if label in curves), None)
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
     stats = compare(curves, reference)
     threshold = stats["threshold"]
-    logs = {label: [] for label in curves}
-    for run_dir in run_dirs:
-        for label in methods(run_dir):
-            logs[label].append(run_dir)
     out = []
     for label, (steps, returns) in curves.items():
         m, info = stats["methods"][label], infos[label]
@@ -132,7 +112,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
         mean_steps, mean_returns = mean_curve(distinct)
         efficiency = sample_efficiency_ratio(distinct, distinct_evaluations(curves[reference]), threshold)
         ci = sample_efficiency_ratio_ci((steps, returns), curves[reference], threshold)
-        estimator, variant = _setting(logs[label][0], info["algo"])
+        estimator, variant = _setting(info["run_dirs"][0], info["algo"])
         out.append(
             {
                 "method": label,
@@ -159,7 +139,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "device": info["device"],
                 "date": info["date"],
                 "command": info["command"],
-                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in logs[label]],
+                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
             }
         )
     return out
