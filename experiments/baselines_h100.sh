@@ -44,15 +44,20 @@
 #       The grid +-0.001, +-0.01, +-0.1 (|lambda| >= 0.1 saturates the reward) is three such programs;
 #       FORM=penalty (the un-relaxed penalty, in which a constant shift of the reward cancels) and
 #       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
+#       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives each
+#       call; no checkpoints, no resumed compiles): the first call starts it, every call (the same command,
+#       chained) watches it until it ends or the call's LIMIT, then ships the logs. A .jax_cache folder in the
+#       repo root (carried) seeds the compilation cache; finish ships the cache back when it is small;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
 set -u
-limit=${1:-520}
+limit=${1:-520} call_limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
 limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (its time on a fresh machine is not measured).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
+[ -d .jax_cache ] && mkdir -p runs/.jax_cache && cp -rn .jax_cache/. runs/.jax_cache/  # carried from an earlier machine
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
 launch() {  # name, then the training flags
   local name=$1; shift
@@ -61,10 +66,22 @@ launch() {  # name, then the training flags
   [ -f "$dir/final.json" ] && { echo "$name: done"; return; }
   python3 -m rebel_jax.train "$@" --run-dir "$dir" $common $resume >>"runs/$name.log" 2>&1 &
 }
+detach() {  # name, then the training flags: one process for the machine's whole loan (see DETACH above)
+  local name=$1; shift
+  [ -f "runs/$name/final.json" ] && return
+  pgrep -f -- "--run-dir runs/$name " >/dev/null && return
+  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard >>"runs/$name.log" 2>&1 </dev/null &
+}
+watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
+  while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
+  pgrep -f rebel_jax.train >/dev/null && echo "still running after ${SECONDS}s"
+  finish
+}
 finish() {  # print the tails and ship the logs
   for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
   for d in runs/*/; do echo "$d rounds=$(wc -l <"$d/metrics.jsonl" 2>/dev/null)"; done
   tar czf "$OUT/runs.tar.gz" --exclude=checkpoints --exclude=.jax_cache runs
+  [ "$(du -sm runs/.jax_cache 2>/dev/null | cut -f1)" -lt 15 ] 2>/dev/null && tar czf "$OUT/jax_cache.tar.gz" -C runs .jax_cache
 }
 mkdir -p runs
 case "${2:-shared}" in
@@ -101,8 +118,9 @@ case "${2:-shared}" in
     # FORM=penalty runs eq. "bilevel_rlhf_fo" instead, NORMALIZE=1 the scale-free form (both name the run)
     variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
     name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
-    launch "$name" --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}"
-    wait; finish; exit 0 ;;
+    flags=(--preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}")
+    if [ -n "${DETACH:-}" ]; then detach "$name" "${flags[@]}"; watch; else launch "$name" "${flags[@]}"; wait; finish; fi
+    exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
