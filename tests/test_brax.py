@@ -1,8 +1,9 @@
 """The tasks as brax environments: the registry, brax's training wrappers on them, against our own code.
 
 brax's wrappers are tested on the probe (compiles in seconds) against plain Python loops over our
-own task; one test compiles walker_walk to check that the registered MJX task, wrapped by brax,
-equals our task.
+own task. The registry test checks each registered MJX task's spec, solver and shapes without compiling;
+one heavy test (``make test-heavy``: two walker compiles, about 40 s on 2 cores) rolls the registered
+walker_walk, wrapped by brax, against our task.
 """
 
 from __future__ import annotations
@@ -139,6 +140,7 @@ def test_brax_auto_reset_repeats_the_first_state_where_ours_draws_a_fresh_one():
     assert not np.allclose(ours.info["final_obs"][ends], ours.obs[ends])
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("task", ["walker_walk"])
 def test_registered_mjx_task_wrapped_by_brax_equals_our_task(task):
     """``brax.envs.create("rebel_walker_walk", ...)`` against ``make_env("walker_walk")``: same keys, same actions."""

@@ -4,8 +4,8 @@ Not a dm_control task. It is a ``brax.envs.Env`` with brax's ``State``, as
 :class:`rebel_jax.envs.DMCEnv` is, so the trainer runs it unchanged, but it compiles in seconds where an
 MJX model takes about a minute on a CPU. The tests of the training machinery (trace
 counts, vmap over seeds, resume, sharding, the preference pipeline, the CLI) use it, as
-brax's own tests use its ``fast`` environment; the tests of the tasks and of learning use
-the MJX tasks.
+brax's own tests use its ``fast`` environment, and one test that SAC learns; the tests of the tasks and
+the heavy learning tests use the MJX tasks.
 
 Dynamics, per control step, with the action clipped to [-1, 1]^2::
 
