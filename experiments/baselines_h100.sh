@@ -77,6 +77,9 @@ watch() {  # wait until no training process is left or the call's limit is near,
   pgrep -f rebel_jax.train >/dev/null && echo "still running after ${SECONDS}s"
   finish
 }
+start() {  # name, then the training flags: detached under DETACH=1, else time-limited calls with resume
+  if [ -n "${DETACH:-}" ]; then detach "$@"; watch; else launch "$@"; wait; finish; fi
+}
 finish() {  # print the tails and ship the logs
   for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
   for d in runs/*/; do echo "$d rounds=$(wc -l <"$d/metrics.jsonl" 2>/dev/null)"; done
@@ -119,7 +122,12 @@ case "${2:-shared}" in
     variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
     name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
     flags=(--preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}")
-    if [ -n "${DETACH:-}" ]; then detach "$name" "${flags[@]}"; watch; else launch "$name" "${flags[@]}"; wait; finish; fi
+    start "$name" "${flags[@]}"; exit 0 ;;
+  rebel_cheetah)  # REBEL at the lambda chosen on walker_walk (LAM), carried unchanged to cheetah_run: 1M steps,
+    # 5 seeds (PEBBLE's cheetah seeds), FORM / NORMALIZE as in rebel_ablation; ~100 rounds of ~12 s (SURF's)
+    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
+    name=rebel_cheetah_100_1m_lam${LAM:?set LAM}${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
+    start "$name" --preset paper --algo rebel --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --rebel.lam "$LAM" --precision bf16 "${variant[@]}"
     exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
