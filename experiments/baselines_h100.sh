@@ -118,9 +118,10 @@ case "${2:-shared}" in
     launch pebble_walker_100_rung${RUNG}_bf16_seed1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 "${rung[@]}"
     wait; finish; exit 0 ;;
   rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound);
-    # FORM=penalty runs eq. "bilevel_rlhf_fo" instead, NORMALIZE=1 the scale-free form (both name the run)
-    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
-    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
+    # FORM=penalty runs eq. "bilevel_rlhf_fo" instead, NORMALIZE=1 the scale-free form, SOURCE=replay today's
+    # replay-window V, OUTPUT=sigmoid the non-negative reward the lower bound assumes (each names the run)
+    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize} ${SOURCE:+--rebel.source $SOURCE} ${OUTPUT:+--reward.output $OUTPUT})
+    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}${SOURCE:+_$SOURCE}${OUTPUT:+_$OUTPUT}_bf16
     flags=(--preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}")
     start "$name" "${flags[@]}"; exit 0 ;;
   rebel_cheetah)  # REBEL at the lambda chosen on walker_walk (LAM), carried unchanged to cheetah_run: 1M steps,
