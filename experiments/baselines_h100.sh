@@ -46,8 +46,9 @@
 #       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
 #       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives each
 #       call; no checkpoints, no resumed compiles): the first call starts it, every call (the same command,
-#       chained) watches it until it ends or the call's LIMIT, then ships the logs. A .jax_cache folder in the
-#       repo root (carried) seeds the compilation cache; finish ships the cache back when it is small;
+#       chained) watches it until it ends or the call's LIMIT, then ships the logs. A .gpu_cache folder in the
+#       repo root (carried; not .jax_cache, which is the tests' CPU cache) seeds the compilation cache; finish
+#       ships the cache back when it is small. LAMS "0.01 -0.01" ran so (eighth session, 4 calls, 1,919 s held);
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
 #       at 10 columns is not measured yet.
@@ -57,7 +58,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (its time on a fresh machine is not measured).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
-[ -d .jax_cache ] && mkdir -p runs/.jax_cache && cp -rn .jax_cache/. runs/.jax_cache/  # carried from an earlier machine
+[ -d .gpu_cache ] && mkdir -p runs/.jax_cache && cp -rn .gpu_cache/. runs/.jax_cache/  # carried from an earlier machine
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
 launch() {  # name, then the training flags
   local name=$1; shift
@@ -70,7 +71,7 @@ detach() {  # name, then the training flags: one process for the machine's whole
   local name=$1; shift
   [ -f "runs/$name/final.json" ] && return
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
-  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard >>"runs/$name.log" 2>&1 </dev/null &
+  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 >>"runs/$name.log" 2>&1 </dev/null &
 }
 watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
   while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
@@ -138,8 +139,9 @@ case "${2:-shared}" in
       walker) task=(--task walker_walk_pixels --drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000) ;;
       cheetah) task=(--task cheetah_run_pixels) ;;
     esac
-    launch drqv2_${TASK}_500kframes_seed${SEED:?set SEED} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 "${task[@]}"
-    wait; finish; exit 0 ;;
+    # PRECISION=bf16 runs DrQ-v2's matmuls and convolutions in bf16 (named in the run directory)
+    start drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${PRECISION:+_$PRECISION} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
+    exit 0 ;;
   pebble_env40)
     launch pebble_walker_100_utd1_bf16_seed1_env40 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 --num-envs 40
     wait; finish; exit 0 ;;
