@@ -71,7 +71,7 @@ detach() {  # name, then the training flags: one process for the machine's whole
   local name=$1; shift
   [ -f "runs/$name/final.json" ] && return
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
-  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 >>"runs/$name.log" 2>&1 </dev/null &
+  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 >"runs/$name.log" 2>&1 </dev/null &
 }
 watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
   while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
