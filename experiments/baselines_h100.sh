@@ -45,7 +45,8 @@
 #       FORM=penalty (the un-relaxed penalty, in which a constant shift of the reward cancels) and
 #       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
 #       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives each
-#       call; no checkpoints, no resumed compiles): the first call starts it, every call (the same command,
+#       call; no checkpoints (they cannot leave the machine, and the CLI's default of one per round cost the
+#       first detached runs 1-3 s per REBEL round and about 5 s per DrQ-v2 round of 4.5 s), no resumed compiles): the first call starts it, every call (the same command,
 #       chained) watches it until it ends or the call's LIMIT, then ships the logs. A .gpu_cache folder in the
 #       repo root (carried; not .jax_cache, which is the tests' CPU cache) seeds the compilation cache; finish
 #       ships the cache back when it is small. LAMS "0.01 -0.01" ran so (eighth session, 4 calls, 1,919 s held);
@@ -71,7 +72,7 @@ detach() {  # name, then the training flags: one process for the machine's whole
   local name=$1; shift
   [ -f "runs/$name/final.json" ] && return
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
-  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 >"runs/$name.log" 2>&1 </dev/null &
+  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 --checkpoint-every 0 >"runs/$name.log" 2>&1 </dev/null &
 }
 watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
   while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
