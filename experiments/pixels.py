@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import pathlib
 
+import numpy as np
 from analysis import curve_figure
 from compare import compare, gather
 
@@ -25,8 +26,13 @@ from rebel_jax.envs import make_env
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: dict[str, list[str]] = {}
-"""Pixel task (``<task>_pixels``) -> its run directories under ``results/runs``; no pixel learning run has landed
+"""Pixel task (``<task>_pixels``) -> its run directories under ``results/runs``; no whole pixel run has landed
 yet (BENCHMARKS.md, "Pixel runs": the device plans)."""
+STOPPED: dict[str, list[str]] = {
+    "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16_stopped218k"],
+}
+"""Pixel runs that the device budget stopped early: drawn in the task's figure and listed with every
+evaluation under ``pixels.json``'s ``stopped``, but not rows (their last 10 evaluations are not a final score)."""
 
 
 def action_repeat(task: str) -> int:
@@ -71,16 +77,44 @@ def figure(task: str, curves: dict, path: pathlib.Path) -> None:
     curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)")
 
 
+def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
+    """A stopped run's entries and its curves, labelled "(stopped)": per method ``evaluations`` (each as
+    ``[frames, seed-mean return]``) and ``frames``, those of its last evaluation."""
+    curves, infos = gather(run_dirs)
+    repeat = action_repeat(task)
+    out, frames = [], {}
+    for label, (steps, returns) in curves.items():
+        info, means = infos[label], np.nanmean(returns, axis=1)
+        kept = np.isfinite(means)
+        evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
+        frames[f"{label} (stopped)"] = (steps * repeat, returns)
+        out.append(
+            {
+                "task": task.removesuffix("_pixels"),
+                "algo": info["algo"],
+                "method": label,
+                "obs": "pixels",
+                "seeds": returns.shape[1],
+                "frames": int(steps[-1]) * repeat,
+                "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
+                "device": info["device"],
+                "date": info["date"],
+                "command": info["command"],
+                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
+            }
+        )
+    return out, frames
+
+
 def main() -> None:
-    if not RUNS:
-        print("no pixel run is listed in RUNS yet: nothing written")
-        return
-    table = []
-    for task, logs in RUNS.items():
-        task_rows, curves = rows(task, [RESULTS / "runs" / log for log in logs])
-        figure(task, curves, RESULTS / f"pixels_{task.removesuffix('_pixels')}.png")
+    table, early = [], []
+    for task in sorted(set(RUNS) | set(STOPPED)):
+        task_rows, curves = rows(task, [RESULTS / "runs" / log for log in RUNS[task]]) if task in RUNS else ([], {})
+        task_stopped, stopped_curves = stopped(task, [RESULTS / "runs" / log for log in STOPPED.get(task, [])])
+        figure(task, curves | stopped_curves, RESULTS / f"pixels_{task.removesuffix('_pixels')}.png")
         table += task_rows
-    (RESULTS / "pixels.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
+        early += task_stopped
+    (RESULTS / "pixels.json").write_text(json.dumps({"rows": table, "stopped": early}, indent=1) + "\n")
     print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
     print("|---|---|---:|---:|---:|---:|")
     for r in table:
@@ -89,6 +123,9 @@ def main() -> None:
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
             f"| {r['iqm']:.1f} [{low}, {high}] |"
         )
+    for r in early:
+        shown = ", ".join(f"{f // 1000}k: {v:.0f}" for f, v in r["evaluations"])
+        print(f"\n{r['task']} {r['method']} ({r['seeds']} seed(s), stopped at {r['frames']:,} frames): {shown}")
 
 
 if __name__ == "__main__":

@@ -466,3 +466,19 @@ def test_pixel_rows_merge_one_seed_jobs_and_count_frames(tmp_path, monkeypatch):
     assert frames[-1] == 400_000 and returns.shape == (20, 3)
     pixels.figure("walker_walk_pixels", curves, tmp_path / "pixels_walker_walk.png")
     assert (tmp_path / "pixels_walker_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    run = tmp_path / "runs" / "drqv2_stopped"
+    _fake_curve_run(run, "drqv2", 2.0, 1, task="walker_walk_pixels")
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    rows.insert(1, {"env_steps": 15_000, "eval_return": None})  # a round without an evaluation
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    entries, curves = pixels.stopped("walker_walk_pixels", [run])
+    (entry,) = entries
+    # Every evaluation (10k..200k agent steps, return 2 per thousand steps) at twice the steps in frames.
+    assert entry["evaluations"] == [[2 * s, 2.0 * s / 1000] for s in range(10_000, 200_001, 10_000)]
+    assert entry["frames"] == 400_000 and entry["seeds"] == 1 and entry["log"] == ["results/runs/drqv2_stopped"]
+    assert set(curves) == {"drqv2 (stopped)"} and curves["drqv2 (stopped)"][0][-1] == 400_000
