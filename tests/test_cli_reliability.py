@@ -10,11 +10,13 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import jax
 import jax.numpy as jnp
@@ -300,3 +302,26 @@ def test_gpu_batch_resumes_a_job_killed_before_its_first_checkpoint(tmp_path):
     (run_dir / "config.json").write_text("{}")
     assert gpu_batch._state(run_dir) == "resume"
     assert gpu_batch._command({"args": []}, run_dir, 10.0, "resume")[-1] == "--resume"
+
+
+def test_a_checkpoint_slower_than_its_round_is_noted_once_with_a_larger_interval(whole, tmp_path, monkeypatch, capsys):
+    from rebel_jax.checkpoint import Checkpointer
+
+    save = Checkpointer.save
+
+    def slow_save(self, step, state):  # a probe round takes milliseconds; a large replay's save, seconds
+        time.sleep(0.5)
+        save(self, step, state)
+
+    monkeypatch.setattr(Checkpointer, "save", slow_save)
+    run_dir = tmp_path / "run"
+    _main(run_dir)
+    notes = [line for line in capsys.readouterr().err.splitlines() if "checkpoint took" in line]
+    assert len(notes) == 1, notes
+    match = re.search(r"round (\d+)'s checkpoint took ([\d.]+) s, longer than the round \(([\d.]+) s\): "
+                      r"--checkpoint-every (\d+) ", notes[0])  # fmt: skip
+    assert match, notes[0]
+    saving, seconds, every = float(match[2]), float(match[3]), int(match[4])
+    assert saving >= 0.5 and every >= 4 * saving / max(seconds, 0.05) - 1
+    _same_run(whole, run_dir)  # the run itself is unchanged
+    assert _steps_on_disk(run_dir) == [ROUNDS - 1, ROUNDS]

@@ -92,7 +92,9 @@ class Args:
     overwrite: bool = False
     """Replace the run in ``run_dir``: its config, logs, checkpoints and TensorBoard files are deleted first."""
     checkpoint_every: int = 1
-    """Rounds between checkpoints; 0 disables them (``--resume`` still reads existing ones)."""
+    """Rounds between checkpoints; 0 disables them (``--resume`` still reads existing ones). A save is
+    synchronous: the first one that takes longer than its round (a large replay on a GPU) prints a note
+    with an interval that keeps saving under a fifth of the time."""
     time_limit: float = 0.0
     """Seconds of wall time: stop after the last round that ends within it (checkpointing that
     round) and continue later with ``--resume``. For calls with a wall-clock limit; 0: none."""
@@ -419,6 +421,16 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     return start, restored
 
 
+def _slow_checkpoint_note(r: int, saving: float, seconds: float, every: int) -> str:
+    """Said once per run when a checkpoint takes longer than the round it follows (e.g. a large replay on a GPU)."""
+    suggested = every * math.ceil(4 * saving / max(seconds, 1e-9))  # saves then take at most a fifth of the time
+    return (
+        f"note: round {r}'s checkpoint took {saving:.1f} s, longer than the round ({seconds:.1f} s): "
+        f"--checkpoint-every {suggested} would spend at most a fifth of the time saving "
+        f"(a kill then loses up to {suggested} rounds; 0 saves none)"
+    )
+
+
 def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
     return {
         "status": "diverged" if ever_diverged.any() else "completed",
@@ -569,6 +581,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
     started, slowest = time.perf_counter(), 0.0
     ever_diverged = np.zeros(args.columns, bool)
+    slow_save_noted = False
     try:
         for r in range(start, cfg.train.num_rounds):
             # Process 0's clock decides for all (every process must run the same rounds).
@@ -614,7 +627,12 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                 if which:
                     print(f"warning: round {r}: {which} diverged; going on (--on-divergence continue)", file=sys.stderr)
             if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
+                t0 = time.perf_counter()
                 ckpt.save(r + 1, state)
+                saving = time.perf_counter() - t0
+                if primary and not slow_save_noted and saving > seconds and r + 1 < cfg.train.num_rounds:
+                    slow_save_noted = True
+                    print(_slow_checkpoint_note(r, saving, seconds, args.checkpoint_every), file=sys.stderr)
         policy = trainer.policy_params(state)
         final = np.asarray(sweep.to_host(evaluate(policy, keys)))
         random = np.asarray(sweep.to_host(evaluate(policy, keys, True)))  # The same initial states.
