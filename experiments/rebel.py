@@ -25,7 +25,8 @@ rounds from ``ON_POLICY_FROM`` steps and over seeds: its mean, the share of step
 saturated, and its per-step correlation with the true reward. Their returns at equal steps come from
 ``compare.py --max-steps`` (RESULTS.md).
 
-``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
+``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
+only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
 output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
 """
@@ -75,6 +76,8 @@ STOPPED = {  # task -> REBEL runs stopped early by the device budget (not rows; 
 }
 ON_POLICY_FROM = 40_000
 """First env step of the rounds that ``on_policy_reward`` averages (after the first two feedback sessions)."""
+PAPER_VARIANT = "lower_bound, raw, tanh output"
+"""``rows``' ``variant`` of the paper's term (eq. "bilevel_rlhf_fo_lb" with the tanh reward, not normalised)."""
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
 
@@ -146,6 +149,24 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     return out
 
 
+def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
+    """The rule of RESULTS.md, written before the 500k runs landed: among the REBEL rows of the paper's V
+    (on-policy, lower bound, raw, tanh) that reach ``steps``, the one with the highest IQM; None if none does.
+    """
+    eligible = [
+        r
+        for r in rows
+        if r["algo"] == "rebel"
+        and r["estimator"] == "onpolicy"
+        and r["variant"] == PAPER_VARIANT
+        and r["env_steps"] >= steps
+    ]
+    if not eligible:
+        return None
+    best = max(eligible, key=lambda r: r["iqm"])
+    return {"task": best["task"], "lam": best["lam"], "iqm": best["iqm"], "among": sorted(r["lam"] for r in eligible)}
+
+
 def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
     """Per method of the run: ``train.ROUND_REWARD_METRICS`` over rounds from ``ON_POLICY_FROM`` and seeds.
 
@@ -181,7 +202,9 @@ def main() -> None:
     ]
     logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
-    (RESULTS / "rebel.json").write_text(json.dumps({"rows": table, "on_policy_reward": reward}, indent=1) + "\n")
+    chosen = chosen_lambda([r for r in table if r["task"] == "walker_walk"])
+    out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen}
+    (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
         "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] |"
     )
@@ -194,6 +217,10 @@ def main() -> None:
             f"| {r['iqm']:.1f} [{low}, {high}] | {r['steps_to_threshold']} ({r['threshold']:.0f}) "
             f"| {r['efficiency_vs_pebble']} [{e_low}, {e_high}] |"
         )
+    if chosen is None:
+        print("\nlambda by the rule of RESULTS.md: none yet (no REBEL run of the paper's V has reached 500k)")
+    else:
+        print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
     print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
     print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")
     print("|---|---|---|---:|---:|---:|---|")

@@ -482,3 +482,18 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     assert entry["evaluations"] == [[2 * s, 2.0 * s / 1000] for s in range(10_000, 200_001, 10_000)]
     assert entry["frames"] == 400_000 and entry["seeds"] == 1 and entry["log"] == ["results/runs/drqv2_stopped"]
     assert set(curves) == {"drqv2 (stopped)"} and curves["drqv2 (stopped)"][0][-1] == 400_000
+
+
+def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "task": "walker_walk"}
+    rows = [
+        {**paper, "lam": 0.01, "iqm": 300.0, "env_steps": 500_000},
+        {**paper, "lam": -0.01, "iqm": 200.0, "env_steps": 500_000},
+        {**paper, "lam": 0.1, "iqm": 900.0, "env_steps": 140_000},  # stopped early: not eligible
+        {**paper, "lam": 0.001, "iqm": 800.0, "env_steps": 500_000, "estimator": "replay"},  # another V
+        {**paper, "lam": -0.001, "iqm": 700.0, "env_steps": 500_000, "variant": "penalty, raw, tanh output"},
+        {"algo": "pebble", "estimator": None, "variant": None, "lam": None, "iqm": 999.0, "env_steps": 500_000},
+    ]
+    assert rebel.chosen_lambda(rows) == {"task": "walker_walk", "lam": 0.01, "iqm": 300.0, "among": [-0.01, 0.01]}
+    assert rebel.chosen_lambda(rows[2:]) is None
