@@ -44,15 +44,16 @@
 #       The grid +-0.001, +-0.01, +-0.1 (|lambda| >= 0.1 saturates the reward) is three such programs;
 #       FORM=penalty (the un-relaxed penalty, in which a constant shift of the reward cancels) and
 #       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
-#       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives each
-#       call; no checkpoints (they cannot leave the machine, and the CLI's default of one per round cost the
-#       first detached runs 1-3 s per REBEL round and about 5 s per DrQ-v2 round of 4.5 s), no resumed compiles): the first call starts it, every call (the same command,
-#       chained) watches it until it ends or the call's LIMIT, then ships the logs. A .gpu_cache folder in the
-#       repo root (carried; not .jax_cache, which is the tests' CPU cache) seeds the compilation cache; finish
-#       ships the cache back when it is small. LAMS "0.01 -0.01" ran so (eighth session, 4 calls, 1,919 s held);
+#       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives
+#       each call): no resumed compiles and no checkpoints (they cannot leave the machine, and the CLI's
+#       default of one per round cost 1-3 s per REBEL round and about 8 s per DrQ-v2 round of 4.7 s).
+#       The first call starts it; every call (the same command, chained) watches it until it ends or the
+#       call's LIMIT, then ships the logs. A .gpu_cache folder in the repo root (carried; not .jax_cache,
+#       the tests' CPU cache) seeds the compilation cache; finish ships the cache back when it is small.
+#       LAMS "0.01 -0.01" ran so (eighth session: 4 calls, 1,919 s held, 1,661 s of rounds);
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
-#       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); its round time
-#       at 10 columns is not measured yet.
+#       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's
+#       10-column rounds take about 31 s).
 set -u
 limit=${1:-520} call_limit=${1:-520}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
