@@ -14,7 +14,9 @@ row per method:
   ``threshold``, ``analysis.common_threshold`` of the methods' final means (80% of the lowest);
 - ``efficiency_vs_pebble``: PEBBLE's steps to the threshold over the method's
   (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
-  paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``).
+  paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``);
+- ``efficiency_vs_surf`` and ``efficiency_vs_surf_ci``: the same against PEBBLE+SURF (``SURF``: the run that met
+  its published figure; null without one).
 
 Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds.
 
@@ -80,6 +82,9 @@ PAPER_VARIANT = "lower_bound, raw, tanh output"
 """``rows``' ``variant`` of the paper's term (eq. "bilevel_rlhf_fo_lb" with the tanh reward, not normalised)."""
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
+SURF = {"walker_walk": "surf", "cheetah_run": "surf (reward_update 100)"}
+"""Per task the method label of the PEBBLE+SURF run that met its published figure (issue 9), the reference of
+``efficiency_vs_surf`` (the paper's claim names both baselines): on cheetah_run ``reward_update`` 100."""
 
 
 def _round(x: float, digits: int = 2) -> float | str | None:
@@ -105,6 +110,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     if figure_path is not None:
         curve_figure(curves, figure_path, f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
     reference = next((label for label in PEBBLE if label in curves), None)
+    surf = SURF.get(task) if SURF.get(task) in curves else None
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
     stats = compare(curves, reference)
@@ -116,6 +122,11 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
         mean_steps, mean_returns = mean_curve(distinct)
         efficiency = sample_efficiency_ratio(distinct, distinct_evaluations(curves[reference]), threshold)
         ci = sample_efficiency_ratio_ci((steps, returns), curves[reference], threshold)
+        if surf is None:
+            vs_surf, surf_ci = math.nan, (math.nan, math.nan)
+        else:
+            vs_surf = sample_efficiency_ratio(distinct, distinct_evaluations(curves[surf]), threshold)
+            surf_ci = sample_efficiency_ratio_ci((steps, returns), curves[surf], threshold)
         estimator, variant = _setting(info["run_dirs"][0], info["algo"])
         out.append(
             {
@@ -140,6 +151,8 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "steps_to_threshold": _round(steps_to_reach(mean_steps, mean_returns, threshold), None),
                 "efficiency_vs_pebble": _round(efficiency),
                 "efficiency_ci": [_round(v) for v in ci],
+                "efficiency_vs_surf": _round(vs_surf),
+                "efficiency_vs_surf_ci": [_round(v) for v in surf_ci],
                 "device": info["device"],
                 "date": info["date"],
                 "command": info["command"],
@@ -206,16 +219,18 @@ def main() -> None:
     out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen}
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
-        "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] |"
+        "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] "
+        "| vs SURF [95% CI] |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in table:
         low, high = r["iqm_ci"]
         e_low, e_high = r["efficiency_ci"]
         print(
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['env_steps']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
             f"| {r['iqm']:.1f} [{low}, {high}] | {r['steps_to_threshold']} ({r['threshold']:.0f}) "
-            f"| {r['efficiency_vs_pebble']} [{e_low}, {e_high}] |"
+            f"| {r['efficiency_vs_pebble']} [{e_low}, {e_high}] "
+            f"| {r['efficiency_vs_surf']} [{r['efficiency_vs_surf_ci'][0]}, {r['efficiency_vs_surf_ci'][1]}] |"
         )
     if chosen is None:
         print("\nlambda by the rule of RESULTS.md: none yet (no REBEL run of the paper's V has reached 500k)")

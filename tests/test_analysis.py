@@ -417,6 +417,12 @@ def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
     assert (pebble["steps_to_threshold"], grid["steps_to_threshold"]) == (124_000, 62_000)
     assert grid["efficiency_vs_pebble"] == 2.0 and grid["efficiency_ci"] == [2.0, 2.0]
     assert pebble["efficiency_vs_pebble"] == 1.0
+    assert grid["efficiency_vs_surf"] is None and grid["efficiency_vs_surf_ci"] == [None, None]  # no SURF run
+    _fake_curve_run(tmp_path / "runs" / "surf", "surf", 4.0, 3)  # four times PEBBLE's slope
+    with_surf = {r["method"]: r for r in rebel.rows("walker_walk", [*run_dirs, tmp_path / "runs" / "surf"])}
+    # The threshold is still 124 (PEBBLE's final mean is the lowest): SURF reaches it at 31k, REBEL at 62k.
+    assert with_surf["rebel lam=0.1"]["efficiency_vs_surf"] == 0.5 and with_surf["pebble"]["efficiency_vs_surf"] == 0.25
+    assert with_surf["rebel lam=0.1"]["efficiency_vs_surf_ci"] == [0.5, 0.5]
     assert (grid["lam"], grid["estimator"], grid["variant"]) == (0.1, "onpolicy", "lower_bound, raw, tanh output")
     assert (pebble["estimator"], pebble["variant"]) == (None, None)
     assert grid["log"] == ["results/runs/grid"] and grid["seeds"] == 3
