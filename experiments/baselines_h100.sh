@@ -90,6 +90,10 @@ finish() {  # print the tails and ship the logs
   [ "$(du -sm runs/.jax_cache 2>/dev/null | cut -f1)" -lt 15 ] 2>/dev/null && tar czf "$OUT/jax_cache.tar.gz" -C runs .jax_cache
 }
 mkdir -p runs
+# REBEL's variants (rebel_ablation, rebel_cheetah): FORM=penalty, NORMALIZE=1, SOURCE=replay, OUTPUT=sigmoid,
+# each passed as its flag and named in the run directory.
+variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize} ${SOURCE:+--rebel.source $SOURCE} ${OUTPUT:+--reward.output $OUTPUT})
+variant_name=${FORM:+_$FORM}${NORMALIZE:+_normalized}${SOURCE:+_$SOURCE}${OUTPUT:+_$OUTPUT}
 case "${2:-shared}" in
   utd1|pebble500)
     launch pebble_walker_100_utd1 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5
@@ -123,14 +127,12 @@ case "${2:-shared}" in
   rebel_ablation)  # two lambdas, 5 seeds each, the paper's V (the rebel defaults: onpolicy, lower_bound);
     # FORM=penalty runs eq. "bilevel_rlhf_fo" instead, NORMALIZE=1 the scale-free form, SOURCE=replay today's
     # replay-window V, OUTPUT=sigmoid the non-negative reward the lower bound assumes (each names the run)
-    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize} ${SOURCE:+--rebel.source $SOURCE} ${OUTPUT:+--reward.output $OUTPUT})
-    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${FORM:+_$FORM}${NORMALIZE:+_normalized}${SOURCE:+_$SOURCE}${OUTPUT:+_$OUTPUT}_bf16
+    name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${variant_name}_bf16
     flags=(--preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}")
     start "$name" "${flags[@]}"; exit 0 ;;
   rebel_cheetah)  # REBEL at the lambda chosen on walker_walk (LAM), carried unchanged to cheetah_run: 1M steps,
-    # 5 seeds (PEBBLE's cheetah seeds), FORM / NORMALIZE as in rebel_ablation; ~100 rounds of ~12 s (SURF's)
-    variant=(${FORM:+--rebel.form $FORM} ${NORMALIZE:+--rebel.normalize})
-    name=rebel_cheetah_100_1m_lam${LAM:?set LAM}${FORM:+_$FORM}${NORMALIZE:+_normalized}_bf16
+    # 5 seeds (PEBBLE's cheetah seeds), the variants as in rebel_ablation; ~100 rounds of ~12 s (SURF's)
+    name=rebel_cheetah_100_1m_lam${LAM:?set LAM}${variant_name}_bf16
     start "$name" --preset paper --algo rebel --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --rebel.lam "$LAM" --precision bf16 "${variant[@]}"
     exit 0 ;;
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)

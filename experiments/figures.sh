@@ -21,4 +21,4 @@ $PY experiments/rebel.py
 # REBEL's first faithful-protocol runs, stopped at 140k, against the baselines cut there (RESULTS.md).
 B=results/runs/baselines; R=results/runs/rebel
 $PY experiments/compare.py $B/pebble_walker_100_utd1 $B/pebble_walker_100_utd1_bf16_seed1 $B/surf_walker_100_utd1_bf16 $R/rebel_walker_100_lams_0.1_-0.1_bf16_stopped140k $R/rebel_walker_100_lams_0.01_-0.01_bf16_stopped140k --name rebel_walker_walk_140k --max-steps 140000 --reference pebble
-$PY experiments/pixels.py  # issue 12's results/pixels.json, once pixel runs are listed in its RUNS
+$PY experiments/pixels.py  # issue 12's results/pixels.json and figures (its RUNS and STOPPED runs)

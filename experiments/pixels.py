@@ -40,6 +40,20 @@ def action_repeat(task: str) -> int:
     return make_env(task).action_repeat
 
 
+def _described(task: str, label: str, info: dict) -> dict:
+    """What a pixels.json entry is and where it comes from: its task, method and run provenance."""
+    return {
+        "task": task.removesuffix("_pixels"),
+        "algo": info["algo"],
+        "method": label,
+        "obs": "pixels",
+        "device": info["device"],
+        "date": info["date"],
+        "command": info["command"],
+        "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
+    }
+
+
 def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The task's rows and its curves against frames (``{label: (frames, returns)}``)."""
     curves, infos = gather(run_dirs)
@@ -48,14 +62,10 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     stats = compare(curves, None)["methods"]
     out = []
     for label, m in stats.items():
-        info = infos[label]
         out.append(
             {
-                "task": task.removesuffix("_pixels"),
-                "algo": info["algo"],
-                "method": label,
-                "obs": "pixels",
-                "labels": info["labels"],
+                **_described(task, label, infos[label]),
+                "labels": infos[label]["labels"],
                 "seeds": m["seeds"],
                 "frames": m["env_steps"] * repeat,
                 "final_returns": [round(v, 2) for v in m["final_returns"]],
@@ -63,10 +73,6 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
                 "std": round(m["std"], 2),
                 "iqm": round(m["iqm"], 2),
                 "iqm_ci": [round(v, 2) for v in m["iqm_ci"]],
-                "device": info["device"],
-                "date": info["date"],
-                "command": info["command"],
-                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
             }
         )
     return out, frames
@@ -84,23 +90,16 @@ def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     repeat = action_repeat(task)
     out, frames = [], {}
     for label, (steps, returns) in curves.items():
-        info, means = infos[label], np.nanmean(returns, axis=1)
+        means = np.nanmean(returns, axis=1)
         kept = np.isfinite(means)
         evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
         frames[f"{label} (stopped)"] = (steps * repeat, returns)
         out.append(
             {
-                "task": task.removesuffix("_pixels"),
-                "algo": info["algo"],
-                "method": label,
-                "obs": "pixels",
+                **_described(task, label, infos[label]),
                 "seeds": returns.shape[1],
                 "frames": int(steps[-1]) * repeat,
                 "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
-                "device": info["device"],
-                "date": info["date"],
-                "command": info["command"],
-                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
             }
         )
     return out, frames

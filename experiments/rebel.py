@@ -110,23 +110,26 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     if figure_path is not None:
         curve_figure(curves, figure_path, f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
     reference = next((label for label in PEBBLE if label in curves), None)
-    surf = SURF.get(task) if SURF.get(task) in curves else None
+    surf = SURF.get(task)
+    surf = surf if surf in curves else None
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
     stats = compare(curves, reference)
     threshold = stats["threshold"]
+
+    def against(curve, other: str | None) -> tuple[float, tuple[float, float]]:
+        """``other``'s steps to the threshold over the curve's, with its seed-bootstrap interval (NaN without it)."""
+        if other is None:
+            return math.nan, (math.nan, math.nan)
+        ratio = sample_efficiency_ratio(distinct_evaluations(curve), distinct_evaluations(curves[other]), threshold)
+        return ratio, sample_efficiency_ratio_ci(curve, curves[other], threshold)
+
     out = []
     for label, (steps, returns) in curves.items():
         m, info = stats["methods"][label], infos[label]
-        distinct = distinct_evaluations((steps, returns))
-        mean_steps, mean_returns = mean_curve(distinct)
-        efficiency = sample_efficiency_ratio(distinct, distinct_evaluations(curves[reference]), threshold)
-        ci = sample_efficiency_ratio_ci((steps, returns), curves[reference], threshold)
-        if surf is None:
-            vs_surf, surf_ci = math.nan, (math.nan, math.nan)
-        else:
-            vs_surf = sample_efficiency_ratio(distinct, distinct_evaluations(curves[surf]), threshold)
-            surf_ci = sample_efficiency_ratio_ci((steps, returns), curves[surf], threshold)
+        mean_steps, mean_returns = mean_curve(distinct_evaluations((steps, returns)))
+        efficiency, ci = against((steps, returns), reference)
+        vs_surf, surf_ci = against((steps, returns), surf)
         estimator, variant = _setting(info["run_dirs"][0], info["algo"])
         out.append(
             {
