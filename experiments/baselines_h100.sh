@@ -130,6 +130,12 @@ case "${2:-shared}" in
     name=rebel_walker_100_lams_$(echo ${LAMS:?set LAMS} | tr ' ' '_')${variant_name}_bf16
     flags=(--preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid $LAMS --precision bf16 --seed 2 "${variant[@]}")
     start "$name" "${flags[@]}"; exit 0 ;;
+  rebel_teacher)  # issue 10's teachers: PEBBLE (lambda 0, bit for bit) and REBEL at the chosen lambda (LAM) under
+    # one imperfect B-Pref teacher (TEACHER=noisy|mistake|skip|equal|myopic), 5 seeds each (--seed 2, REBEL's
+    # oracle seeds), one program of 10 columns (~31 s rounds, as rebel_ablation): one machine per teacher
+    name=rebel_walker_100_lams_0_${LAM:?set LAM}_${TEACHER:?set TEACHER}${variant_name}_bf16
+    start "$name" --preset paper --algo rebel --task walker_walk --labels 100 --seeds 5 --lam-grid 0 "$LAM" --teacher "$TEACHER" --precision bf16 --seed 2 "${variant[@]}"
+    exit 0 ;;
   rebel_cheetah)  # REBEL at the lambda chosen on walker_walk (LAM), carried unchanged to cheetah_run: 1M steps,
     # 5 seeds (PEBBLE's cheetah seeds), the variants as in rebel_ablation; ~100 rounds of ~12 s (SURF's)
     name=rebel_cheetah_100_1m_lam${LAM:?set LAM}${variant_name}_bf16

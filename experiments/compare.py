@@ -7,8 +7,9 @@ Usage:
 Each run directory (``python -m rebel_jax.train``) contributes one method per grid point: a
 REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is
 labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
-its teachers (``..., noisy``); other runs are labelled by their algo, and budgets other than
-100 labels are named (``pebble 1000 labels``), as is a SURF ``reward_update`` other than 1000.
+its teachers (``..., noisy``; a single ``--teacher`` other than the oracle is named the same way); other
+runs are labelled by their algo, and budgets other than 100 labels are named (``pebble 1000 labels``), as is
+a SURF ``reward_update`` other than 1000.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
 different lengths at equal steps).
 Run directories of the same method (e.g. seeds split over several GPU calls with different
@@ -88,7 +89,10 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
     steps, returns = load_runs(run_dir)
     columns = returns.shape[1]
     lams = meta.get("lams") or [None] * columns
-    teachers = meta.get("teachers") or [None] * columns
+    # Outside a --teacher-grid the run's own teacher names the method unless it is the oracle, so that runs
+    # of one method under different teachers never merge.
+    own = _teacher_name(cfg["teacher"]) if cfg["algo"] != "sac" else None
+    teachers = meta.get("teachers") or [None if own == "oracle" else own] * columns
     out: dict[str, tuple[list[int], dict]] = {}
     for i, (lam, teacher) in enumerate(zip(lams, teachers, strict=True)):
         if lam is None:

@@ -87,6 +87,20 @@ def test_surf_labels_name_a_reward_update_other_than_its_walker_value(tmp_path):
     ]
 
 
+def test_a_single_teacher_other_than_the_oracle_names_the_method_and_never_merges_with_the_oracle(tmp_path):
+    for name, teacher in (("oracle", {}), ("mistake", {"eps_mistake": 0.1})):
+        write_grid_run(tmp_path / name, algo="pebble")
+        cfg, meta = (json.loads((tmp_path / name / f).read_text()) for f in ("config.json", "meta.json"))
+        cfg["teacher"] |= teacher
+        meta["teachers"] = None  # --teacher, not --teacher-grid
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+        (tmp_path / name / "meta.json").write_text(json.dumps(meta))
+    curves, infos = compare.gather([tmp_path / "oracle", tmp_path / "mistake"])
+    assert list(curves) == ["pebble", "pebble, mistake"]
+    assert [infos[label]["teacher"] for label in curves] == ["oracle", "mistake"]
+    assert curves["pebble, mistake"][1].shape == (4, len(GRID))
+
+
 def test_runs_of_the_same_method_merge_their_seeds(tmp_path):
     write_grid_run(tmp_path / "a")
     write_grid_run(tmp_path / "b")
