@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -19,6 +20,11 @@ _SPEC = importlib.util.spec_from_file_location("analysis", _PATH)
 analysis = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(analysis)
 from rliable import library as rly  # noqa: E402
+
+from rebel_jax.teachers import TeacherConfig  # noqa: E402
+
+ORACLE = dataclasses.asdict(TeacherConfig())
+"""The oracle's knobs as a run's ``config.json`` records them."""
 
 
 def trimmed_mean_reference(scores: list[float]) -> float:
@@ -392,7 +398,7 @@ def _fake_curve_run(
     run.mkdir(parents=True)
     rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
     cfg = {"algo": algo, "env": {"task": task, "num_envs": 10}, "feedback": {"labels": 100},
-           "teacher": {}, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"}}  # fmt: skip
+           "teacher": ORACLE, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"}}  # fmt: skip
     meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
     (run / "config.json").write_text(json.dumps(cfg))
     (run / "meta.json").write_text(json.dumps(meta | {"columns": seeds}))
