@@ -50,7 +50,13 @@
 #       The first call starts it; every call (the same command, chained) watches it until it ends or the
 #       call's LIMIT, then ships the logs. A .gpu_cache folder in the repo root (carried; not .jax_cache,
 #       the tests' CPU cache) seeds the compilation cache; finish ships the cache back when it is small.
-#       LAMS "0.01 -0.01" ran so (eighth session: 4 calls, 1,919 s held, 1,661 s of rounds);
+#       LAMS "0.01 -0.01" ran so (eighth session: 4 calls, 1,919 s held, 1,661 s of rounds), and
+#       LAMS "0.001 -0.001" (ninth session: 3 calls, 1,669 s held, 1,579 s of rounds; the carried cache
+#       cut the first round to 89 s). A one-GPU machine may count its held time in full (it did in the
+#       ninth session): then one such program is a whole session's device time;
+#   SET "rebel_cheetah" with LAM=<lambda>: the lambda the rule of RESULTS.md chose on walker_walk (0.001
+#       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; not run yet;
+#   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; not run yet;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's
 #       10-column rounds take about 31 s).
