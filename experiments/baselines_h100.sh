@@ -93,7 +93,7 @@ finish() {  # print the tails and ship the logs
   for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
   for d in runs/*/; do echo "$d rounds=$(wc -l <"$d/metrics.jsonl" 2>/dev/null)"; done
   tar czf "$OUT/runs.tar.gz" --exclude=checkpoints --exclude=.jax_cache runs
-  [ "$(du -sm runs/.jax_cache 2>/dev/null | cut -f1)" -lt 15 ] 2>/dev/null && tar czf "$OUT/jax_cache.tar.gz" -C runs .jax_cache
+  if [ "$(du -sm runs/.jax_cache 2>/dev/null | cut -f1)" -lt 15 ] 2>/dev/null; then tar czf "$OUT/jax_cache.tar.gz" -C runs .jax_cache; fi
 }
 mkdir -p runs
 # REBEL's variants (rebel_ablation, rebel_cheetah): FORM=penalty, NORMALIZE=1, SOURCE=replay, OUTPUT=sigmoid,

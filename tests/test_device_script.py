@@ -1,0 +1,101 @@
+"""``experiments/baselines_h100.sh``: every set's training command parses, before any device time is spent.
+
+The script runs here with ``python3`` and ``setsid`` replaced by a stub that records its arguments, so no
+training starts; each recorded ``python3 -m rebel_jax.train`` command line then goes through the CLI's own
+parser (``cli.parse``), which rejects unknown flags, bad values and bad combinations.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import shlex
+import subprocess
+
+import pytest
+
+from rebel_jax import cli, teachers
+
+SCRIPT = pathlib.Path(__file__).parents[1] / "experiments" / "baselines_h100.sh"
+STUB = """#!/usr/bin/env bash
+[ "$1" = python3 ] && shift  # setsid python3 ...
+printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
+"""
+SETS = [  # (SET, environment): the sets the script documents, with the variables each needs
+    ("rebel_ablation", {"LAMS": "0.001 -0.001"}),
+    ("rebel_ablation", {"LAMS": "0.1 -0.1", "FORM": "penalty", "NORMALIZE": "1"}),
+    ("rebel_ablation", {"LAMS": "0.001 0.01", "SOURCE": "replay", "OUTPUT": "sigmoid"}),
+    ("rebel_cheetah", {"LAM": "0.001"}),
+    ("rebel_teacher", {"LAM": "0.001", "TEACHER": "mistake"}),
+    ("rebel_walker", {"LAM": "0.01"}),
+    ("drqv2_seed", {"TASK": "walker", "SEED": "0", "PRECISION": "bf16"}),
+    ("drqv2_seed", {"TASK": "cheetah", "SEED": "1"}),
+    ("surf_cheetah_ru", {"RU": "100"}),
+    *[("ladder", {"RUNG": str(rung)}) for rung in range(4)],
+    *[(name, {}) for name in ("pebble500", "surf500", "surf500bf16", "pebble500bf16", "pebble1000")],
+    *[(name, {}) for name in ("pebble_cheetah1m", "surf_cheetah1m", "shared")],
+]
+
+
+def _commands(tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bool) -> list[list[str]]:
+    """The argument lists the script passes to ``python3`` (pip's install left out)."""
+    bin_dir, work = tmp_path / "bin", tmp_path / "work"
+    bin_dir.mkdir(exist_ok=True)
+    work.mkdir(exist_ok=True)
+    for tool in ("python3", "setsid"):
+        (bin_dir / tool).write_text(STUB)
+        (bin_dir / tool).chmod(0o755)
+    calls = tmp_path / "calls.txt"
+    calls.unlink(missing_ok=True)
+    full_env = {
+        **{k: v for k, v in os.environ.items() if k not in ("LAMS", "LAM", "DETACH")},
+        "PATH": f"{bin_dir}:{os.environ['PATH']}",
+        "CALLS": str(calls),
+        "OUT": str(tmp_path),
+        **env,
+        **({"DETACH": "1"} if detach else {}),
+    }
+    # LIMIT 20: the detached sets' watch loop (until the call's limit - 20 s) ends at once.
+    done = subprocess.run(["bash", str(SCRIPT), "20", name], cwd=work, env=full_env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = calls.read_text().splitlines() if calls.exists() else []
+    return [shlex.split(line) for line in lines if "rebel_jax.train" in line]
+
+
+@pytest.mark.parametrize(("name", "env"), SETS, ids=[f"{n}-{'-'.join(e.values()) or 'default'}" for n, e in SETS])
+def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_path, name, env):
+    detach = name in ("rebel_ablation", "rebel_cheetah", "rebel_teacher", "drqv2_seed")
+    commands = _commands(tmp_path, name, env, detach)
+    assert commands, f"{name}: no training command"
+    for argv in commands:
+        assert argv[:2] == ["-m", "rebel_jax.train"], argv
+        args = cli.parse(argv[2:])
+        run_dir = pathlib.Path(argv[argv.index("--run-dir") + 1])
+        assert run_dir.parent == pathlib.Path("runs")
+        if name.startswith("rebel_"):
+            assert args.config.algo == "rebel"
+        if "LAMS" in env:
+            assert args.lams == tuple(float(lam) for lam in env["LAMS"].split())
+            assert run_dir.name.startswith("rebel_walker_100_lams_" + env["LAMS"].replace(" ", "_"))
+        if "TEACHER" in env:
+            assert args.config.teacher == teachers.PRESETS[env["TEACHER"]] and env["TEACHER"] in run_dir.name
+        if detach:
+            assert args.checkpoint_every == 0 and args.video_steps == 0  # nothing that cannot leave the machine
+
+
+def test_a_set_without_its_variable_stops_with_its_name(tmp_path):
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python3").write_text("#!/usr/bin/env bash\n")
+    (bin_dir / "python3").chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k not in ("LAMS", "LAM")} | {
+        "PATH": f"{bin_dir}:{os.environ['PATH']}"
+    }
+    done = subprocess.run(
+        ["bash", str(SCRIPT), "20", "rebel_cheetah"],
+        cwd=tmp_path,
+        env=env | {"OUT": str(tmp_path)},
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode != 0 and "set LAM" in done.stderr
