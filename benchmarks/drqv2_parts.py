@@ -1,0 +1,201 @@
+"""Where one seed's DrQ-v2 update spends its time: its parts timed alone (issue 12's throughput target).
+
+    python benchmarks/drqv2_parts.py --precision bf16        # 84x84, walker's batch 512 (n-step 1)
+    python benchmarks/drqv2_parts.py --size 16 --batch-size 8 --repeats 2 --per-call 2   # a CPU check
+
+One row per part and precision, the median milliseconds of one call (``ms``) over ``--repeats`` calls of a
+jitted ``lax.scan`` of ``--per-call`` calls after a warm-up call:
+
+- ``update``: the whole :meth:`DrQV2.update` of one seed (the trainer's, looped over seeds);
+- ``critic_grad``: the critic loss and its gradient (encoder of ``obs`` with gradient, of ``next_obs``
+  without, target critic, both critics), the first half of the update;
+- ``shift``: the random shifts of ``obs`` and ``next_obs``;
+- ``encoder_forward`` (``obs`` alone) and ``encoder_grad`` (its forward and the gradient of the features'
+  sum with respect to the encoder's parameters);
+- per convolution ``k`` of the encoder (1-4, at its input's shape in the update): ``conv{k}_forward``,
+  ``conv{k}_input_grad`` (the gradient with respect to its input: the backward pass to the layer below;
+  not needed for conv 1) and ``conv{k}_kernel_grad`` (with respect to its kernel, XLA's own
+  convolution), and ``conv{k}_kernel_grad_patches``: the same kernel gradient as one matrix product of
+  the layer's 3x3 input patches (``lax.conv_general_dilated_patches``) with the output gradient, the
+  alternative to try where XLA's is slow. Its result equals XLA's (checked before timing).
+
+Every call perturbs its input by the loop's carry so that XLA cannot hoist the work out of the loop; the
+perturbation is one elementwise pass over the input. Rows merge into ``benchmarks/results/drqv2_parts.json``.
+``REBEL_JAX_GIT_COMMIT`` names the commit where the tree was copied without its history.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import pathlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from drqv2_update import FRAMES, WALKER_ACTIONS
+from timing import device_name, median_seconds
+
+from rebel_jax.cli import _git_commit
+from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, random_shift, task_config
+from rebel_jax.networks import dense_kwargs
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_parts.json"
+DIMENSIONS = ("NHWC", "HWIO", "NHWC")
+"""flax's ``nn.Conv`` layout: images channels-last, kernels (height, width, in, out)."""
+
+
+def conv(x: jax.Array, kernel: jax.Array, stride: int, precision: str) -> jax.Array:
+    """One encoder convolution (3x3, no padding) in the encoder's compute dtype, as ``nn.Conv`` runs it."""
+    kw = dense_kwargs(precision)
+    x, kernel = x.astype(kw["dtype"]), kernel.astype(kw["dtype"])
+    return jax.lax.conv_general_dilated(
+        x, kernel, (stride, stride), "VALID", dimension_numbers=DIMENSIONS, precision=kw["precision"]
+    )
+
+
+def kernel_grad_patches(x: jax.Array, grad_out: jax.Array, stride: int, precision: str) -> jax.Array:
+    """The kernel's gradient of :func:`conv` as patches^T @ grad_out: (3, 3, in, out)."""
+    kw = dense_kwargs(precision)
+    channels = x.shape[-1]
+    patches = jax.lax.conv_general_dilated_patches(
+        x.astype(kw["dtype"]), (3, 3), (stride, stride), "VALID", dimension_numbers=DIMENSIONS
+    )  # (B, H', W', in * 9), the feature dimension ordered (in, height, width)
+    grad_out = grad_out.astype(kw["dtype"])
+    grad = jnp.einsum("bhwk,bhwo->ko", patches, grad_out, precision=kw["precision"], preferred_element_type=jnp.float32)
+    return grad.reshape(channels, 3, 3, -1).transpose(1, 2, 0, 3)
+
+
+def _looped(fn, per_call: int):
+    """``(carry, key) -> carry``: ``per_call`` calls of ``fn(eps)``, each folding its output into ``carry``."""
+
+    def run(carry, key):
+        def body(carry, _):
+            out = fn(carry * 1e-30)
+            leaves = jax.tree.leaves(out)
+            return carry + sum(jnp.sum(leaf).astype(jnp.float32) for leaf in leaves) * 0.0 + 1e-30, None
+
+        return jax.lax.scan(body, carry, None, length=per_call)[0]
+
+    return jax.jit(run)
+
+
+def parts(cfg: DrQV2Config, size: int) -> dict:
+    """Part name -> ``fn(eps)``, every input fixed and perturbed by the scalar ``eps``."""
+    agent = DrQV2(cfg, (size, size, 3 * FRAMES), WALKER_ACTIONS)
+    key_init, key_obs, key_next, key_action, key_update = jax.random.split(jax.random.PRNGKey(0), 5)
+    state = jax.jit(agent.init)(key_init)
+    shape = (cfg.batch_size,)
+    pixels = lambda key: jax.random.randint(key, (*shape, size, size, 3 * FRAMES), 0, 256).astype(jnp.uint8)
+    batch = PixelTransition(
+        obs=pixels(key_obs),
+        action=jax.random.uniform(key_action, (*shape, WALKER_ACTIONS), minval=-1, maxval=1),
+        reward=jax.random.uniform(key_action, shape),
+        discount=jnp.full(shape, cfg.gamma),
+        next_obs=pixels(key_next),
+    )
+    step = jnp.int32(10_000)
+    nudge = lambda tree, eps: jax.tree.map(lambda p: p + eps.astype(p.dtype), tree)
+
+    def update(eps):
+        return agent.update(state.replace(critic_params=nudge(state.critic_params, eps)), batch, key_update, step)[0]
+
+    def critic_grad(eps):
+        params = {"encoder": nudge(state.encoder_params, eps), "critic": state.critic_params}
+        context = dict(actor_params=state.actor_params, target_params=state.target_critic_params, std=jnp.float32(0.2))
+        return jax.grad(agent.critic_loss, has_aux=True)(params, batch, key_update, **context)[0]
+
+    def shift(eps):
+        obs = (batch.obs.astype(jnp.float32) + eps).astype(jnp.uint8)
+        return random_shift(key_update, obs, cfg.pad), random_shift(key_action, batch.next_obs, cfg.pad)
+
+    def encoder_forward(eps):
+        return agent.encoder.apply(nudge(state.encoder_params, eps), batch.obs)
+
+    def encoder_grad(eps):
+        return jax.grad(lambda p: jnp.sum(agent.encoder.apply(p, batch.obs)))(nudge(state.encoder_params, eps))
+
+    out = {
+        "update": update,
+        "critic_grad": critic_grad,
+        "shift": shift,
+        "encoder_forward": encoder_forward,
+        "encoder_grad": encoder_grad,
+    }
+    # Each convolution's input in the update: the scaled frames, then the ReLU outputs of the layer below.
+    kernels = [state.encoder_params["params"][f"Conv_{k}"]["kernel"] for k in range(4)]
+    x = batch.obs.astype(jnp.float32) / 255.0 - 0.5
+    for k, (kernel, stride) in enumerate(zip(kernels, (2, 1, 1, 1), strict=True), start=1):
+        y, vjp = jax.vjp(lambda x, w, s=stride: conv(x, w, s, cfg.precision), x, kernel)
+        grad_out = jnp.ones_like(y) / y.size
+        want = np.asarray(vjp(grad_out)[1], np.float32)
+        got = np.asarray(kernel_grad_patches(x, grad_out, stride, cfg.precision), np.float32)
+        np.testing.assert_allclose(got, want, rtol=0.05, atol=0.05 * np.abs(want).max())
+
+        def forward(eps, x=x, w=kernel, s=stride):
+            return conv(x + eps, w, s, cfg.precision)
+
+        def input_grad(eps, x=x, w=kernel, s=stride, g=grad_out):
+            return jax.vjp(lambda x: conv(x, w, s, cfg.precision), x + eps)[1](g)
+
+        def kernel_grad(eps, x=x, w=kernel, s=stride, g=grad_out):
+            return jax.vjp(lambda w: conv(x + eps, w, s, cfg.precision), w)[1](g)
+
+        def patches_grad(eps, x=x, s=stride, g=grad_out):
+            return kernel_grad_patches(x + eps, g, s, cfg.precision)
+
+        out |= {f"conv{k}_forward": forward, f"conv{k}_kernel_grad": kernel_grad}
+        out |= {f"conv{k}_kernel_grad_patches": patches_grad}
+        if k > 1:
+            out[f"conv{k}_input_grad"] = input_grad
+        x = jax.nn.relu(y.astype(jnp.float32))
+    return out
+
+
+def rows(args):
+    base = task_config("walker_walk", DrQV2Config(precision=args.precision))
+    cfg = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
+    for name, fn in parts(cfg, args.size).items():
+        if args.parts and name not in args.parts:
+            continue
+        sec = median_seconds(_looped(fn, args.per_call), jnp.float32(0.0), args.per_call, args.repeats)
+        row = {
+            "device": device_name(),
+            "date": datetime.date.today().isoformat(),
+            "jax": jax.__version__,
+            "commit": _git_commit(),
+            "command": " ".join(["python"] + sys.argv),
+            "size": args.size,
+            "batch_size": cfg.batch_size,
+            "precision": cfg.precision,
+            "part": name,
+            "ms": sec * 1e3,
+        }
+        print(json.dumps(row), flush=True)
+        yield row
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--size", type=int, default=84, help="image height and width")
+    p.add_argument("--batch-size", type=int, default=0, help="transitions per update (0: walker's 512)")
+    p.add_argument("--precision", default="bf16", choices=["tf32", "highest", "bf16"])
+    p.add_argument("--parts", nargs="*", default=[], help="only these parts (default: all)")
+    p.add_argument("--per-call", type=int, default=20, help="calls per timed jitted loop")
+    p.add_argument("--repeats", type=int, default=5, help="timed loops per row")
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    args = p.parse_args(argv)
+    results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
+    fields = ("device", "commit", "size", "batch_size", "precision", "part")
+    key = lambda r: tuple(r.get(f) for f in fields)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for row in rows(args):
+        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
+        args.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
