@@ -3,10 +3,11 @@
     python benchmarks/drqv2_update.py                      # 84x84, 5 seeds, walker (batch 512, n-step 1)
     python benchmarks/drqv2_update.py --size 16 --batch-size 8 --seeds 2 --repeats 2   # a CPU check
 
-One row per setting: the median milliseconds of one update of every seed (``ms_per_update``), over
-``--repeats`` calls of a jitted ``lax.scan`` of ``--updates-per-call`` updates after a warm-up call, on
-fixed random uint8 frame stacks; the agent step is unbatched, as in the trainer. ``grouped_convolutions``
-counts the compiled program's convolutions with ``feature_group_count`` or ``batch_group_count`` above 1
+One row per setting (``--seed-loop``, and ``--kernel-grad``: ``drqv2.kernel_grad``): the median
+milliseconds of one update of every seed (``ms_per_update``), over ``--repeats`` calls of a jitted
+``lax.scan`` of ``--updates-per-call`` updates after a warm-up call, on fixed random uint8 frame stacks;
+the agent step is unbatched, as in the trainer. ``grouped_convolutions`` counts the compiled program's
+convolutions with ``feature_group_count`` or ``batch_group_count`` above 1
 (the batched update's encoder convolutions, which the loop removes). Rows merge into
 ``benchmarks/results/drqv2_update.json`` after each one. ``REBEL_JAX_GIT_COMMIT`` names the commit where
 the tree was copied without its history.
@@ -68,8 +69,8 @@ def update_scan(cfg: DrQV2Config, size: int, seeds: int, per_call: int):
 def rows(args):
     base = task_config("walker_walk", DrQV2Config(precision=args.precision))
     base = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
-    for loop in args.seed_loop:
-        cfg = dataclasses.replace(base, seed_loop=loop == "on")
+    for loop, grad in ((loop, grad) for loop in args.seed_loop for grad in args.kernel_grad):
+        cfg = dataclasses.replace(base, seed_loop=loop == "on", kernel_grad=grad)
         run, state = update_scan(cfg, args.size, args.seeds, args.updates_per_call)
         compiled = run.lower(state, jax.random.PRNGKey(1)).compile()
         grouped = grouped_convolutions(compiled.as_text())
@@ -86,6 +87,7 @@ def rows(args):
             "nstep": cfg.nstep,
             "precision": cfg.precision,
             "seed_loop": cfg.seed_loop,
+            "kernel_grad": cfg.kernel_grad,
             "ms_per_update": sec * 1e3,
             "ms_per_seed_update": sec * 1e3 / args.seeds,
             "grouped_convolutions": grouped,
@@ -101,12 +103,13 @@ def main(argv=None):
     p.add_argument("--batch-size", type=int, default=0, help="transitions per update (0: walker's 512)")
     p.add_argument("--precision", default="tf32", choices=["tf32", "highest", "bf16"])
     p.add_argument("--seed-loop", nargs="+", default=["off", "on"], choices=["off", "on"])
+    p.add_argument("--kernel-grad", nargs="+", default=["xla"], choices=["xla", "patches"])
     p.add_argument("--updates-per-call", type=int, default=10)
     p.add_argument("--repeats", type=int, default=5, help="timed calls per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     args = p.parse_args(argv)
     results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    fields = ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop")
+    fields = ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "kernel_grad")
     key = lambda r: tuple(r.get(f) for f in fields)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for row in rows(args):

@@ -29,7 +29,7 @@ from rebel_jax.drqv2 import (
     task_config,
     truncated_sample,
 )
-from rebel_jax.networks import Encoder, encoder_output_size
+from rebel_jax.networks import Encoder, conv_patch_kernel_grad, encoder_output_size
 
 
 def _grid_sample_reference(x: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -293,6 +293,57 @@ def test_seed_loop_is_a_validated_setting():
         DrQV2Config(seed_loop="yes").validate()
     DrQV2Config(seed_loop=False).validate()
     assert DrQV2Config().seed_loop  # on by default: measured 6.8x faster on one H100 (BENCHMARKS.md)
+
+
+@pytest.mark.parametrize("stride", [2, 1])
+def test_patch_kernel_gradient_equals_a_numpy_loop_and_xlas(stride):
+    """``conv_patch_kernel_grad``: the forward and input gradient are XLA's convolution's, and the kernel
+    gradient is ``sum_{b,h,w} x[b, s h + i, s w + j, c] g[b, h, w, o]``, written out as a NumPy loop."""
+    key_x, key_w, key_g = jax.random.split(jax.random.key(0), 3)
+    x = jax.random.normal(key_x, (3, 11, 9, 5))
+    kernel = jax.random.normal(key_w, (3, 3, 5, 4))
+    conv = functools.partial(
+        jax.lax.conv_general_dilated, window_strides=(stride, stride), padding="VALID",
+        dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=jax.lax.Precision.HIGHEST,
+    )  # fmt: skip
+    y, vjp_xla = jax.vjp(conv, x, kernel)
+    got_y, vjp_patches = jax.vjp(
+        lambda x, w: conv_patch_kernel_grad(x, w, (stride, stride), "VALID", precision=jax.lax.Precision.HIGHEST),
+        x,
+        kernel,
+    )
+    grad_out = jax.random.normal(key_g, y.shape)
+    xn, gn = np.asarray(x, np.float64), np.asarray(grad_out, np.float64)
+    loop = np.zeros(kernel.shape)
+    for h in range(y.shape[1]):
+        for w in range(y.shape[2]):
+            patch = xn[:, stride * h : stride * h + 3, stride * w : stride * w + 3, :]  # (B, 3, 3, C)
+            loop += np.einsum("bijc,bo->ijco", patch, gn[:, h, w, :])
+    (want_x, want_w), (got_x, got_w) = vjp_xla(grad_out), vjp_patches(grad_out)
+    np.testing.assert_array_equal(got_y, y)
+    np.testing.assert_array_equal(got_x, want_x)
+    np.testing.assert_allclose(np.asarray(want_w), loop, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(got_w), loop, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="without dilation or groups"):
+        conv_patch_kernel_grad(x, kernel[..., :1, :], (1, 1), "VALID", feature_group_count=5)
+
+
+@pytest.mark.parametrize("seed_loop", [True, False])
+def test_patch_kernel_gradients_give_the_same_update(seed_loop):
+    """``drqv2.kernel_grad patches`` changes how the encoder's kernel gradients are computed, not the update:
+    the seed-vmapped update (looped or batched) equals XLA's up to float rounding."""
+    (_, _), (states, batches, keys) = _seed_batch()
+    agents = [
+        DrQV2(dataclasses.replace(SMALL, seed_loop=seed_loop, kernel_grad=grad), OBS_SHAPE, ACTIONS)
+        for grad in ("xla", "patches")
+    ]
+    want, got = (
+        jax.jit(jax.vmap(agent.update, in_axes=(0, 0, 0, None)))(states, batches, keys, jnp.int32(40))
+        for agent in agents
+    )
+    _close(got, want, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ConfigError, match="drqv2.kernel_grad"):
+        DrQV2Config(kernel_grad="cudnn").validate()
 
 
 def test_act_explores_around_the_deterministic_action():

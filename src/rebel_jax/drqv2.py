@@ -88,6 +88,11 @@ class DrQV2Config:
     """Random-shift padding in pixels (drqv2.py:153)."""
     precision: Literal["tf32", "highest", "bf16"] = "tf32"
     """Matmul and convolution precision (see :mod:`rebel_jax.networks`)."""
+    kernel_grad: Literal["xla", "patches"] = "xla"
+    """How the encoder's kernel gradients are computed: XLA's backward-filter convolutions, or one matrix
+    product of the input patches with the output gradient each (:func:`rebel_jax.networks.conv_patch_kernel_grad`).
+    The same gradients up to float rounding; a speed setting for ``benchmarks/drqv2_update.py`` and
+    ``benchmarks/drqv2_parts.py`` to decide (not a DrQ-v2 setting)."""
     seed_loop: bool = True
     """Run a ``vmap`` of :meth:`DrQV2.update` (the trainer's over seeds) as a loop over its entries
     (``jax.custom_batching.sequential_vmap``: ``lax.map``), one seed's update at a time, instead of one
@@ -107,6 +112,7 @@ class DrQV2Config:
             _check(getattr(self, name) >= 0, f"drqv2.{name}", getattr(self, name), ">= 0")
         _check(self.pad >= 0, "drqv2.pad", self.pad, ">= 0")
         _check(self.precision in ("tf32", "highest", "bf16"), "drqv2.precision", self.precision, "tf32, highest, bf16")
+        _check(self.kernel_grad in ("xla", "patches"), "drqv2.kernel_grad", self.kernel_grad, "xla, patches")
         _check(isinstance(self.seed_loop, bool), "drqv2.seed_loop", self.seed_loop, "True, False")
 
 
@@ -315,7 +321,7 @@ class DrQV2:
 
     def __init__(self, cfg: DrQV2Config, obs_shape: tuple[int, int, int], action_size: int):
         self.cfg, self.obs_shape, self.action_size = cfg, tuple(obs_shape), action_size
-        self.encoder = Encoder(precision=cfg.precision)
+        self.encoder = Encoder(precision=cfg.precision, kernel_grad=cfg.kernel_grad)
         self.actor = PixelActor(cfg.feature_dim, cfg.hidden, cfg.depth, action_size, cfg.precision)
         self.critic = PixelCritic(cfg.feature_dim, cfg.hidden, cfg.depth, cfg.precision)
         self.optimizer = optax.adam(cfg.lr)  # One learning rate for all three (drqv2.py:148-150).

@@ -225,6 +225,70 @@ def mlp_flops(in_size: int, hidden: int, depth: int, out: int) -> int:
 # (alinlab/SURF 214bc1d, branch ``pixel``, agent/drqv2.py).
 
 
+CONV_LAYOUT = ("NHWC", "HWIO", "NHWC")
+"""``nn.Conv``'s layout in two dimensions: images channels-last, kernels (height, width, in, out)."""
+KERNEL_GRADS = ("xla", "patches")
+
+
+def conv_patch_kernel_grad(
+    lhs: jax.Array,
+    rhs: jax.Array,
+    window_strides,
+    padding,
+    lhs_dilation=None,
+    rhs_dilation=None,
+    dimension_numbers=None,
+    feature_group_count: int = 1,
+    precision=None,
+) -> jax.Array:
+    """``lax.conv_general_dilated`` whose kernel gradient is one matrix product, ``patches^T @ grad_out``.
+
+    The forward pass and the input's gradient are XLA's own. The kernel's gradient is computed from the
+    input's patches (``lax.conv_general_dilated_patches``: every output pixel's receptive field, flattened
+    channel-major) contracted with the output gradient over the batch and every output pixel: the same
+    sum as XLA's backward-filter convolution, as one matrix product with a long contraction. Takes
+    ``nn.Conv``'s arguments (its ``conv_general_dilated`` field); only the encoder's case is allowed: 2-D,
+    ``CONV_LAYOUT``, no dilation, no groups.
+    """
+    layout = jax.lax.conv_dimension_numbers(lhs.shape, rhs.shape, CONV_LAYOUT)
+    plain = all(d is None or all(x == 1 for x in d) for d in (lhs_dilation, rhs_dilation))
+    if lhs.ndim != 4 or dimension_numbers not in (None, layout) or not plain or feature_group_count != 1:
+        raise ValueError(
+            "conv_patch_kernel_grad takes 2-D NHWC/HWIO convolutions without dilation or groups; got "
+            f"lhs {lhs.shape}, dimension_numbers {dimension_numbers}, dilations {lhs_dilation} {rhs_dilation}, "
+            f"feature_group_count {feature_group_count}"
+        )
+    window_strides, padding = tuple(window_strides), padding if isinstance(padding, str) else tuple(map(tuple, padding))
+
+    def conv(x, w):
+        return jax.lax.conv_general_dilated(
+            x, w, window_strides, padding, dimension_numbers=layout, precision=precision
+        )
+
+    @jax.custom_vjp
+    def run(x, w):
+        return conv(x, w)
+
+    def forward(x, w):
+        return conv(x, w), (x, w)
+
+    def backward(saved, grad_out):
+        x, w = saved
+        (grad_x,) = jax.vjp(lambda x: conv(x, w), x)[1](grad_out)
+        patches = jax.lax.conv_general_dilated_patches(
+            x, w.shape[:2], window_strides, padding, dimension_numbers=CONV_LAYOUT, precision=precision
+        )  # (B, H', W', in * kh * kw), channel-major
+        grad_w = jnp.einsum(
+            "bhwk,bhwo->ko", patches, grad_out.astype(x.dtype), precision=precision, preferred_element_type=jnp.float32
+        )
+        height, width, channels, features = w.shape
+        grad_w = grad_w.reshape(channels, height, width, features).transpose(1, 2, 0, 3)
+        return grad_x, grad_w.astype(w.dtype)
+
+    run.defvjp(forward, backward)
+    return run(lhs, rhs)
+
+
 class Encoder(nn.Module):
     """DrQ-v2's convolutional encoder: four 3x3 convolutions of 32 channels, strides 2, 1, 1, 1, each
     followed by ReLU, no padding, flattened (drqv2.py:48-67).
@@ -237,16 +301,23 @@ class Encoder(nn.Module):
     Attributes:
         channels: output channels of every convolution.
         precision: ``tf32``, ``highest`` or ``bf16``.
+        kernel_grad: ``xla`` (XLA's backward-filter convolution) or ``patches``
+            (:func:`conv_patch_kernel_grad`): the same gradient, computed another way (a speed setting).
     """
 
     channels: int = 32
     precision: str = "tf32"
+    kernel_grad: str = "xla"
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         """Args: obs (..., H, W, C), uint8 or float in [0, 255]. Returns: (..., features) float32."""
         kw = dense_kwargs(self.precision)  # nn.Conv takes the same precision arguments
         init = dict(kernel_init=orthogonal(math.sqrt(2.0)), bias_init=nn.initializers.zeros)
+        if self.kernel_grad not in KERNEL_GRADS:
+            raise ValueError(f"kernel_grad must be one of {KERNEL_GRADS}; got {self.kernel_grad!r}")
+        if self.kernel_grad == "patches":
+            kw = kw | {"conv_general_dilated": conv_patch_kernel_grad}
         x = obs.astype(jnp.float32) / 255.0 - 0.5
         for stride in (2, 1, 1, 1):
             x = nn.relu(nn.Conv(self.channels, (3, 3), strides=(stride, stride), padding="VALID", **init, **kw)(x))
