@@ -28,17 +28,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import json
 import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
 from drqv2_update import FRAMES, WALKER_ACTIONS
-from timing import device_name, median_seconds
+from timing import median_seconds, merge_rows, provenance
 
-from rebel_jax.cli import _git_commit
 from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, random_shift, task_config
 from rebel_jax.networks import CONV_LAYOUT, conv_patch_kernel_grad, dense_kwargs
 
@@ -148,11 +145,7 @@ def rows(args):
             continue
         sec = median_seconds(_looped(fn, args.per_call), jnp.float32(0.0), args.per_call, args.repeats)
         row = {
-            "device": device_name(),
-            "date": datetime.date.today().isoformat(),
-            "jax": jax.__version__,
-            "commit": _git_commit(),
-            "command": " ".join(["python"] + sys.argv),
+            **provenance(),
             "size": args.size,
             "batch_size": cfg.batch_size,
             "precision": cfg.precision,
@@ -173,13 +166,7 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=5, help="timed loops per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     args = p.parse_args(argv)
-    results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    fields = ("device", "commit", "size", "batch_size", "precision", "part")
-    key = lambda r: tuple(r.get(f) for f in fields)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    for row in rows(args):
-        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
-        args.out.write_text(json.dumps(results, indent=1) + "\n")
+    merge_rows(args.out, rows(args), ("device", "commit", "size", "batch_size", "precision", "part"))
 
 
 if __name__ == "__main__":

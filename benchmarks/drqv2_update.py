@@ -17,17 +17,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import json
 import pathlib
 import re
-import sys
 
 import jax
 import jax.numpy as jnp
-from timing import device_name, median_seconds
+from timing import median_seconds, merge_rows, provenance
 
-from rebel_jax.cli import _git_commit
 from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_update.json"
@@ -76,11 +73,7 @@ def rows(args):
         grouped = grouped_convolutions(compiled.as_text())
         sec = median_seconds(compiled, state, args.updates_per_call, args.repeats)
         row = {
-            "device": device_name(),
-            "date": datetime.date.today().isoformat(),
-            "jax": jax.__version__,
-            "commit": _git_commit(),
-            "command": " ".join(["python"] + sys.argv),
+            **provenance(),
             "seeds": args.seeds,
             "size": args.size,
             "batch_size": cfg.batch_size,
@@ -108,13 +101,11 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=5, help="timed calls per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     args = p.parse_args(argv)
-    results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    fields = ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "kernel_grad")
-    key = lambda r: tuple(r.get(f) for f in fields)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    for row in rows(args):
-        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
-        args.out.write_text(json.dumps(results, indent=1) + "\n")
+    merge_rows(
+        args.out,
+        rows(args),
+        ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "kernel_grad"),
+    )
 
 
 if __name__ == "__main__":

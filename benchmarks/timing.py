@@ -2,15 +2,43 @@
 
 from __future__ import annotations
 
+import datetime
+import json
+import pathlib
 import statistics
+import sys
 import time
 
 import jax
+
+from rebel_jax.cli import _git_commit
 
 
 def device_name() -> str:
     """The first device's kind (e.g. ``NVIDIA H100 80GB HBM3``), or ``cpu``: the ``device`` of a result row."""
     return jax.devices()[0].device_kind if jax.default_backend() != "cpu" else "cpu"
+
+
+def provenance() -> dict:
+    """What every result row says about where it ran: device, date, JAX version, commit and command."""
+    return {
+        "device": device_name(),
+        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__,
+        "commit": _git_commit(),
+        "command": " ".join(["python"] + sys.argv),
+    }
+
+
+def merge_rows(out: pathlib.Path, rows, fields: tuple[str, ...]) -> None:
+    """Writes each row of ``rows`` into ``out``'s ``{"rows": [...]}`` as it comes, replacing an earlier row
+    with the same ``fields``."""
+    results = json.loads(out.read_text()) if out.exists() else {"rows": []}
+    key = lambda r: tuple(r.get(f) for f in fields)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for row in rows:
+        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
+        out.write_text(json.dumps(results, indent=1) + "\n")
 
 
 def median_seconds(run, state, per_call: int, repeats: int = 5) -> float:
