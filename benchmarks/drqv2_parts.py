@@ -33,10 +33,10 @@ import pathlib
 
 import jax
 import jax.numpy as jnp
-from drqv2_update import FRAMES, WALKER_ACTIONS
+from drqv2_update import FRAMES, WALKER_ACTIONS, random_batch
 from timing import median_seconds, merge_rows, provenance
 
-from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, random_shift, task_config
+from rebel_jax.drqv2 import DrQV2, DrQV2Config, random_shift, task_config
 from rebel_jax.networks import CONV_LAYOUT, conv_patch_kernel_grad, dense_kwargs
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_parts.json"
@@ -71,17 +71,9 @@ def _looped(fn, per_call: int):
 def parts(cfg: DrQV2Config, size: int) -> dict:
     """Part name -> ``fn(eps)``, every input fixed and perturbed by the scalar ``eps``."""
     agent = DrQV2(cfg, (size, size, 3 * FRAMES), WALKER_ACTIONS)
-    key_init, key_obs, key_next, key_action, key_update = jax.random.split(jax.random.PRNGKey(0), 5)
+    key_init, key_batch, key_update, key_next_shift = jax.random.split(jax.random.PRNGKey(0), 4)
     state = jax.jit(agent.init)(key_init)
-    shape = (cfg.batch_size,)
-    pixels = lambda key: jax.random.randint(key, (*shape, size, size, 3 * FRAMES), 0, 256).astype(jnp.uint8)
-    batch = PixelTransition(
-        obs=pixels(key_obs),
-        action=jax.random.uniform(key_action, (*shape, WALKER_ACTIONS), minval=-1, maxval=1),
-        reward=jax.random.uniform(key_action, shape),
-        discount=jnp.full(shape, cfg.gamma),
-        next_obs=pixels(key_next),
-    )
+    batch = random_batch(key_batch, (cfg.batch_size,), size, cfg.gamma)
     step = jnp.int32(10_000)
     nudge = lambda tree, eps: jax.tree.map(lambda p: p + eps.astype(p.dtype), tree)
 
@@ -95,7 +87,7 @@ def parts(cfg: DrQV2Config, size: int) -> dict:
 
     def shift(eps):
         obs = (batch.obs.astype(jnp.float32) + eps).astype(jnp.uint8)
-        return random_shift(key_update, obs, cfg.pad), random_shift(key_action, batch.next_obs, cfg.pad)
+        return random_shift(key_update, obs, cfg.pad), random_shift(key_next_shift, batch.next_obs, cfg.pad)
 
     def encoder_forward(eps):
         return agent.encoder.apply(nudge(state.encoder_params, eps), batch.obs)

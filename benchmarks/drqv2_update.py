@@ -38,20 +38,25 @@ def grouped_convolutions(hlo: str) -> int:
     return sum(any(int(n) > 1 for n in found) for found in counts)
 
 
+def random_batch(key: jax.Array, shape: tuple[int, ...], size: int, gamma: float) -> PixelTransition:
+    """Random transitions of walker's shapes: uint8 frame stacks (``size`` x ``size``, 3 frames), actions in
+    [-1, 1], rewards in [0, 1), ``shape`` leading."""
+    key_obs, key_next, key_action, key_reward = jax.random.split(key, 4)
+    pixels = lambda key: jax.random.randint(key, (*shape, size, size, 3 * FRAMES), 0, 256).astype(jnp.uint8)
+    return PixelTransition(
+        obs=pixels(key_obs),
+        action=jax.random.uniform(key_action, (*shape, WALKER_ACTIONS), minval=-1, maxval=1),
+        reward=jax.random.uniform(key_reward, shape),
+        discount=jnp.full(shape, gamma),
+        next_obs=pixels(key_next),
+    )
+
+
 def update_scan(cfg: DrQV2Config, size: int, seeds: int, per_call: int):
     """(jitted ``(state, key) -> state`` of ``per_call`` seed-vmapped updates on fixed batches, the seeds' state)."""
     agent = DrQV2(cfg, (size, size, 3 * FRAMES), WALKER_ACTIONS)
-    key_init, key_obs, key_next, key_action = jax.random.split(jax.random.PRNGKey(0), 4)
-    state = jax.jit(jax.vmap(agent.init))(jax.random.split(key_init, seeds))
-    shape = (seeds, cfg.batch_size)
-    pixels = lambda key: jax.random.randint(key, (*shape, size, size, 3 * FRAMES), 0, 256).astype(jnp.uint8)
-    batch = PixelTransition(
-        obs=pixels(key_obs),
-        action=jax.random.uniform(key_action, (*shape, WALKER_ACTIONS), minval=-1, maxval=1),
-        reward=jax.random.uniform(key_action, shape),
-        discount=jnp.full(shape, cfg.gamma),
-        next_obs=pixels(key_next),
-    )
+    state = jax.jit(jax.vmap(agent.init))(jax.random.split(jax.random.PRNGKey(0), seeds))
+    batch = random_batch(jax.random.PRNGKey(3), (seeds, cfg.batch_size), size, cfg.gamma)
     update = jax.vmap(agent.update, in_axes=(0, 0, 0, None))
 
     def many(state, key):
