@@ -27,6 +27,9 @@ rounds from ``ON_POLICY_FROM`` steps and over seeds: its mean, the share of step
 saturated, and its per-step correlation with the true reward. Their returns at equal steps come from
 ``compare.py --max-steps`` (RESULTS.md).
 
+``sign_pairs`` sets +lambda against -lambda seed by seed within one lambda-grid program (its lambdas share
+their seed keys), with a two-sided sign test, per lambda and pooled.
+
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
@@ -184,6 +187,43 @@ def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
     return {"task": best["task"], "lam": best["lam"], "iqm": best["iqm"], "among": sorted(r["lam"] for r in eligible)}
 
 
+def sign_test_p(positive: int, pairs: int) -> float:
+    """Two-sided sign-test p-value of ``positive`` of ``pairs`` non-zero differences (either sign with
+    probability 1/2): twice the binomial tail of the rarer sign, at most 1."""
+    rare = min(positive, pairs - positive)
+    return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
+
+
+def sign_pairs(rows: list[dict]) -> list[dict]:
+    """+lambda against -lambda, seed by seed: for every REBEL row whose log (one ``--lam-grid`` program, whose
+    lambdas share their seed keys) also holds -lambda, the per-seed final return at +lambda minus at -lambda,
+    how many are positive, and :func:`sign_test_p`; then one entry pooling every pair (``lam`` "all")."""
+    out = []
+    rebel = [r for r in rows if r["algo"] == "rebel"]
+    for r in rebel:
+        twin = [o for o in rebel if o["log"] == r["log"] and o["lam"] == -r["lam"]]
+        if r["lam"] <= 0 or not twin:
+            continue
+        diffs = [
+            round(float(a) - float(b), 2) for a, b in zip(r["final_returns"], twin[0]["final_returns"], strict=True)
+        ]
+        out.append({"task": r["task"], "lam": r["lam"], "log": r["log"], "differences": diffs})
+
+    def counted(entry: dict) -> dict:
+        nonzero = [d for d in entry["differences"] if d != 0]
+        positive = int(sum(d > 0 for d in nonzero))
+        return entry | {
+            "positive": positive,
+            "pairs": len(nonzero),
+            "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
+        }
+
+    out = [counted(e) for e in out]
+    if out:
+        out.append(counted({"lam": "all", "differences": [d for e in out for d in e["differences"]]}))
+    return out
+
+
 def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
     """Per method of the run: ``train.ROUND_REWARD_METRICS`` over rounds from ``ON_POLICY_FROM`` and seeds.
 
@@ -220,7 +260,8 @@ def main() -> None:
     logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
     chosen = chosen_lambda([r for r in table if r["task"] == "walker_walk"])
-    out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen}
+    signs = sign_pairs([r for r in table if r["task"] == "walker_walk"])
+    out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen, "sign_pairs": signs}
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
         "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] "
@@ -240,6 +281,9 @@ def main() -> None:
         print("\nlambda by the rule of RESULTS.md: none yet (no REBEL run of the paper's V has reached 500k)")
     else:
         print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
+    print("\n+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda):\n")
+    for e in signs:
+        print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
     print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
     print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")
     print("|---|---|---|---:|---:|---:|---|")

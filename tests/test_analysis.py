@@ -509,3 +509,32 @@ def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypa
     ]
     assert rebel.chosen_lambda(rows) == {"task": "walker_walk", "lam": 0.01, "iqm": 300.0, "among": [-0.01, 0.01]}
     assert rebel.chosen_lambda(rows[2:]) is None
+
+
+def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    row = lambda lam, finals, log: {
+        "algo": "rebel",
+        "task": "walker_walk",
+        "lam": lam,
+        "final_returns": finals,
+        "log": log,
+    }
+    rows = [
+        row(0.01, [5.0, 3.0, 1.0], ["a"]),
+        row(-0.01, [1.0, 4.0, 1.0], ["a"]),  # differences 4, -1, 0 (a tie: not a pair)
+        row(0.001, [9.0, 9.0, 9.0], ["b"]),
+        row(-0.001, [1.0, 2.0, 3.0], ["b"]),  # 8, 7, 6
+        row(0.1, [9.0, 9.0, 9.0], ["c"]),  # its -0.1 ran in another program: seeds do not pair
+        row(-0.1, [1.0, 1.0, 1.0], ["d"]),
+        {"algo": "pebble", "task": "walker_walk", "lam": None, "final_returns": [0.0] * 3, "log": ["e"]},
+    ]
+    out = rebel.sign_pairs(rows)
+    assert [(e["lam"], e["differences"], e["positive"], e["pairs"]) for e in out] == [
+        (0.01, [4.0, -1.0, 0.0], 1, 2),
+        (0.001, [8.0, 7.0, 6.0], 3, 3),
+        ("all", [4.0, -1.0, 0.0, 8.0, 7.0, 6.0], 4, 5),
+    ]
+    # Two-sided sign test by hand: 1 of 2 -> 2 * (1 + 2) / 4 capped at 1; 3 of 3 -> 2 / 8; 4 of 5 -> 2 * 6 / 32.
+    assert [e["sign_test_p"] for e in out] == [1.0, 0.25, 0.375]
+    assert rebel.sign_pairs(rows[4:]) == []
