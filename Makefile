@@ -54,8 +54,8 @@ test: lint system-deps
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m "not heavy" $(PYTEST_ARGS)
 
 # The minutes-long end-to-end runs `make test` leaves out (pytest marker `heavy`): the command
-# `make train` runs, checked to learn, SAC on walker_stand, the brax-wrapped walker, and the pixel
-# PEBBLE, REBEL and SURF runs.
+# `make train` runs, checked to learn, SAC on walker_stand, the brax-wrapped walker, the Newton trips,
+# walker_run's reward, and the pixel PEBBLE, REBEL and SURF runs.
 test-heavy: $(VENV)/.test
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 

@@ -44,8 +44,11 @@ def test_batched_reset_and_step_are_finite_with_documented_shapes(compiled_env, 
     assert not np.allclose(state.obs[0], state.obs[1])
 
 
-@pytest.mark.parametrize("task", SAME_PHYSICS_AS_WALK)
+@pytest.mark.parametrize(
+    "task", [pytest.param(t, marks=pytest.mark.heavy) if t == "walker_run" else t for t in SAME_PHYSICS_AS_WALK]
+)
 def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, task):
+    """walker_stand here; walker_run (used by no experiment) in ``make test-heavy``, for the suite's time."""
     spec, walk = TASKS[task], TASKS["walker_walk"]
     assert spec.xml() == walk.xml() and spec.obs_fn is walk.obs_fn
     assert (spec.total_mass, spec.n_substeps, spec.settle_steps, spec.obs_size, spec.randomize_rotational) == (
@@ -166,11 +169,13 @@ _CONTACT_XML = """
 """
 
 
-@pytest.mark.parametrize("unroll", [False, pytest.param(True, marks=pytest.mark.heavy)])
+@pytest.mark.heavy
+@pytest.mark.parametrize("unroll", [False, True])
 def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch(unroll):
     """``_mjx.newton_trips`` replaces MJX's Newton ``while_loop`` by known trips with the same results.
 
-    The unrolled trips (one more long compile) are checked in ``make test-heavy``.
+    In ``make test-heavy`` (two long compiles each; the solver presets use MJX's while loop): ``make test`` checks their
+    wiring in the traced walker step (``test_walker_step_has_a_while_loop_only_with_mjx_newton_loop``).
     """
     import mujoco
     from mujoco import mjx
