@@ -18,7 +18,8 @@ row per method:
 - ``efficiency_vs_surf`` and ``efficiency_vs_surf_ci``: the same against PEBBLE+SURF (``SURF``: the run that met
   its published figure; null without one).
 
-Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds.
+Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds; and
+``results/rebel_lambda_walker_walk.png``: the IQM with its interval per lambda of the paper's V against PEBBLE's.
 
 ``STOPPED`` lists REBEL runs that the device budget stopped early; they are not rows. For them and for
 every run above that logs them, ``rebel.json``'s ``on_policy_reward`` gives, per method, the learned
@@ -169,11 +170,9 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     return out
 
 
-def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
-    """The rule of RESULTS.md, written before the 500k runs landed: among the REBEL rows of the paper's V
-    (on-policy, lower bound, raw, tanh) that reach ``steps``, the one with the highest IQM; None if none does.
-    """
-    eligible = [
+def paper_rows(rows: list[dict], steps: int = 500_000) -> list[dict]:
+    """The REBEL rows of the paper's V (on-policy, lower bound, raw, tanh) that reach ``steps``, by lambda."""
+    paper = [
         r
         for r in rows
         if r["algo"] == "rebel"
@@ -181,6 +180,46 @@ def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
         and r["variant"] == PAPER_VARIANT
         and r["env_steps"] >= steps
     ]
+    return sorted(paper, key=lambda r: r["lam"])
+
+
+def lambda_figure(rows: list[dict], path: pathlib.Path, title: str) -> tuple[list[float], list[float]]:
+    """Writes ``path``: per lambda of :func:`paper_rows` its IQM with the 95% interval, over PEBBLE's IQM and
+    interval (a line and a band) and PEBBLE+SURF's IQM (dashed, where ``SURF`` names a row); lambda on a
+    symmetric log axis. A final return is per seed the mean of its last 10 evaluations. Returns the lambdas
+    and IQMs drawn."""
+    import matplotlib.pyplot as plt
+
+    paper = paper_rows(rows)
+    pebble = next(r for r in rows if r["method"] in PEBBLE)
+    lams, iqms = [r["lam"] for r in paper], [r["iqm"] for r in paper]
+    below = [r["iqm"] - r["iqm_ci"][0] for r in paper]
+    above = [r["iqm_ci"][1] - r["iqm"] for r in paper]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.axhspan(*pebble["iqm_ci"], color="tab:orange", alpha=0.2, label=f"{pebble['method']}: IQM, 95% CI")
+    ax.axhline(pebble["iqm"], color="tab:orange")
+    ax.errorbar(lams, iqms, yerr=[below, above], fmt="o", capsize=4, label="REBEL, the paper's V: IQM, 95% CI")
+    ax.set_xscale("symlog", linthresh=min((abs(lam) for lam in lams if lam), default=1.0))
+    ax.set_xticks(lams)
+    ax.set_xticklabels([f"{lam:g}" for lam in lams])
+    ax.set_xlabel("lambda")
+    surf = next((r for r in rows if r["method"] == SURF.get(r["task"])), None)
+    if surf is not None:
+        ax.axhline(surf["iqm"], color="tab:green", linestyle="--", label=f"{surf['method']}: IQM")
+    ax.set_ylabel("final return, IQM over seeds")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return lams, iqms
+
+
+def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
+    """The rule of RESULTS.md, written before the 500k runs landed: among the REBEL rows of the paper's V
+    (on-policy, lower bound, raw, tanh) that reach ``steps``, the one with the highest IQM; None if none does.
+    """
+    eligible = paper_rows(rows, steps)
     if not eligible:
         return None
     best = max(eligible, key=lambda r: r["iqm"])
@@ -261,6 +300,8 @@ def main() -> None:
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
     chosen = chosen_lambda([r for r in table if r["task"] == "walker_walk"])
     signs = sign_pairs([r for r in table if r["task"] == "walker_walk"])
+    walker = [r for r in table if r["task"] == "walker_walk"]
+    lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
     out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen, "sign_pairs": signs}
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(

@@ -538,3 +538,19 @@ def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monke
     # Two-sided sign test by hand: 1 of 2 -> 2 * (1 + 2) / 4 capped at 1; 3 of 3 -> 2 / 8; 4 of 5 -> 2 * 6 / 32.
     assert [e["sign_test_p"] for e in out] == [1.0, 0.25, 0.375]
     assert rebel.sign_pairs(rows[4:]) == []
+
+
+def test_rebel_lambda_figure_draws_the_papers_v_at_500k_by_lambda(tmp_path, monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "method": "rebel", "task": "t"}
+    rows = [
+        {**paper, "lam": 0.01, "iqm": 300.0, "iqm_ci": [250.0, 350.0], "env_steps": 500_000},
+        {**paper, "lam": -0.01, "iqm": 200.0, "iqm_ci": [150.0, 260.0], "env_steps": 500_000},
+        {**paper, "lam": 0.1, "iqm": 900.0, "iqm_ci": [800.0, 950.0], "env_steps": 140_000},  # stopped: not drawn
+        {**paper, "lam": 0.001, "iqm": 800.0, "iqm_ci": [0.0, 1.0], "env_steps": 500_000, "estimator": "replay"},
+        {"algo": "pebble", "method": "pebble", "task": "t", "lam": None, "iqm": 400.0, "iqm_ci": [300.0, 500.0]},
+        {"algo": "surf", "method": "surf", "task": "walker_walk", "lam": None, "iqm": 600.0, "iqm_ci": [0.0, 1.0]},
+    ]
+    path = tmp_path / "lambda.png"
+    assert rebel.lambda_figure(rows, path, "t") == ([-0.01, 0.01], [200.0, 300.0])
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
