@@ -55,7 +55,7 @@ test: lint system-deps
 
 # The minutes-long end-to-end runs `make test` leaves out (pytest marker `heavy`): the command
 # `make train` runs, checked to learn, SAC on walker_stand, the brax-wrapped walker, the Newton trips,
-# walker_run's reward, and the pixel PEBBLE, REBEL and SURF runs.
+# walker_run's reward, the pixel PEBBLE, REBEL and SURF runs, and PEBBLE's pixel member-loop case.
 test-heavy: $(VENV)/.test
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import pathlib
 import re
@@ -71,7 +72,7 @@ def update_scan(cfg: DrQV2Config, size: int, seeds: int, per_call: int):
 def rows(args):
     base = task_config("walker_walk", DrQV2Config(precision=args.precision))
     base = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
-    for loop, grad in ((loop, grad) for loop in args.seed_loop for grad in args.kernel_grad):
+    for loop, grad in itertools.product(args.seed_loop, args.kernel_grad):
         cfg = dataclasses.replace(base, seed_loop=loop == "on", kernel_grad=grad)
         run, state = update_scan(cfg, args.size, args.seeds, args.updates_per_call)
         compiled = run.lower(state, jax.random.PRNGKey(1)).compile()

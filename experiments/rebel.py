@@ -223,7 +223,7 @@ def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
     if not eligible:
         return None
     best = max(eligible, key=lambda r: r["iqm"])
-    return {"task": best["task"], "lam": best["lam"], "iqm": best["iqm"], "among": sorted(r["lam"] for r in eligible)}
+    return {"task": best["task"], "lam": best["lam"], "iqm": best["iqm"], "among": [r["lam"] for r in eligible]}
 
 
 def sign_test_p(positive: int, pairs: int) -> float:
@@ -298,9 +298,8 @@ def main() -> None:
     ]
     logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
-    chosen = chosen_lambda([r for r in table if r["task"] == "walker_walk"])
-    signs = sign_pairs([r for r in table if r["task"] == "walker_walk"])
     walker = [r for r in table if r["task"] == "walker_walk"]
+    chosen, signs = chosen_lambda(walker), sign_pairs(walker)
     lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
     out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen, "sign_pairs": signs}
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")

@@ -170,12 +170,11 @@ _CONTACT_XML = """
 
 
 @pytest.mark.heavy
-@pytest.mark.parametrize("unroll", [False, True])
-def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch(unroll):
+def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch():
     """``_mjx.newton_trips`` replaces MJX's Newton ``while_loop`` by known trips with the same results.
 
-    In ``make test-heavy`` (two long compiles each; the solver presets use MJX's while loop): ``make test`` checks their
-    wiring in the traced walker step (``test_walker_step_has_a_while_loop_only_with_mjx_newton_loop``).
+    In ``make test-heavy`` (three long compiles; the solver presets use MJX's while loop): ``make test``
+    checks their wiring in the traced walker step (``test_walker_step_has_a_while_loop_only_with_mjx_newton_loop``).
     """
     import mujoco
     from mujoco import mjx
@@ -190,7 +189,7 @@ def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch(unroll):
     def steps(d):
         return jax.lax.fori_loop(0, 30, lambda _, x: jax.vmap(mjx.step, (None, 0))(m, x), d)
 
-    def with_trips(d):
+    def with_trips(d, unroll):
         with newton_trips(model.opt.iterations, unroll=unroll) as replaced:
             out = steps(d)
         assert replaced == [model.opt.iterations]  # the one Newton loop of mjx.step, traced once
@@ -198,12 +197,11 @@ def test_newton_trips_equal_mjx_while_loop_on_a_contact_batch(unroll):
 
     expected = jax.jit(steps)(data)
     assert float(jnp.min(expected.qpos[:, 2])) < 0.11  # the box rests on the plane: the solver had work
-    got = jax.jit(with_trips)(data)
+    trips, unrolled = (jax.jit(with_trips, static_argnums=1)(data, unroll) for unroll in (False, True))
     for name in ("qpos", "qvel", "qacc", "qfrc_constraint"):
-        if unroll:  # XLA fuses the unrolled trips differently: float32 rounding, grown over 30 steps of contact.
-            np.testing.assert_allclose(getattr(got, name), getattr(expected, name), rtol=1e-4, atol=1e-4, err_msg=name)
-        else:
-            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(trips, name), getattr(expected, name), err_msg=name)
+        # XLA fuses the unrolled trips differently: float32 rounding, grown over 30 steps of contact.
+        np.testing.assert_allclose(getattr(unrolled, name), getattr(expected, name), rtol=1e-4, atol=1e-4, err_msg=name)
 
 
 @pytest.mark.parametrize("loop", ["while", "trips"])
