@@ -9,7 +9,9 @@ REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lam
 labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
 its teachers (``..., noisy``; a single ``--teacher`` other than the oracle is named the same way); other
 runs are labelled by their algo, and budgets other than 100 labels are named (``pebble 1000 labels``), as is
-a SURF ``reward_update`` other than 1000.
+a SURF ``reward_update`` other than 1000. A REBEL term other than the paper's (on-policy V, lower bound, raw) and
+a reward output other than tanh are named in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that
+variants never merge.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
 different lengths at equal steps).
 Run directories of the same method (e.g. seeds split over several GPU calls with different
@@ -79,6 +81,22 @@ def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
     }
 
 
+def _term_settings(cfg: dict) -> list[str]:
+    """How a REBEL run's agent-preference term differs from the paper's (on-policy V, lower bound, raw).
+
+    Runs from before ``rebel.source`` existed (no such key) used the replay window, as ``replay`` does now.
+    """
+    rebel = cfg["rebel"]
+    out = []
+    if rebel.get("source", "replay") == "replay":
+        out.append("replay V" + (f", {rebel['estimator']} estimator" if rebel["estimator"] != "discounted" else ""))
+    if rebel.get("form", "lower_bound") != "lower_bound":
+        out.append(rebel["form"])
+    if rebel.get("normalize"):
+        out.append("normalized")
+    return out
+
+
 def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarray], dict]]:
     """The run's curves per method label: ``{label: ((steps, returns (evals, seeds)), info)}``.
 
@@ -100,8 +118,10 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
             label = cfg["algo"]
         else:
             label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
-            if lam != 0 and cfg["rebel"]["estimator"] != "discounted":
-                label += f" ({cfg['rebel']['estimator']} estimator)"
+        settings = _term_settings(cfg) if lam else []
+        if cfg["algo"] in PREFERENCE_ALGOS and cfg["reward"].get("output", "tanh") != "tanh":
+            settings.append(f"{cfg['reward']['output']} output")
+        label += f" ({', '.join(settings)})" if settings else ""
         if cfg["algo"] in PREFERENCE_ALGOS and cfg["feedback"]["labels"] != 100:
             label += f" {cfg['feedback']['labels']} labels"
         if cfg["algo"] == "surf" and cfg.get("surf", {}).get("reward_update", 1000) != 1000:  # SURF's walker value

@@ -10,11 +10,11 @@
 # Usage: bash experiments/figures.sh   (from the repository root; CPU is enough)
 set -e
 export PYTHONPATH=src:experiments; P=results/runs/paper; S=results/runs/study; PY=.venv/bin/python
-$PY experiments/compare.py results/runs/sac_walker_walk $P/pebble_walker_1000 $P/rebel_walker_100_neg $P/rebel_walker_100_pos $P/surf_walker_100 --name paper_comparison_walker_walk --methods sac "pebble 1000 labels" "pebble (rebel lam=0)" surf "rebel lam=0.01" "rebel lam=-0.01" --reference "pebble (rebel lam=0)"
+$PY experiments/compare.py results/runs/sac_walker_walk $P/pebble_walker_1000 $P/rebel_walker_100_neg $P/rebel_walker_100_pos $P/surf_walker_100 --name paper_comparison_walker_walk --methods sac "pebble 1000 labels" "pebble (rebel lam=0)" surf "rebel lam=0.01 (replay V)" "rebel lam=-0.01 (replay V)" --reference "pebble (rebel lam=0)"
 $PY experiments/compare.py results/runs/sac_cheetah_run_utd025 $P/rebel_cheetah_100 $P/surf_cheetah_100 --name paper_comparison_cheetah_run --reference "pebble (rebel lam=0)"
 $PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos --name rebel_lambda_ablation_walker_walk --threshold 100
 $PY experiments/compare.py $P/rebel_walker_100_neg $S/teachers_pebble_walker_100_200k --name teachers_walker_walk_180k --max-steps 180000 --methods "pebble (rebel lam=0)" "pebble (rebel lam=0), noisy" "pebble (rebel lam=0), mistake" "pebble (rebel lam=0), skip" "pebble (rebel lam=0), equal" "pebble (rebel lam=0), myopic" --threshold 60
-$PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos $S/rebel_mean_walker_100_200k --name rebel_estimator_walker_walk_200k --max-steps 200000 --methods "pebble (rebel lam=0)" "rebel lam=0.01" "rebel lam=-0.01" "rebel lam=0.01 (mean estimator)" "rebel lam=-0.01 (mean estimator)" "rebel lam=0.001 (mean estimator)" "rebel lam=-0.001 (mean estimator)" --threshold 60
+$PY experiments/compare.py $P/rebel_walker_100_neg $P/rebel_walker_100_pos $S/rebel_mean_walker_100_200k --name rebel_estimator_walker_walk_200k --max-steps 200000 --methods "pebble (rebel lam=0)" "rebel lam=0.01 (replay V)" "rebel lam=-0.01 (replay V)" "rebel lam=0.01 (replay V, mean estimator)" "rebel lam=-0.01 (replay V, mean estimator)" "rebel lam=0.001 (replay V, mean estimator)" "rebel lam=-0.001 (replay V, mean estimator)" --threshold 60
 # The faithful-protocol tables (issues 9 and 10): results/baselines.json (+ figures) and results/rebel.json.
 $PY experiments/baselines.py
 $PY experiments/rebel.py

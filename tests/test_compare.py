@@ -101,6 +101,41 @@ def test_a_single_teacher_other_than_the_oracle_names_the_method_and_never_merge
     assert curves["pebble, mistake"][1].shape == (4, len(GRID))
 
 
+def test_variants_of_the_rebel_term_are_named_and_never_merge_with_the_papers(tmp_path):
+    variants = {
+        "paper": {},
+        "replay": {"rebel": {"source": "replay"}},
+        "old_replay": {"rebel": {"source": None}},  # written before rebel.source existed: the replay window
+        "mean": {"rebel": {"source": "replay", "estimator": "mean"}},
+        "penalty_normalized": {"rebel": {"form": "penalty", "normalize": True}},
+        "sigmoid": {"reward": {"output": "sigmoid"}},
+    }
+    for name, changes in variants.items():
+        write_grid_run(tmp_path / name)
+        cfg = json.loads((tmp_path / name / "config.json").read_text())
+        for section, knobs in changes.items():
+            cfg[section] |= knobs
+            cfg[section] = {k: v for k, v in cfg[section].items() if v is not None}
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+    curves, _ = compare.gather([tmp_path / name for name in variants])
+    without_teacher = {label.rsplit(", ", 1)[0] for label in curves}  # the grid's teacher comes last
+    assert sorted(without_teacher) == sorted(
+        [
+            "pebble (rebel lam=0)",
+            "pebble (rebel lam=0) (sigmoid output)",
+            "rebel lam=-0.1",
+            "rebel lam=-0.1 (replay V)",
+            "rebel lam=-0.1 (replay V, mean estimator)",
+            "rebel lam=-0.1 (penalty, normalized)",
+            "rebel lam=-0.1 (sigmoid output)",
+        ]
+    )
+    # lambda 0 is PEBBLE whatever the term, so those columns merge; the old and new replay runs merge too.
+    assert curves["pebble (rebel lam=0), skip"][1].shape == (4, 5 * SEEDS)
+    assert curves["rebel lam=-0.1 (replay V), skip"][1].shape == (4, 2 * SEEDS)
+    assert curves["rebel lam=-0.1, skip"][1].shape == (4, SEEDS)
+
+
 def test_runs_of_the_same_method_merge_their_seeds(tmp_path):
     write_grid_run(tmp_path / "a")
     write_grid_run(tmp_path / "b")
