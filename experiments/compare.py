@@ -75,6 +75,7 @@ def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
         "lam": lam,
         "num_envs": cfg["env"]["num_envs"],
         "utd": cfg["sac"]["utd"],
+        "train_seed": cfg["train"]["seed"],  # seed i's key is fold_in(PRNGKey(train_seed), i) in every program
         "device": meta["devices"][0],
         "date": meta["started"][:10],
         "command": meta["command"],

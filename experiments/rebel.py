@@ -29,7 +29,9 @@ saturated, and its per-step correlation with the true reward. Their returns at e
 ``compare.py --max-steps`` (RESULTS.md).
 
 ``sign_pairs`` sets +lambda against -lambda seed by seed within one lambda-grid program (its lambdas share
-their seed keys), with a two-sided sign test, per lambda and pooled.
+their seed keys), with a two-sided sign test, per lambda and pooled; ``estimator_pairs`` likewise the paper's
+on-policy V against the replay window's V at the same lambda (programs of the same ``--seed``: seed i has the
+same key in both).
 
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
@@ -148,6 +150,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "teacher": info["teacher"],
                 "num_envs": info["num_envs"],
                 "utd": info["utd"],
+                "train_seed": info["train_seed"],
                 "seeds": m["seeds"],
                 "env_steps": m["env_steps"],
                 "final_returns": [round(v, 2) for v in final_returns(returns)],
@@ -233,20 +236,14 @@ def sign_test_p(positive: int, pairs: int) -> float:
     return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
 
 
-def sign_pairs(rows: list[dict]) -> list[dict]:
-    """+lambda against -lambda, seed by seed: for every REBEL row whose log (one ``--lam-grid`` program, whose
-    lambdas share their seed keys) also holds -lambda, the per-seed final return at +lambda minus at -lambda,
-    how many are positive, and :func:`sign_test_p`; then one entry pooling every pair (``lam`` "all")."""
-    out = []
-    rebel = [r for r in rows if r["algo"] == "rebel"]
-    for r in rebel:
-        twin = [o for o in rebel if o["log"] == r["log"] and o["lam"] == -r["lam"]]
-        if r["lam"] <= 0 or not twin:
-            continue
-        diffs = [
-            round(float(a) - float(b), 2) for a, b in zip(r["final_returns"], twin[0]["final_returns"], strict=True)
-        ]
-        out.append({"task": r["task"], "lam": r["lam"], "log": r["log"], "differences": diffs})
+def _differences(a: dict, b: dict) -> list[float]:
+    """Per seed ``a``'s final return minus ``b``'s (rows whose seed i shares its key)."""
+    return [round(float(x) - float(y), 2) for x, y in zip(a["final_returns"], b["final_returns"], strict=True)]
+
+
+def _sign_tested(entries: list[dict]) -> list[dict]:
+    """Each entry with how many of its non-zero ``differences`` are positive and :func:`sign_test_p`; then
+    one entry pooling every pair (``lam`` "all"), if there is any entry."""
 
     def counted(entry: dict) -> dict:
         nonzero = [d for d in entry["differences"] if d != 0]
@@ -257,10 +254,47 @@ def sign_pairs(rows: list[dict]) -> list[dict]:
             "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
         }
 
-    out = [counted(e) for e in out]
+    out = [counted(e) for e in entries]
     if out:
         out.append(counted({"lam": "all", "differences": [d for e in out for d in e["differences"]]}))
     return out
+
+
+def sign_pairs(rows: list[dict]) -> list[dict]:
+    """+lambda against -lambda, seed by seed: for every REBEL row whose log (one ``--lam-grid`` program, whose
+    lambdas share their seed keys) also holds -lambda, the per-seed final return at +lambda minus at -lambda,
+    sign-tested (:func:`_sign_tested`)."""
+    entries = []
+    rebel = [r for r in rows if r["algo"] == "rebel"]
+    for r in rebel:
+        twin = [o for o in rebel if o["log"] == r["log"] and o["lam"] == -r["lam"]]
+        if r["lam"] > 0 and twin:
+            entries.append(
+                {"task": r["task"], "lam": r["lam"], "log": r["log"], "differences": _differences(r, twin[0])}
+            )
+    return _sign_tested(entries)
+
+
+def estimator_pairs(rows: list[dict]) -> list[dict]:
+    """The paper's V against the replay window's, seed by seed: for every REBEL row of the replay V whose term is
+    otherwise the paper's (``PAPER_VARIANT``), the row of the paper's on-policy V at the same lambda, task,
+    ``train_seed`` and seeds (seed i has the same key in both programs, ``train.seed_keys``): per seed the
+    on-policy final return minus the replay one, sign-tested (:func:`_sign_tested`)."""
+    rebel = [r for r in rows if r["algo"] == "rebel" and r["variant"] == PAPER_VARIANT]
+    entries = []
+    for replay in (r for r in rebel if r["estimator"] == "replay"):
+        same = ("task", "lam", "train_seed", "seeds")
+        twin = [o for o in rebel if o["estimator"] == "onpolicy" and all(o[k] == replay[k] for k in same)]
+        if twin:
+            entries.append(
+                {
+                    "task": replay["task"],
+                    "lam": replay["lam"],
+                    "log": [twin[0]["log"], replay["log"]],
+                    "differences": _differences(twin[0], replay),
+                }
+            )
+    return _sign_tested(entries)
 
 
 def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
@@ -299,9 +333,15 @@ def main() -> None:
     logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
     walker = [r for r in table if r["task"] == "walker_walk"]
-    chosen, signs = chosen_lambda(walker), sign_pairs(walker)
+    chosen, signs, estimators = chosen_lambda(walker), sign_pairs(walker), estimator_pairs(walker)
     lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
-    out = {"rows": table, "on_policy_reward": reward, "chosen_lambda": chosen, "sign_pairs": signs}
+    out = {
+        "rows": table,
+        "on_policy_reward": reward,
+        "chosen_lambda": chosen,
+        "sign_pairs": signs,
+        "estimator_pairs": estimators,
+    }
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
         "| task | method | seeds | env steps | mean +- std | IQM [95% CI] | steps to threshold | vs PEBBLE [95% CI] "
@@ -323,6 +363,9 @@ def main() -> None:
         print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
     print("\n+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda):\n")
     for e in signs:
+        print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
+    print("\nThe paper's V against the replay V, seed by seed (final return on-policy minus replay):\n")
+    for e in estimators:
         print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
     print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
     print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")

@@ -398,7 +398,8 @@ def _fake_curve_run(
     run.mkdir(parents=True)
     rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
     cfg = {"algo": algo, "env": {"task": task, "num_envs": 10}, "feedback": {"labels": 100},
-           "teacher": ORACLE, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"}}  # fmt: skip
+           "teacher": ORACLE, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"},
+           "train": {"seed": 0}}  # fmt: skip
     meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
     (run / "config.json").write_text(json.dumps(cfg))
     (run / "meta.json").write_text(json.dumps(meta | {"columns": seeds}))
@@ -538,6 +539,41 @@ def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monke
     # Two-sided sign test by hand: 1 of 2 -> 2 * (1 + 2) / 4 capped at 1; 3 of 3 -> 2 / 8; 4 of 5 -> 2 * 6 / 32.
     assert [e["sign_test_p"] for e in out] == [1.0, 0.25, 0.375]
     assert rebel.sign_pairs(rows[4:]) == []
+
+
+def test_rebel_estimator_pairs_pair_the_papers_v_with_the_replay_v_of_the_same_seed_keys(monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    base = {"algo": "rebel", "task": "walker_walk", "variant": rebel.PAPER_VARIANT, "train_seed": 2, "seeds": 3}
+    row = lambda estimator, lam, finals, log, **other: (
+        base
+        | {
+            "estimator": estimator,
+            "lam": lam,
+            "final_returns": finals,
+            "log": [log],
+            **other,
+        }
+    )
+    rows = [
+        row("onpolicy", 0.001, [5.0, 3.0, 9.0], "a"),
+        row("onpolicy", 0.01, [2.0, 2.0, 2.0], "a"),
+        row("replay", 0.001, [1.0, 4.0, 9.0], "b"),  # differences 4, -1, 0 (a tie: not a pair)
+        row("replay", 0.01, [1.0, 1.0, 1.0], "b"),  # 1, 1, 1
+        row("replay", 0.1, [1.0, 1.0, 1.0], "b"),  # no on-policy twin
+        row("replay", 0.001, [0.0, 0.0, 0.0], "c", train_seed=1),  # other seed keys: no pair
+        row("replay", 0.01, [0.0, 0.0, 0.0], "d", variant="penalty, raw, tanh output"),  # another term
+        {"algo": "pebble", "task": "walker_walk", "lam": None, "variant": None, "final_returns": [0.0] * 3},
+    ]
+    out = rebel.estimator_pairs(rows)
+    assert [(e["lam"], e["differences"], e["positive"], e["pairs"]) for e in out] == [
+        (0.001, [4.0, -1.0, 0.0], 1, 2),
+        (0.01, [1.0, 1.0, 1.0], 3, 3),
+        ("all", [4.0, -1.0, 0.0, 1.0, 1.0, 1.0], 4, 5),
+    ]
+    assert [e["log"] for e in out[:2]] == [[["a"], ["b"]]] * 2
+    # By hand: 1 of 2 -> 1 (capped); 3 of 3 -> 2 / 8; 4 of 5 -> 2 * 6 / 32.
+    assert [e["sign_test_p"] for e in out] == [1.0, 0.25, 0.375]
+    assert rebel.estimator_pairs(rows[2:]) == []
 
 
 def test_rebel_lambda_figure_draws_the_papers_v_at_500k_by_lambda(tmp_path, monkeypatch):
