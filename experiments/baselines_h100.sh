@@ -55,7 +55,8 @@
 #       cut the first round to 89 s). A one-GPU machine may count its held time in full (it did in the
 #       ninth session): then one such program is a whole session's device time;
 #   SET "rebel_cheetah" with LAM=<lambda>: the lambda the rule of RESULTS.md chose on walker_walk (0.001
-#       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; not run yet;
+#       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; LAM=0.001 ran in the tenth
+#       session (3 calls, 1,433 s held, 1,308 s of rounds: 114.6 s with the compile, then 12.05 s);
 #   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; not run yet;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's

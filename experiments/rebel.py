@@ -75,6 +75,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "baselines/pebble_cheetah_100_1m_bf16",
         "baselines/surf_cheetah_100_1m_bf16",
         "baselines/surf_cheetah_100_1m_bf16_ru100",
+        "rebel/rebel_cheetah_100_1m_lam0.001_bf16",
     ],
 }
 STOPPED = {  # task -> REBEL runs stopped early by the device budget (not rows; see the module docstring)
