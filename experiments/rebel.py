@@ -69,6 +69,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "baselines/surf_walker_100_utd1_bf16",
         "rebel/rebel_walker_100_lams_0.01_-0.01_bf16",
         "rebel/rebel_walker_100_lams_0.001_-0.001_bf16",
+        "rebel/rebel_walker_100_lams_0.001_0.01_replay_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
