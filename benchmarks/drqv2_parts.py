@@ -148,7 +148,7 @@ def rows(args):
         yield row
 
 
-def main(argv=None):
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", type=int, default=84, help="image height and width")
     p.add_argument("--batch-size", type=int, default=0, help="transitions per update (0: walker's 512)")
@@ -157,7 +157,11 @@ def main(argv=None):
     p.add_argument("--per-call", type=int, default=20, help="calls per timed jitted loop")
     p.add_argument("--repeats", type=int, default=5, help="timed loops per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
     merge_rows(args.out, rows(args), ("device", "commit", "size", "batch_size", "precision", "part"))
 
 

@@ -95,7 +95,7 @@ def rows(args):
         yield row
 
 
-def main(argv=None):
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--size", type=int, default=84, help="image height and width")
@@ -106,7 +106,11 @@ def main(argv=None):
     p.add_argument("--updates-per-call", type=int, default=10)
     p.add_argument("--repeats", type=int, default=5, help="timed calls per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
     merge_rows(
         args.out,
         rows(args),

@@ -59,6 +59,8 @@
 #       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; LAM=0.001 ran in the tenth
 #       session (3 calls, 1,433 s held, 1,308 s of rounds: 114.6 s with the compile, then 12.05 s);
 #   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; not run yet;
+#   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
+#       gradient, about 3 minutes; its JSON rows come back in $OUT;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's
 #       10-column rounds take about 31 s).
@@ -159,6 +161,14 @@ case "${2:-shared}" in
     esac
     # PRECISION=bf16 runs DrQ-v2's matmuls and convolutions in bf16 (named in the run directory)
     start drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${PRECISION:+_$PRECISION} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
+    exit 0 ;;
+  drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 3 min after the install): where one
+    # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel
+    # gradients against the patch product (drqv2_update.py); the rows merge into copies of the repo's tables in $OUT
+    export PYTHONPATH=/tmp/site:src:benchmarks
+    cp benchmarks/results/drqv2_parts.json benchmarks/results/drqv2_update.json "$OUT/" 2>/dev/null
+    timeout 150 python3 benchmarks/drqv2_parts.py --precision bf16 --out "$OUT/drqv2_parts.json"
+    timeout 110 python3 benchmarks/drqv2_update.py --precision bf16 --seed-loop on --kernel-grad xla patches --out "$OUT/drqv2_update.json"
     exit 0 ;;
   pebble_env40)
     launch pebble_walker_100_utd1_bf16_seed1_env40 --preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16 --seed 1 --num-envs 40

@@ -7,6 +7,7 @@ parser (``cli.parse``), which rejects unknown flags, bad values and bad combinat
 
 from __future__ import annotations
 
+import importlib
 import os
 import pathlib
 import shlex
@@ -37,8 +38,10 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
 ]
 
 
-def _commands(tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bool) -> list[list[str]]:
-    """The argument lists the script passes to ``python3`` (pip's install left out)."""
+def _commands(
+    tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bool, program: str = "rebel_jax.train"
+) -> list[list[str]]:
+    """The argument lists the script passes to ``python3`` that name ``program`` (pip's install left out)."""
     bin_dir, work = tmp_path / "bin", tmp_path / "work"
     bin_dir.mkdir(exist_ok=True)
     work.mkdir(exist_ok=True)
@@ -59,7 +62,7 @@ def _commands(tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bo
     done = subprocess.run(["bash", str(SCRIPT), "20", name], cwd=work, env=full_env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     lines = calls.read_text().splitlines() if calls.exists() else []
-    return [shlex.split(line) for line in lines if "rebel_jax.train" in line]
+    return [shlex.split(line) for line in lines if program in line]
 
 
 @pytest.mark.parametrize(("name", "env"), SETS, ids=[f"{n}-{'-'.join(e.values()) or 'default'}" for n, e in SETS])
@@ -81,6 +84,19 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.teacher == teachers.PRESETS[env["TEACHER"]] and env["TEACHER"] in run_dir.name
         if detach:
             assert args.checkpoint_every == 0 and args.video_steps == 0  # nothing that cannot leave the machine
+
+
+def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, monkeypatch):
+    benchmarks = SCRIPT.parents[1] / "benchmarks"
+    monkeypatch.syspath_prepend(str(benchmarks))
+    commands = _commands(tmp_path, "drqv2_bench", {}, detach=False, program="benchmarks/")
+    assert [argv[0] for argv in commands] == ["benchmarks/drqv2_parts.py", "benchmarks/drqv2_update.py"]
+    for argv in commands:
+        module = importlib.import_module(pathlib.Path(argv[0]).stem)
+        args = module.parser().parse_args(argv[1:])
+        assert args.precision == "bf16"
+        assert args.out.parent == tmp_path  # $OUT: the rows come back from the device
+    assert args.seed_loop == ["on"] and args.kernel_grad == ["xla", "patches"]
 
 
 def test_a_set_without_its_variable_stops_with_its_name(tmp_path):

@@ -295,25 +295,34 @@ def test_seed_loop_is_a_validated_setting():
     assert DrQV2Config().seed_loop  # on by default: measured 6.8x faster on one H100 (BENCHMARKS.md)
 
 
-@pytest.mark.parametrize("stride", [2, 1])
-def test_patch_kernel_gradient_equals_a_numpy_loop_and_xlas(stride):
+@pytest.mark.parametrize(
+    ("stride", "padding"), [(2, "VALID"), (1, "VALID"), (2, "SAME"), (1, ((1, 0), (2, 1)))]
+)  # fmt: skip
+def test_patch_kernel_gradient_equals_a_numpy_loop_and_xlas(stride, padding):
     """``conv_patch_kernel_grad``: the forward and input gradient are XLA's convolution's, and the kernel
-    gradient is ``sum_{b,h,w} x[b, s h + i, s w + j, c] g[b, h, w, o]``, written out as a NumPy loop."""
+    gradient is ``sum_{b,h,w} x[b, s h + i, s w + j, c] g[b, h, w, o]`` over the padded input, written out as
+    a NumPy loop. The encoder's convolutions are VALID; the padded cases check the general form."""
     key_x, key_w, key_g = jax.random.split(jax.random.key(0), 3)
     x = jax.random.normal(key_x, (3, 11, 9, 5))
     kernel = jax.random.normal(key_w, (3, 3, 5, 4))
     conv = functools.partial(
-        jax.lax.conv_general_dilated, window_strides=(stride, stride), padding="VALID",
+        jax.lax.conv_general_dilated, window_strides=(stride, stride), padding=padding,
         dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=jax.lax.Precision.HIGHEST,
     )  # fmt: skip
     y, vjp_xla = jax.vjp(conv, x, kernel)
     got_y, vjp_patches = jax.vjp(
-        lambda x, w: conv_patch_kernel_grad(x, w, (stride, stride), "VALID", precision=jax.lax.Precision.HIGHEST),
+        lambda x, w: conv_patch_kernel_grad(x, w, (stride, stride), padding, precision=jax.lax.Precision.HIGHEST),
         x,
         kernel,
     )
     grad_out = jax.random.normal(key_g, y.shape)
-    xn, gn = np.asarray(x, np.float64), np.asarray(grad_out, np.float64)
+    pads = (
+        jax.lax.padtype_to_pads(x.shape[1:3], (3, 3), (stride, stride), padding)
+        if isinstance(padding, str)
+        else padding
+    )
+    xn = np.pad(np.asarray(x, np.float64), ((0, 0), *pads, (0, 0)))
+    gn = np.asarray(grad_out, np.float64)
     loop = np.zeros(kernel.shape)
     for h in range(y.shape[1]):
         for w in range(y.shape[2]):

@@ -244,9 +244,9 @@ def conv_patch_kernel_grad(
     """``lax.conv_general_dilated`` whose kernel gradient is one matrix product, ``patches^T @ grad_out``.
 
     The forward pass and the input's gradient are XLA's own. The kernel's gradient is computed from the
-    input's patches (``lax.conv_general_dilated_patches``: every output pixel's receptive field, flattened
-    channel-major) contracted with the output gradient over the batch and every output pixel: the same
-    sum as XLA's backward-filter convolution, as one matrix product with a long contraction. Takes
+    input's patches (every output pixel's receptive field: one strided slice of the padded input per kernel
+    tap, stacked) contracted with the output gradient over the batch and every output pixel: the same sum
+    as XLA's backward-filter convolution, as one matrix product with a long contraction. Takes
     ``nn.Conv``'s arguments (its ``conv_general_dilated`` field); only the encoder's case is allowed: 2-D,
     ``CONV_LAYOUT``, no dilation, no groups.
     """
@@ -275,15 +275,35 @@ def conv_patch_kernel_grad(
     def backward(saved, grad_out):
         x, w = saved
         (grad_x,) = jax.vjp(lambda x: conv(x, w), x)[1](grad_out)
-        patches = jax.lax.conv_general_dilated_patches(
-            x, w.shape[:2], window_strides, padding, dimension_numbers=CONV_LAYOUT, precision=precision
-        )  # (B, H', W', in * kh * kw), channel-major
-        grad_w = jnp.einsum(
-            "bhwk,bhwo->ko", patches, grad_out.astype(x.dtype), precision=precision, preferred_element_type=jnp.float32
-        )
         height, width, channels, features = w.shape
-        grad_w = grad_w.reshape(channels, height, width, features).transpose(1, 2, 0, 3)
-        return grad_x, grad_w.astype(w.dtype)
+        pads = (
+            jax.lax.padtype_to_pads(x.shape[1:3], (height, width), window_strides, padding)
+            if isinstance(padding, str)
+            else padding
+        )
+        x_padded = jnp.pad(x, ((0, 0), *pads, (0, 0)))
+        (out_h, out_w), (stride_h, stride_w) = grad_out.shape[1:3], window_strides
+        # Tap (i, j) of every output pixel's receptive field is a strided slice of the padded input; stacked
+        # in the kernel's (kh, kw) order they are the patches, (B, H', W', kh * kw, in): memory moves only,
+        # where lax.conv_general_dilated_patches is itself a grouped (depthwise) convolution.
+        taps = [
+            jax.lax.slice(
+                x_padded,
+                (0, i, j, 0),
+                (x.shape[0], i + stride_h * (out_h - 1) + 1, j + stride_w * (out_w - 1) + 1, channels),
+                (1, stride_h, stride_w, 1),
+            )
+            for i in range(height)
+            for j in range(width)
+        ]
+        grad_w = jnp.einsum(
+            "bhwtc,bhwo->tco",
+            jnp.stack(taps, axis=3),
+            grad_out.astype(x.dtype),
+            precision=precision,
+            preferred_element_type=jnp.float32,
+        )
+        return grad_x, grad_w.reshape(w.shape).astype(w.dtype)
 
     run.defvjp(forward, backward)
     return run(lhs, rhs)
