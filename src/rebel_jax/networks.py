@@ -275,7 +275,7 @@ def conv_patch_kernel_grad(
     def backward(saved, grad_out):
         x, w = saved
         (grad_x,) = jax.vjp(lambda x: conv(x, w), x)[1](grad_out)
-        height, width, channels, features = w.shape
+        height, width, channels, _ = w.shape
         pads = (
             jax.lax.padtype_to_pads(x.shape[1:3], (height, width), window_strides, padding)
             if isinstance(padding, str)
