@@ -30,8 +30,8 @@ saturated, and its per-step correlation with the true reward. Their returns at e
 
 ``sign_pairs`` sets +lambda against -lambda seed by seed within one lambda-grid program (its lambdas share
 their seed keys), with a two-sided sign test, per lambda and pooled; ``estimator_pairs`` likewise the paper's
-on-policy V against the replay window's V at the same lambda (programs of the same ``--seed``: seed i has the
-same key in both).
+on-policy V against the replay window's V at the same lambda, and ``output_pairs`` the paper's tanh reward
+against the sigmoid one (programs of the same ``--seed``: seed i has the same key in both; :func:`paper_pairs`).
 
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
@@ -70,6 +70,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_walker_100_lams_0.01_-0.01_bf16",
         "rebel/rebel_walker_100_lams_0.001_-0.001_bf16",
         "rebel/rebel_walker_100_lams_0.001_0.01_replay_bf16",
+        "rebel/rebel_walker_100_lams_0.001_0.01_sigmoid_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
@@ -89,6 +90,8 @@ ON_POLICY_FROM = 40_000
 """First env step of the rounds that ``on_policy_reward`` averages (after the first two feedback sessions)."""
 PAPER_VARIANT = "lower_bound, raw, tanh output"
 """``rows``' ``variant`` of the paper's term (eq. "bilevel_rlhf_fo_lb" with the tanh reward, not normalised)."""
+SIGMOID_VARIANT = "lower_bound, raw, sigmoid output"
+"""``rows``' ``variant`` of the literal lower bound with the reward r >= 0 it assumes (``--reward.output sigmoid``)."""
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
 SURF = {"walker_walk": "surf", "cheetah_run": "surf (reward_update 100)"}
@@ -277,23 +280,27 @@ def sign_pairs(rows: list[dict]) -> list[dict]:
     return _sign_tested(entries)
 
 
-def estimator_pairs(rows: list[dict]) -> list[dict]:
-    """The paper's V against the replay window's, seed by seed: for every REBEL row of the replay V whose term is
-    otherwise the paper's (``PAPER_VARIANT``), the row of the paper's on-policy V at the same lambda, task,
-    ``train_seed`` and seeds (seed i has the same key in both programs, ``train.seed_keys``): per seed the
-    on-policy final return minus the replay one, sign-tested (:func:`_sign_tested`)."""
-    rebel = [r for r in rows if r["algo"] == "rebel" and r["variant"] == PAPER_VARIANT]
+def paper_pairs(rows: list[dict], estimator: str = "onpolicy", variant: str = PAPER_VARIANT) -> list[dict]:
+    """The paper's term against one other setting of it, seed by seed: for every REBEL row of ``estimator`` and
+    ``variant`` (at least one not the paper's), the row of the paper's term (on-policy V, ``PAPER_VARIANT``) at
+    the same lambda, task, ``train_seed`` and seeds (seed i has the same key in both programs,
+    ``train.seed_keys``): per seed the paper's final return minus the other's, sign-tested (:func:`_sign_tested`).
+    """
+    if (estimator, variant) == ("onpolicy", PAPER_VARIANT):
+        raise ValueError("paper_pairs sets another setting against the paper's term; this one is the paper's")
+    same = ("task", "lam", "train_seed", "seeds")
+    rebel = [r for r in rows if r["algo"] == "rebel"]
+    paper = [r for r in rebel if r["estimator"] == "onpolicy" and r["variant"] == PAPER_VARIANT]
     entries = []
-    for replay in (r for r in rebel if r["estimator"] == "replay"):
-        same = ("task", "lam", "train_seed", "seeds")
-        twin = [o for o in rebel if o["estimator"] == "onpolicy" and all(o[k] == replay[k] for k in same)]
+    for other in (r for r in rebel if r["estimator"] == estimator and r["variant"] == variant):
+        twin = [p for p in paper if all(p[k] == other[k] for k in same)]
         if twin:
             entries.append(
                 {
-                    "task": replay["task"],
-                    "lam": replay["lam"],
-                    "log": [twin[0]["log"], replay["log"]],
-                    "differences": _differences(twin[0], replay),
+                    "task": other["task"],
+                    "lam": other["lam"],
+                    "log": [twin[0]["log"], other["log"]],
+                    "differences": _differences(twin[0], other),
                 }
             )
     return _sign_tested(entries)
@@ -335,14 +342,15 @@ def main() -> None:
     logs = {task: RUNS[task] + STOPPED.get(task, []) for task in RUNS}
     reward = [row for task, dirs in logs.items() for d in dirs for row in on_policy_reward(task, RESULTS / "runs" / d)]
     walker = [r for r in table if r["task"] == "walker_walk"]
-    chosen, signs, estimators = chosen_lambda(walker), sign_pairs(walker), estimator_pairs(walker)
+    chosen, signs = chosen_lambda(walker), sign_pairs(walker)
     lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
     out = {
         "rows": table,
         "on_policy_reward": reward,
         "chosen_lambda": chosen,
         "sign_pairs": signs,
-        "estimator_pairs": estimators,
+        "estimator_pairs": paper_pairs(walker, estimator="replay"),
+        "output_pairs": paper_pairs(walker, variant=SIGMOID_VARIANT),
     }
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
@@ -363,12 +371,20 @@ def main() -> None:
         print("\nlambda by the rule of RESULTS.md: none yet (no REBEL run of the paper's V has reached 500k)")
     else:
         print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
-    print("\n+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda):\n")
-    for e in signs:
-        print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
-    print("\nThe paper's V against the replay V, seed by seed (final return on-policy minus replay):\n")
-    for e in estimators:
-        print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
+    for title, entries in (
+        ("+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda)", signs),
+        (
+            "The paper's V against the replay V, seed by seed (final return on-policy minus replay)",
+            out["estimator_pairs"],
+        ),
+        (
+            "The paper's tanh reward against the sigmoid one, seed by seed (final return tanh minus sigmoid)",
+            out["output_pairs"],
+        ),
+    ):
+        print(f"\n{title}:\n")
+        for e in entries:
+            print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
     print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
     print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")
     print("|---|---|---|---:|---:|---:|---|")

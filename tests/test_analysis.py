@@ -541,7 +541,7 @@ def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monke
     assert rebel.sign_pairs(rows[4:]) == []
 
 
-def test_rebel_estimator_pairs_pair_the_papers_v_with_the_replay_v_of_the_same_seed_keys(monkeypatch):
+def test_rebel_paper_pairs_pair_the_papers_term_with_another_setting_of_the_same_seed_keys(monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     base = {"algo": "rebel", "task": "walker_walk", "variant": rebel.PAPER_VARIANT, "train_seed": 2, "seeds": 3}
     row = lambda estimator, lam, finals, log, **other: (
@@ -562,9 +562,10 @@ def test_rebel_estimator_pairs_pair_the_papers_v_with_the_replay_v_of_the_same_s
         row("replay", 0.1, [1.0, 1.0, 1.0], "b"),  # no on-policy twin
         row("replay", 0.001, [0.0, 0.0, 0.0], "c", train_seed=1),  # other seed keys: no pair
         row("replay", 0.01, [0.0, 0.0, 0.0], "d", variant="penalty, raw, tanh output"),  # another term
+        row("onpolicy", 0.01, [3.0, 1.0, 2.0], "e", variant=rebel.SIGMOID_VARIANT),  # -1, 1, 0 against "a"
         {"algo": "pebble", "task": "walker_walk", "lam": None, "variant": None, "final_returns": [0.0] * 3},
     ]
-    out = rebel.estimator_pairs(rows)
+    out = rebel.paper_pairs(rows, estimator="replay")
     assert [(e["lam"], e["differences"], e["positive"], e["pairs"]) for e in out] == [
         (0.001, [4.0, -1.0, 0.0], 1, 2),
         (0.01, [1.0, 1.0, 1.0], 3, 3),
@@ -573,7 +574,12 @@ def test_rebel_estimator_pairs_pair_the_papers_v_with_the_replay_v_of_the_same_s
     assert [e["log"] for e in out[:2]] == [[["a"], ["b"]]] * 2
     # By hand: 1 of 2 -> 1 (capped); 3 of 3 -> 2 / 8; 4 of 5 -> 2 * 6 / 32.
     assert [e["sign_test_p"] for e in out] == [1.0, 0.25, 0.375]
-    assert rebel.estimator_pairs(rows[2:]) == []
+    assert rebel.paper_pairs(rows[2:], estimator="replay") == []
+    sigmoid = rebel.paper_pairs(rows, variant=rebel.SIGMOID_VARIANT)
+    assert [(e["lam"], e["differences"], e["log"]) for e in sigmoid[:1]] == [(0.01, [-1.0, 1.0, 0.0], [["a"], ["e"]])]
+    assert sigmoid[-1]["lam"] == "all" and (sigmoid[-1]["positive"], sigmoid[-1]["pairs"]) == (1, 2)
+    with pytest.raises(ValueError, match="paper's"):
+        rebel.paper_pairs(rows)
 
 
 def test_rebel_lambda_figure_draws_the_papers_v_at_500k_by_lambda(tmp_path, monkeypatch):
