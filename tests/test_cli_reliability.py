@@ -17,12 +17,15 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
 import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
-from test_cli_runs import ROUNDS, TIMING
+from test_cli_runs import ROUNDS, _metrics
 
 from rebel_jax import cli
 
@@ -77,11 +80,6 @@ def _main(run_dir: pathlib.Path, *flags: str) -> dict:
     return cli.main([*MICRO, "--run-dir", str(run_dir), *flags])
 
 
-def _metrics(run_dir: pathlib.Path) -> list[dict]:
-    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
-
-
 def _final(run_dir: pathlib.Path) -> dict:
     return json.loads((run_dir / "final.json").read_text())
 
@@ -102,6 +100,22 @@ def _same_run(a: pathlib.Path, b: pathlib.Path) -> None:
     assert _metrics(a) == _metrics(b)
     assert [row["round"] for row in _metrics(b)] == list(range(ROUNDS))
     assert _final(a) == _final(b) and _final(b)["status"] == "completed"
+
+
+def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sharding info not provided")
+        with ocp.PyTreeCheckpointer() as checkpointer:
+            saved = checkpointer.restore((run_dir / "checkpoints" / str(step) / "default").absolute())
+    return {k: np.asarray(v) for k, v in saved.items()}
+
+
+def _same_checkpoint(a: pathlib.Path, b: pathlib.Path) -> None:
+    """The two runs' last checkpoints hold the same leaves, bit for bit (replay buffer, networks, keys)."""
+    saved_a, saved_b = _saved_arrays(a, ROUNDS), _saved_arrays(b, ROUNDS)
+    assert saved_a.keys() == saved_b.keys() and len(saved_a) > 50
+    for k in saved_a:
+        np.testing.assert_array_equal(saved_a[k], saved_b[k], err_msg=f"leaf {k}")
 
 
 def test_overwrite_replaces_a_run_and_the_record_is_portable(whole, tmp_path):
@@ -288,6 +302,17 @@ def test_a_run_killed_anywhere_resumes_to_the_same_result(whole, tmp_path, capsy
         assert "no checkpoint" in capsys.readouterr().err
     _same_run(whole, run_dir)
     assert _steps_on_disk(run_dir) == [ROUNDS - 1, ROUNDS]  # an interrupted save does not block saving that step
+    _same_checkpoint(whole, run_dir)
+
+
+def test_time_limit_stops_after_a_round_with_its_checkpoint_and_resume_finishes_the_same_run(whole, tmp_path, capsys):
+    run_dir = tmp_path / "timed"
+    _main(run_dir, "--time-limit", "1e-9")
+    assert "stopped after round 0" in capsys.readouterr().out
+    assert _steps_on_disk(run_dir) == [1] and not (run_dir / "final.json").exists() and len(_metrics(run_dir)) == 1
+    _main(run_dir, "--resume")
+    _same_run(whole, run_dir)
+    _same_checkpoint(whole, run_dir)
 
 
 def test_gpu_batch_resumes_a_job_killed_before_its_first_checkpoint(tmp_path):

@@ -1,9 +1,8 @@
-"""Whole runs: ``python -m rebel_jax.train`` killed and resumed in subprocesses, and SAC learning.
+"""SAC learning on whole runs, and the CLI flags and subprocess environment the CLI tests share.
 
-The subprocesses share the tests' persistent compilation cache (conftest sets it for this
-process; the children get it through ``JAX_COMPILATION_CACHE_DIR``), so only the first one
-compiles. The test process itself compiles nothing for the CLI test: it compares the saved
-arrays with orbax.
+Runs killed, stopped by their time limit and resumed are in ``test_cli_reliability.py``. Subprocesses
+share the tests' persistent compilation cache (conftest sets it for this process; the children get it
+through ``JAX_COMPILATION_CACHE_DIR``, :func:`_env`).
 """
 
 from __future__ import annotations
@@ -11,17 +10,10 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import signal
-import subprocess
-import sys
-import textwrap
-import time
-import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 import pytest
 
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
@@ -38,26 +30,11 @@ MICRO_FLAGS = (
 ROUNDS = 3
 TIMING = ("seconds", "env_steps_per_s")  # the only fields of metrics.jsonl that may differ between runs
 
-# ``python -m rebel_jax.train`` that stops, alive, right after logging the round ending at
-# PAUSE_AT_STEPS (its checkpoint not yet written) and says so by creating PAUSE_MARKER.
-PAUSED_TRAIN = textwrap.dedent(
-    """
-    import os, pathlib, runpy, sys, time
-    from rebel_jax.logging import RunLogger
 
-    write = RunLogger.write
-
-    def write_then_pause(self, env_steps, metrics, extra):
-        write(self, env_steps, metrics, extra)
-        if env_steps == int(os.environ["PAUSE_AT_STEPS"]):
-            pathlib.Path(os.environ["PAUSE_MARKER"]).touch()
-            time.sleep(3600)
-
-    RunLogger.write = write_then_pause
-    sys.argv[0] = "rebel_jax.train"
-    runpy.run_module("rebel_jax.train", run_name="__main__")
-    """
-)
+def _metrics(run_dir: pathlib.Path) -> list[dict]:
+    """A run's ``metrics.jsonl`` rows without their :data:`TIMING` fields."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
 
 
 def _env(**extra: str) -> dict[str, str]:
@@ -68,83 +45,6 @@ def _env(**extra: str) -> dict[str, str]:
         JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=str(jax.config.jax_persistent_cache_min_compile_time_secs),
         **extra,
     )
-
-
-def _train(run_dir: pathlib.Path, *flags: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "rebel_jax.train", *MICRO_FLAGS, "--run-dir", str(run_dir), *flags]
-    out = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=1200)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out
-
-
-def _steps_on_disk(run_dir: pathlib.Path) -> list[int]:
-    """Committed checkpoints (orbax renames a save's temporary directory to ``<step>`` when it is complete)."""
-    return sorted(int(p.name) for p in (run_dir / "checkpoints").iterdir() if p.name.isdigit())
-
-
-def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sharding info not provided")
-        with ocp.PyTreeCheckpointer() as checkpointer:
-            saved = checkpointer.restore((run_dir / "checkpoints" / str(step) / "default").absolute())
-    return {k: np.asarray(v) for k, v in saved.items()}
-
-
-def _metrics(run_dir: pathlib.Path) -> list[dict]:
-    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
-
-
-@pytest.mark.slow
-def test_cli_run_killed_or_stopped_by_its_time_limit_resumes_to_the_same_result(tmp_path):
-    whole, killed = tmp_path / "whole", tmp_path / "killed"
-    out_whole = _train(whole)  # compiles (or loads from the cache) everything the others load
-
-    marker = tmp_path / "paused"
-    per_round = 40
-    env = _env(PAUSE_AT_STEPS=str(3 * per_round), PAUSE_MARKER=str(marker))
-    cmd = [sys.executable, "-c", PAUSED_TRAIN, *MICRO_FLAGS, "--run-dir", str(killed)]
-    with open(tmp_path / "killed.log", "w") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + 1200
-        while not marker.exists():
-            assert proc.poll() is None, (tmp_path / "killed.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, "the run never reached round 3"
-            time.sleep(0.1)
-        # Round 3 is done and logged; its checkpoint is not written: the latest on disk is round 2's.
-        assert _steps_on_disk(killed) == [1, 2]
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL
-    assert not (killed / "final.json").exists() and len(_metrics(killed)) == 3
-
-    out_resumed = _train(killed, "--resume")
-
-    assert _steps_on_disk(whole) == _steps_on_disk(killed) == [ROUNDS - 1, ROUNDS]
-    a, b = _saved_arrays(whole, ROUNDS), _saved_arrays(killed, ROUNDS)
-    assert a.keys() == b.keys() and len(a) > 50
-    for k in a:
-        np.testing.assert_array_equal(a[k], b[k], err_msg=f"leaf {k}")
-    assert json.loads((whole / "final.json").read_text()) == json.loads((killed / "final.json").read_text())
-    # The resumed run logged round 3 once more: one row per round, the same as the whole run's.
-    assert _metrics(whole) == _metrics(killed)
-    assert [row["round"] for row in _metrics(killed)] == list(range(ROUNDS))
-    final_line = [line for line in out_whole.stdout.splitlines() if line.startswith("final evaluation return")]
-    assert len(final_line) == 1 and final_line[0] in out_resumed.stdout.splitlines()
-
-    # --time-limit: stops after the first round with its checkpoint; --resume finishes the same run.
-    timed = tmp_path / "timed"
-    out_timed = _train(timed, "--time-limit", "1e-9")
-    assert "stopped after round 0" in out_timed.stdout
-    assert _steps_on_disk(timed) == [1] and not (timed / "final.json").exists() and len(_metrics(timed)) == 1
-    _train(timed, "--resume")
-    c = _saved_arrays(timed, ROUNDS)
-    for k in a:
-        np.testing.assert_array_equal(a[k], c[k], err_msg=f"leaf {k}")
-    assert json.loads((whole / "final.json").read_text()) == json.loads((timed / "final.json").read_text())
-    assert _metrics(whole) == _metrics(timed)
 
 
 # SAC on probe_point (a point mass steered to the origin; reward in (0, 1], so an episode of 50 steps
