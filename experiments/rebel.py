@@ -11,7 +11,9 @@ row per method:
   convention of ``compare.py``; ``baselines.json`` reports the end-of-run frozen evaluation instead);
 - ``iqm_ci``: the 95% percentile-bootstrap interval of the IQM over seeds;
 - ``steps_to_threshold``: the env steps (interpolated) at which the seed-mean curve first reaches the task's
-  ``threshold``, ``analysis.common_threshold`` of the methods' final means (80% of the lowest);
+  ``threshold``, ``analysis.common_threshold`` of the baselines' final means (80% of the lowest among SAC,
+  PEBBLE and PEBBLE+SURF: REBEL's rows do not move it, so adding a REBEL run changes no other row; a REBEL
+  row whose curve never reaches it has steps null and ratio 0);
 - ``efficiency_vs_pebble``: PEBBLE's steps to the threshold over the method's
   (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
   paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``);
@@ -47,6 +49,7 @@ import pathlib
 
 import numpy as np
 from analysis import (
+    common_threshold,
     curve_figure,
     distinct_evaluations,
     final_returns,
@@ -71,6 +74,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_walker_100_lams_0.001_-0.001_bf16",
         "rebel/rebel_walker_100_lams_0.001_0.01_replay_bf16",
         "rebel/rebel_walker_100_lams_0.001_0.01_sigmoid_bf16",
+        "rebel/rebel_walker_100_lams_0.1_-0.1_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
@@ -126,8 +130,9 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     surf = surf if surf in curves else None
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
-    stats = compare(curves, reference)
-    threshold = stats["threshold"]
+    baselines = [label for label in curves if infos[label]["algo"] != "rebel" or label in PEBBLE]
+    threshold = common_threshold(np.nanmean(final_returns(curves[label][1])) for label in baselines)
+    stats = compare(curves, reference, threshold)
 
     def against(curve, other: str | None) -> tuple[float, tuple[float, float]]:
         """``other``'s steps to the threshold over the curve's, with its seed-bootstrap interval (NaN without it)."""

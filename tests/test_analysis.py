@@ -430,6 +430,14 @@ def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
     # The threshold is still 124 (PEBBLE's final mean is the lowest): SURF reaches it at 31k, REBEL at 62k.
     assert with_surf["rebel lam=0.1"]["efficiency_vs_surf"] == 0.5 and with_surf["pebble"]["efficiency_vs_surf"] == 0.25
     assert with_surf["rebel lam=0.1"]["efficiency_vs_surf_ci"] == [0.5, 0.5]
+    # A REBEL run below every baseline does not move the threshold (only the baselines set it): one at a
+    # quarter of PEBBLE's slope ends at 38.75 (80%: 31) and never reaches 124 (no steps, ratio 0).
+    _fake_curve_run(tmp_path / "runs" / "slow", "rebel", 0.25, 3, lams=[0.01] * 3)
+    with_slow = {r["method"]: r for r in rebel.rows("walker_walk", [*run_dirs, tmp_path / "runs" / "slow"])}
+    assert {r["threshold"] for r in with_slow.values()} == {124.0}
+    assert with_slow["rebel lam=0.01"]["steps_to_threshold"] is None
+    assert with_slow["rebel lam=0.01"]["efficiency_vs_pebble"] == 0.0
+    assert with_slow["rebel lam=0.1"]["efficiency_vs_pebble"] == 2.0
     assert (grid["lam"], grid["estimator"], grid["variant"]) == (0.1, "onpolicy", "lower_bound, raw, tanh output")
     assert (pebble["estimator"], pebble["variant"]) == (None, None)
     assert grid["log"] == ["results/runs/grid"] and grid["seeds"] == 3

@@ -193,7 +193,7 @@ def one_device(tmp_path_factory) -> pathlib.Path:
     return run_dir
 
 
-@pytest.mark.slow
+@pytest.mark.heavy  # make test-heavy: 2 CLI processes, about 100 s on 2 cores with the test below
 def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, same_devices, one_device):
     run_dir, (audit0, audit1) = two
     written = {line.split(" ", 1)[1] for line in audit0}
@@ -214,7 +214,7 @@ def test_two_processes_equal_one_process_and_only_process_0_writes_logs(two, sam
     np.testing.assert_allclose(returns, reference, rtol=5e-2, atol=1e-3)
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_checkpoints_resume_across_process_and_device_counts(two, same_devices, one_device, tmp_path):
     whole, _ = two
     # Saved by 2 processes, resumed by 1 process on the same 2 devices: the uninterrupted run.

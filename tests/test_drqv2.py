@@ -261,6 +261,7 @@ def _group_counts(stablehlo: str) -> list[int]:
     return [int(n) for n in re.findall(r"(?:feature|batch)_group_count = (\d+)", stablehlo)]
 
 
+@pytest.mark.heavy  # make test checks whole seed-looped rounds (test_pixel_train.py)
 def test_seed_loop_update_equals_the_vmapped_update():
     """``drqv2.seed_loop``: the seeds' updates one at a time give the batched update's state and metrics, with
     the agent step unbatched as in the trainer; unbatched, the looped agent is the same function."""
@@ -337,7 +338,7 @@ def test_patch_kernel_gradient_equals_a_numpy_loop_and_xlas(stride, padding):
         conv_patch_kernel_grad(x, kernel[..., :1, :], (1, 1), "VALID", feature_group_count=5)
 
 
-@pytest.mark.parametrize("seed_loop", [True, False])
+@pytest.mark.parametrize("seed_loop", [pytest.param(True, marks=pytest.mark.heavy), False])  # True: make test-heavy
 def test_patch_kernel_gradients_give_the_same_update(seed_loop):
     """``drqv2.kernel_grad patches`` changes how the encoder's kernel gradients are computed, not the update:
     the seed-vmapped update (looped or batched) equals XLA's up to float rounding."""

@@ -44,11 +44,8 @@ def test_batched_reset_and_step_are_finite_with_documented_shapes(compiled_env, 
     assert not np.allclose(state.obs[0], state.obs[1])
 
 
-@pytest.mark.parametrize(
-    "task", [pytest.param(t, marks=pytest.mark.heavy) if t == "walker_run" else t for t in SAME_PHYSICS_AS_WALK]
-)
-def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, task):
-    """walker_stand here; walker_run (used by no experiment) in ``make test-heavy``, for the suite's time."""
+@pytest.mark.parametrize("task", SAME_PHYSICS_AS_WALK)
+def test_other_walker_tasks_share_walker_walks_physics(task):
     spec, walk = TASKS[task], TASKS["walker_walk"]
     assert spec.xml() == walk.xml() and spec.obs_fn is walk.obs_fn
     assert (spec.total_mass, spec.n_substeps, spec.settle_steps, spec.obs_size, spec.randomize_rotational) == (
@@ -65,6 +62,15 @@ def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, 
     # The task's own reset and step trace, with the documented shapes (no compile).
     shapes = jax.eval_shape(jax.vmap(env.step), jax.eval_shape(jax.vmap(env.reset), keys), actions)
     assert shapes.obs.shape == (B, OBS_SIZE[task]) and shapes.reward.shape == (B,) == shapes.done.shape
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("task", SAME_PHYSICS_AS_WALK)
+def test_other_walker_tasks_are_walker_walk_with_their_own_reward(compiled_env, task):
+    """In ``make test-heavy``: each compile of a task's observation takes about 30 s on 2 cores, and no experiment
+    uses these tasks (``make test`` runs the check above, that they share walker_walk's physics)."""
+    keys = jax.random.split(jax.random.PRNGKey(0), B)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (B, 6), minval=-1, maxval=1)
     # walker_walk's states after 3 steps, observed by this task: the same observation, its own reward.
     w = compiled_env("walker_walk")
     state = w.batch_reset(keys)
@@ -96,6 +102,8 @@ def test_cheetah_starts_upright_and_walker_at_any_pitch(compiled_env):
     assert np.all(np.abs(pitch) <= np.pi) and np.mean(np.abs(pitch) > np.pi / 2) > 0.25, pitch
 
 
+@pytest.mark.heavy  # make test-heavy: compiles the unbatched reset and step (test_envs_dm_control
+# checks the batched step state by state against dm_control in make test)
 def test_vmapped_step_equals_stepping_each_env_alone(compiled_env):
     c = compiled_env("walker_walk")
     keys = jax.random.split(jax.random.PRNGKey(2), B)

@@ -234,6 +234,7 @@ def test_unanswered_sessions_time_out_and_replay(tmp_path):
     _assert_same_run(replayed, replayed_metrics, state, metrics, exact=True)
 
 
+@pytest.mark.heavy  # its own trainer (~36 s on 2 cores); make test checks the budget in the round (preference_train)
 def test_asked_budget_shows_only_the_pairs_it_counts_and_a_skip_spends_one(tmp_path):
     """``--budget asked`` with 6 labels of 4 per session: round 3's session shows 2 pairs (B-Pref's
     shrunken last batch). A skipped pair is spent: the session ends after those 2 answers, and the one

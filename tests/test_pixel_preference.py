@@ -509,7 +509,7 @@ def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentP
     return ()
 
 
-@pytest.mark.parametrize("kind", [pytest.param("pebble", marks=pytest.mark.heavy), "surf", "rebel"])
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.heavy) for k in ("pebble", "surf")] + ["rebel"])
 def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     crop = 1 if kind == "surf" else 0
     horizon = 4

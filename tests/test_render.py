@@ -139,6 +139,7 @@ def test_known_pixels_have_the_xml_colours():
     assert np.all(img[body] >= 0.4 * np.array([0.7, 0.5, 0.3]) - 1 / 255)
 
 
+@pytest.mark.heavy  # make test renders under jit and vmap inside the pixel tasks (test_pixels.py)
 def test_render_jit_vmap_shapes_dtype():
     m = mj_model("cheetah_run")
     cam = render.make_camera(m, "side", 6, 10, supersample=2)

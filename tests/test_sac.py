@@ -185,6 +185,7 @@ def _small():
     return agent, jax.jit(agent.init), jax.jit(agent.update)
 
 
+@pytest.mark.heavy  # make test checks vmapped seeds on whole runs (test_train.py)
 def test_update_vmapped_over_seeds_equals_separate_calls():
     agent, init, update = _small()
     keys = jax.random.split(jax.random.key(0), 3)

@@ -320,6 +320,7 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
     chex.assert_trees_all_close(grads, jax.jit(jax.grad(fixed_loss))(params), rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.heavy  # make test runs SURF's sessions jitted and vmapped inside the round (test_preference_train.py)
 def test_surf_session_runs_under_jit_and_vmap_over_keys():
     surf_cfg = surf.SURFConfig(threshold=0.7, ratio=2, crop=2)
     stored = H + 2 * surf_cfg.crop
