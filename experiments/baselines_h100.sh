@@ -53,7 +53,9 @@
 #       LAMS "0.01 -0.01" ran so (eighth session: 4 calls, 1,919 s held, 1,661 s of rounds), and
 #       LAMS "0.001 -0.001" (ninth session: 3 calls, 1,669 s held, 1,579 s of rounds; the carried cache
 #       cut the first round to 89 s), and LAMS "0.001 0.01" SOURCE=replay (tenth session: 3 calls, about
-#       1,715 s held, 1,608 s of rounds). A one-GPU machine may count its held time in full (it did in the
+#       1,715 s held, 1,608 s of rounds); eleventh session: LAMS "0.001 0.01" OUTPUT=sigmoid (1,728 s held,
+#       1,632 s of rounds) and LAMS "0.1 -0.1" to 500k (1,677 s held, 1,579 s of rounds), two machines counted at
+#       half. A one-GPU machine may count its held time in full (it did in the
 #       ninth session): then one such program is a whole session's device time;
 #   SET "rebel_cheetah" with LAM=<lambda>: the lambda the rule of RESULTS.md chose on walker_walk (0.001
 #       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; LAM=0.001 ran in the tenth
