@@ -53,9 +53,11 @@ system-deps:
 test: lint system-deps
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m "not heavy" $(PYTEST_ARGS)
 
-# The minutes-long end-to-end runs `make test` leaves out (pytest marker `heavy`): the command
-# `make train` runs, checked to learn, SAC on walker_stand, the brax-wrapped walker, the Newton trips,
-# walker_run's reward, the pixel PEBBLE, REBEL and SURF runs, and PEBBLE's pixel member-loop case.
+# What `make test` leaves out (pytest marker `heavy`) to stay within 10 minutes on 2 cores: the minutes-long
+# end-to-end runs (the command `make train` runs, checked to learn; SAC on walker_stand; the pixel PEBBLE,
+# REBEL and SURF runs; the 2-process --distributed runs) and checks whose every compile is another 10-40 s
+# while make test covers the same code another way (each test says how: grep "mark.heavy" tests/).
+# Run it before changing the physics, the trainer's round or the pixel agents.
 test-heavy: $(VENV)/.test
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 

@@ -93,12 +93,14 @@ def compiled_env():
 _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
 # The groups that take longest (mostly compiling MJX, cold cache), longest first.
 _SLOWEST_FIRST = (
-    "test_demo.py",
     "envs",
-    "test_cli_runs.py",
-    "test_distributed.py",
-    "test_human_session.py",
     "test_preference_train.py",
+    "test_human_session.py",
+    "test_pixel_preference.py",
+    "test_cli_reliability.py",
+    "test_faithful_protocol.py",
+    "test_drqv2.py",
+    "test_pixels.py",
     "test_train.py",
 )
 

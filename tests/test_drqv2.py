@@ -231,6 +231,7 @@ def test_update_reaches_the_encoder_only_through_the_critic():
     _close(new.target_critic_params, target, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.heavy  # make test checks vmapped seeds on whole rounds (test_pixel_train.py)
 def test_update_vmapped_over_seeds_equals_separate_calls():
     agent, init, update = _small()
     keys = jax.random.split(jax.random.key(0), 2)
@@ -338,7 +339,8 @@ def test_patch_kernel_gradient_equals_a_numpy_loop_and_xlas(stride, padding):
         conv_patch_kernel_grad(x, kernel[..., :1, :], (1, 1), "VALID", feature_group_count=5)
 
 
-@pytest.mark.parametrize("seed_loop", [pytest.param(True, marks=pytest.mark.heavy), False])  # True: make test-heavy
+@pytest.mark.heavy  # make test checks the patch-product gradient itself against XLA's and a NumPy loop (above)
+@pytest.mark.parametrize("seed_loop", [True, False])
 def test_patch_kernel_gradients_give_the_same_update(seed_loop):
     """``drqv2.kernel_grad patches`` changes how the encoder's kernel gradients are computed, not the update:
     the seed-vmapped update (looped or batched) equals XLA's up to float rounding."""

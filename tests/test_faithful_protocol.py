@@ -230,7 +230,7 @@ def test_evaluation_envs_follow_the_actor_frozen_at_the_episode_start(micro):
 # -- REBEL's on-policy V (issue 10) ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("size", [(0, 0), (1, 5)])
+@pytest.mark.parametrize("size", [(0, 0), pytest.param((1, 5), marks=pytest.mark.heavy)])  # (1, 5): make test-heavy
 def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(size):
     episodes, horizon = size  # (0, 0): every evaluation episode, whole; else the first `horizon` steps of one.
     rebel = AgentPreferenceConfig(lam=-0.1, gamma=0.9, episodes=episodes, horizon=horizon)

@@ -81,7 +81,7 @@ def _place_of(buffer, frames, action, length: int) -> tuple[int, int]:
     return row, env
 
 
-@pytest.mark.parametrize("crop", [0, 1])
+@pytest.mark.parametrize("crop", [0, pytest.param(1, marks=pytest.mark.heavy)])  # crop 1: make test-heavy
 def test_bt_loss_matches_numpy_on_naive_stacks(crop):
     rng = np.random.default_rng(0)
     buffer, stacks, actions, _ = _filled_buffer(rng, 3 * LENGTH)
@@ -398,6 +398,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
     np.testing.assert_allclose(np.asarray(got), values, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.heavy  # make test checks this for the state-based term (test_surf_rebel.py)
 def test_pixel_onpolicy_value_gradients_reach_only_the_reward_parameters(two_episodes):
     trainer, ts, _, _ = two_episodes
     frames, actions, predict_fn = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
@@ -412,6 +413,7 @@ def test_pixel_onpolicy_value_gradients_reach_only_the_reward_parameters(two_epi
     assert not np.any(np.asarray(grads[1])) and not np.any(np.asarray(grads[2]))  # the episode stays fixed
 
 
+@pytest.mark.heavy  # make test checks the variants' term on states against NumPy (test_surf_rebel.py)
 def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
     """``rebel.form penalty`` with ``rebel.normalize`` on pixels: ``lambda * sum_m (V*_m - V_m) / s_m``."""
     _, ts, after, _ = two_episodes
@@ -509,7 +511,8 @@ def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentP
     return ()
 
 
-@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.heavy) for k in ("pebble", "surf")] + ["rebel"])
+@pytest.mark.heavy  # three more compiles of the pixel reward's epoch (~20 s each on 2 cores): make test-heavy
+@pytest.mark.parametrize("kind", ["pebble", "surf", "rebel"])
 def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     crop = 1 if kind == "surf" else 0
     horizon = 4
@@ -534,6 +537,7 @@ def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     assert all(not np.allclose(before, after) for before, after in moved)
 
 
+@pytest.mark.heavy  # make test checks the member loop's result against the vmap (REBEL's case above)
 def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     """What a member computes alone (``members=[m]``, the loop's view) is row m of the whole ensemble's
     BT term and pseudo-label term: the same pairs, crops and pool draws, not another member's."""
