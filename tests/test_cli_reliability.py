@@ -263,8 +263,8 @@ def test_a_diverged_seed_stops_the_run_naming_it_then_continues_on_request(whole
 def _killed(run_dir: pathlib.Path, kill_at: str, *flags: str) -> str:
     """Runs the CLI in a subprocess (without conftest's deadlock workaround) until it kills itself; returns its output.
 
-    The child keeps this process's other XLA flags (conftest's compile optimisation level): its
-    rounds must compute what this process's do, bit for bit.
+    The child keeps this process's other XLA flags and its environment (conftest's compile optimisation
+    setting): its rounds must compute what this process's do, bit for bit.
     """
     env = dict(os.environ)
     env["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != cli.NO_CPU_DEADLOCK)
