@@ -30,8 +30,8 @@ warnings.filterwarnings("ignore", message=".*settotalmass.*")
 
 # The suite is bound by XLA's compiles. Runs that leave out the heavy tests (``make test``) compile with JAX's
 # ``jax_disable_most_optimizations``: XLA's backend optimisation level 0 and LLVM's expensive passes off
-# (``jax/_src/compiler.py``). The tests' programs run slower, but their runs are short. The full
-# cold ``make test`` suite took 520 s instead of 643 s (level 1, the setting before; jaxlib 0.10.2, 2 cores,
+# (``jax/_src/compiler.py``). The tests' programs run slower, but their runs are short. On a fresh clone the
+# ``make test`` suite took 528 s instead of 643 s at level 1, the setting before (jaxlib 0.10.2, 2 cores,
 # 2026-11-25). It is set through the environment, so the CLI tests' subprocesses compile alike (the same
 # compilation cache keys, the same numbers). An explicit ``JAX_DISABLE_MOST_OPTIMIZATIONS`` is kept:
 # ``JAX_DISABLE_MOST_OPTIMIZATIONS=0 make test`` tests XLA's default optimisation. The heavy runs use XLA's
