@@ -17,15 +17,13 @@ import subprocess
 import sys
 import textwrap
 import time
-import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
-from test_cli_runs import ROUNDS, _metrics
+from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
 from rebel_jax import cli
 
@@ -100,14 +98,6 @@ def _same_run(a: pathlib.Path, b: pathlib.Path) -> None:
     assert _metrics(a) == _metrics(b)
     assert [row["round"] for row in _metrics(b)] == list(range(ROUNDS))
     assert _final(a) == _final(b) and _final(b)["status"] == "completed"
-
-
-def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sharding info not provided")
-        with ocp.PyTreeCheckpointer() as checkpointer:
-            saved = checkpointer.restore((run_dir / "checkpoints" / str(step) / "default").absolute())
-    return {k: np.asarray(v) for k, v in saved.items()}
 
 
 def _same_checkpoint(a: pathlib.Path, b: pathlib.Path) -> None:

@@ -14,6 +14,7 @@ import pathlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
 import pytest
 
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
@@ -35,6 +36,15 @@ def _metrics(run_dir: pathlib.Path) -> list[dict]:
     """A run's ``metrics.jsonl`` rows without their :data:`TIMING` fields."""
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
+
+
+def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
+    """The leaves of checkpoint ``step`` as NumPy arrays, whatever devices saved them."""
+    path = (run_dir / "checkpoints" / str(step) / "default").absolute()
+    with ocp.PyTreeCheckpointer() as checkpointer:
+        leaves = checkpointer.metadata(path).item_metadata.keys()
+        as_numpy = {k: ocp.RestoreArgs(restore_type=np.ndarray) for k in leaves}
+        return checkpointer.restore(path, restore_args=as_numpy)
 
 
 def _env(**extra: str) -> dict[str, str]:

@@ -22,9 +22,8 @@ import textwrap
 import time
 
 import numpy as np
-import orbax.checkpoint as ocp
 import pytest
-from test_cli_runs import MICRO_FLAGS, ROOT, ROUNDS, _env, _metrics
+from test_cli_runs import MICRO_FLAGS, ROOT, ROUNDS, _env, _metrics, _saved_arrays
 
 from rebel_jax import cli
 
@@ -128,15 +127,6 @@ def _train(run_dir: pathlib.Path, processes: int, devices: int, *flags: str) -> 
         log = logs[first].read_text()[-3000:]
         pytest.fail(f"exit statuses {codes} (-9: killed once another failed); log of process {first}:\n{log}")
     return [audit.read_text().splitlines() if audit.exists() else [] for audit in audits]
-
-
-def _saved_arrays(run_dir: pathlib.Path, step: int) -> dict[str, np.ndarray]:
-    """The leaves of checkpoint ``step`` as NumPy arrays, whatever devices saved them."""
-    path = (run_dir / "checkpoints" / str(step) / "default").absolute()
-    with ocp.PyTreeCheckpointer() as checkpointer:
-        leaves = checkpointer.metadata(path).item_metadata.keys()
-        as_numpy = {k: ocp.RestoreArgs(restore_type=np.ndarray) for k in leaves}
-        return checkpointer.restore(path, restore_args=as_numpy)
 
 
 def _final(run_dir: pathlib.Path) -> dict:

@@ -537,7 +537,7 @@ def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     assert all(not np.allclose(before, after) for before, after in moved)
 
 
-@pytest.mark.heavy  # make test checks the member loop's result against the vmap (REBEL's case above)
+@pytest.mark.heavy  # with the member-loop test above; make test trains through the vmapped ensemble
 def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     """What a member computes alone (``members=[m]``, the loop's view) is row m of the whole ensemble's
     BT term and pseudo-label term: the same pairs, crops and pool draws, not another member's."""
