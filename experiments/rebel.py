@@ -16,12 +16,16 @@ row per method:
   row whose curve never reaches it has steps null and ratio 0);
 - ``efficiency_vs_pebble``: PEBBLE's steps to the threshold over the method's
   (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
-  paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``);
+  paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``); ``pebble``
+  names the PEBBLE it is against: under an imperfect teacher that teacher's PEBBLE (lambda 0 of the same
+  ``--lam-grid 0 LAM`` program), else the oracle's;
 - ``efficiency_vs_surf`` and ``efficiency_vs_surf_ci``: the same against PEBBLE+SURF (``SURF``: the run that met
   its published figure; null without one).
 
 Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds; and
-``results/rebel_lambda_walker_walk.png``: the IQM with its interval per lambda of the paper's V against PEBBLE's.
+``results/rebel_lambda_walker_walk.png``: the IQM with its interval per lambda of the paper's V against PEBBLE's;
+``results/rebel_teachers_walker_walk.png``: PEBBLE's and REBEL's (at the chosen lambda) IQM per B-Pref teacher.
+The task figures draw the oracle teacher's methods only.
 
 ``STOPPED`` lists REBEL runs that the device budget stopped early; they are not rows. For them and for
 every run above that logs them, ``rebel.json``'s ``on_policy_reward`` gives, per method, the learned
@@ -33,7 +37,8 @@ saturated, and its per-step correlation with the true reward. Their returns at e
 ``sign_pairs`` sets +lambda against -lambda seed by seed within one lambda-grid program (its lambdas share
 their seed keys), with a two-sided sign test, per lambda and pooled; ``estimator_pairs`` likewise the paper's
 on-policy V against the replay window's V at the same lambda, and ``output_pairs`` the paper's tanh reward
-against the sigmoid one (programs of the same ``--seed``: seed i has the same key in both; :func:`paper_pairs`).
+against the sigmoid one (programs of the same ``--seed``: seed i has the same key in both; :func:`paper_pairs`);
+``teacher_pairs`` REBEL against PEBBLE within each imperfect teacher's program (:func:`teacher_pairs`).
 
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
@@ -61,6 +66,7 @@ from analysis import (
 from compare import compare, gather, methods
 
 from rebel_jax.plots import records as _records
+from rebel_jax.teachers import PRESETS
 from rebel_jax.train import ROUND_REWARD_METRICS
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
@@ -124,7 +130,8 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     """One row per method of ``task``'s runs (see the module docstring); the task's figure if a path is given."""
     curves, infos = gather(run_dirs)
     if figure_path is not None:
-        curve_figure(curves, figure_path, f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
+        oracle = {label: curve for label, curve in curves.items() if infos[label]["teacher"] in (None, "oracle")}
+        curve_figure(oracle, figure_path, f"{task}, 100 labels, oracle teacher (B-Pref's protocol)")
     reference = next((label for label in PEBBLE if label in curves), None)
     surf = SURF.get(task)
     surf = surf if surf in curves else None
@@ -141,11 +148,18 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
         ratio = sample_efficiency_ratio(distinct_evaluations(curve), distinct_evaluations(curves[other]), threshold)
         return ratio, sample_efficiency_ratio_ci(curve, curves[other], threshold)
 
+    def pebble_of(label: str) -> str:
+        """PEBBLE under ``label``'s teacher (the oracle's PEBBLE where no run of that teacher holds one)."""
+        teacher = infos[label]["teacher"]
+        if teacher in (None, "oracle"):
+            return reference
+        return next((p + f", {teacher}" for p in PEBBLE if p + f", {teacher}" in curves), reference)
+
     out = []
     for label, (steps, returns) in curves.items():
         m, info = stats["methods"][label], infos[label]
         mean_steps, mean_returns = mean_curve(distinct_evaluations((steps, returns)))
-        efficiency, ci = against((steps, returns), reference)
+        efficiency, ci = against((steps, returns), pebble_of(label))
         vs_surf, surf_ci = against((steps, returns), surf)
         estimator, variant = _setting(info["run_dirs"][0], info["algo"])
         out.append(
@@ -172,6 +186,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "steps_to_threshold": _round(steps_to_reach(mean_steps, mean_returns, threshold), None),
                 "efficiency_vs_pebble": _round(efficiency),
                 "efficiency_ci": [_round(v) for v in ci],
+                "pebble": pebble_of(label),
                 "efficiency_vs_surf": _round(vs_surf),
                 "efficiency_vs_surf_ci": [_round(v) for v in surf_ci],
                 "device": info["device"],
@@ -184,11 +199,14 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
 
 
 def paper_rows(rows: list[dict], steps: int = 500_000) -> list[dict]:
-    """The REBEL rows of the paper's V (on-policy, lower bound, raw, tanh) that reach ``steps``, by lambda."""
+    """The REBEL rows of the paper's V (on-policy, lower bound, raw, tanh) and the oracle teacher that reach
+    ``steps``, by lambda."""
     paper = [
         r
         for r in rows
         if r["algo"] == "rebel"
+        and r["teacher"] == "oracle"
+        and r["lam"] != 0
         and r["estimator"] == "onpolicy"
         and r["variant"] == PAPER_VARIANT
         and r["env_steps"] >= steps
@@ -293,7 +311,7 @@ def paper_pairs(rows: list[dict], estimator: str = "onpolicy", variant: str = PA
     """
     if (estimator, variant) == ("onpolicy", PAPER_VARIANT):
         raise ValueError("paper_pairs sets another setting against the paper's term; this one is the paper's")
-    same = ("task", "lam", "train_seed", "seeds")
+    same = ("task", "lam", "teacher", "train_seed", "seeds")
     rebel = [r for r in rows if r["algo"] == "rebel"]
     paper = [r for r in rebel if r["estimator"] == "onpolicy" and r["variant"] == PAPER_VARIANT]
     entries = []
@@ -309,6 +327,73 @@ def paper_pairs(rows: list[dict], estimator: str = "onpolicy", variant: str = PA
                 }
             )
     return _sign_tested(entries)
+
+
+def teacher_rows(rows: list[dict], lam: float) -> list[tuple[str, dict, dict]]:
+    """``(teacher, PEBBLE's row, REBEL's row)`` per B-Pref teacher (``teachers.PRESETS`` order) under which both
+    ran: REBEL of the paper's V at ``lam``, and the PEBBLE its ``efficiency_vs_pebble`` is against (the same
+    teacher's; the oracle's PEBBLE for the oracle)."""
+    by_method = {r["method"]: r for r in rows}
+    out = []
+    for teacher in PRESETS:
+        rebel = [
+            r
+            for r in rows
+            if r["algo"] == "rebel"
+            and r["teacher"] == teacher
+            and r["lam"] == lam
+            and (r["estimator"], r["variant"]) == ("onpolicy", PAPER_VARIANT)
+        ]
+        if rebel and rebel[0]["pebble"] in by_method:
+            out.append((teacher, by_method[rebel[0]["pebble"]], rebel[0]))
+    return out
+
+
+def teacher_pairs(rows: list[dict]) -> list[dict]:
+    """REBEL against PEBBLE under each imperfect teacher, seed by seed: for every REBEL row (lambda != 0) of a
+    teacher other than the oracle whose log (one ``--lam-grid 0 LAM`` program: its lambdas share their seed keys)
+    also holds lambda 0 (PEBBLE bit for bit), the per-seed final return of REBEL minus PEBBLE's, sign-tested
+    (:func:`_sign_tested`)."""
+    rebel = [r for r in rows if r["algo"] == "rebel" and r["teacher"] not in (None, "oracle")]
+    entries = []
+    for r in (r for r in rebel if r["lam"] != 0):
+        twin = [o for o in rebel if o["log"] == r["log"] and o["lam"] == 0 and o["teacher"] == r["teacher"]]
+        if twin:
+            entries.append(
+                {
+                    "task": r["task"],
+                    "lam": r["lam"],
+                    "teacher": r["teacher"],
+                    "log": r["log"],
+                    "differences": _differences(r, twin[0]),
+                }
+            )
+    return _sign_tested(entries)
+
+
+def teacher_figure(rows: list[dict], lam: float, path: pathlib.Path, title: str) -> list[str]:
+    """Writes ``path``: per teacher of :func:`teacher_rows` PEBBLE's and REBEL's IQM with the 95% interval, side
+    by side. Returns the teachers drawn."""
+    import matplotlib.pyplot as plt
+
+    drawn = teacher_rows(rows, lam)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    x = np.arange(len(drawn))
+    for offset, which, name in ((-0.12, 1, "PEBBLE"), (0.12, 2, f"REBEL lambda {lam:g}")):
+        picked = [entry[which] for entry in drawn]
+        iqms = np.array([r["iqm"] for r in picked])
+        low, high = (np.array([r["iqm_ci"][k] for r in picked], dtype=float) for k in (0, 1))
+        ax.errorbar(x + offset, iqms, yerr=[iqms - low, high - iqms], fmt="o", capsize=4, label=f"{name}: IQM, 95% CI")
+    ax.set_xticks(x)
+    ax.set_xticklabels([teacher for teacher, _, _ in drawn])
+    ax.set_xlabel("B-Pref teacher")
+    ax.set_ylabel("final return, IQM over seeds")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return [teacher for teacher, _, _ in drawn]
 
 
 def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
@@ -349,6 +434,8 @@ def main() -> None:
     walker = [r for r in table if r["task"] == "walker_walk"]
     chosen, signs = chosen_lambda(walker), sign_pairs(walker)
     lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
+    lam = chosen["lam"] if chosen else None
+    teacher_figure(walker, lam, RESULTS / "rebel_teachers_walker_walk.png", "walker_walk at 500k, 100 labels")
     out = {
         "rows": table,
         "on_policy_reward": reward,
@@ -356,6 +443,7 @@ def main() -> None:
         "sign_pairs": signs,
         "estimator_pairs": paper_pairs(walker, estimator="replay"),
         "output_pairs": paper_pairs(walker, variant=SIGMOID_VARIANT),
+        "teacher_pairs": teacher_pairs(walker),
     }
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
@@ -376,6 +464,16 @@ def main() -> None:
         print("\nlambda by the rule of RESULTS.md: none yet (no REBEL run of the paper's V has reached 500k)")
     else:
         print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
+    print(f"\nUnder B-Pref's teachers (walker_walk, REBEL at lambda {lam}; final returns, IQM [95% CI]):\n")
+    print("| teacher | PEBBLE | REBEL | REBEL vs PEBBLE (steps to threshold) [95% CI] | logs |")
+    print("|---|---:|---:|---:|---|")
+    for teacher, pebble, rebel in teacher_rows(walker, lam):
+        print(
+            f"| {teacher} | {pebble['iqm']:.1f} [{pebble['iqm_ci'][0]}, {pebble['iqm_ci'][1]}] "
+            f"| {rebel['iqm']:.1f} [{rebel['iqm_ci'][0]}, {rebel['iqm_ci'][1]}] "
+            f"| {rebel['efficiency_vs_pebble']} [{rebel['efficiency_ci'][0]}, {rebel['efficiency_ci'][1]}] "
+            f"| {', '.join(sorted({*pebble['log'], *rebel['log']}))} |"
+        )
     for title, entries in (
         ("+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda)", signs),
         (
@@ -386,10 +484,12 @@ def main() -> None:
             "The paper's tanh reward against the sigmoid one, seed by seed (final return tanh minus sigmoid)",
             out["output_pairs"],
         ),
+        ("REBEL against PEBBLE under each imperfect teacher, seed by seed (REBEL minus PEBBLE)", out["teacher_pairs"]),
     ):
         print(f"\n{title}:\n")
         for e in entries:
-            print(f"- lambda {e['lam']}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
+            which = f"{e['teacher']}, lambda {e['lam']}" if "teacher" in e else f"lambda {e['lam']}"
+            print(f"- {which}: {e['positive']} of {e['pairs']} positive, sign test p = {e['sign_test_p']}")
     print(f"\nOn the policy's own transitions, rounds from {ON_POLICY_FROM:,} steps (means over rounds and seeds):\n")
     print("| task | method | steps | learned reward mean | saturated share | per-step corr. with true reward | log |")
     print("|---|---|---|---:|---:|---:|---|")

@@ -21,6 +21,7 @@ analysis = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(analysis)
 from rliable import library as rly  # noqa: E402
 
+from rebel_jax.teachers import PRESETS as TEACHERS  # noqa: E402
 from rebel_jax.teachers import TeacherConfig  # noqa: E402
 
 ORACLE = dataclasses.asdict(TeacherConfig())
@@ -392,19 +393,27 @@ def test_baselines_diagnostics_against_a_hand_computation(tmp_path, monkeypatch)
 
 
 def _fake_curve_run(
-    run: pathlib.Path, algo: str, slope: float, seeds: int, lams: list | None = None, task: str = "walker_walk"
+    run: pathlib.Path,
+    algo: str,
+    slope: float | list[float],
+    seeds: int,
+    lams: list | None = None,
+    task: str = "walker_walk",
+    teacher: str = "oracle",
 ) -> None:
-    """A run directory whose every seed's evaluation return is ``slope * env_steps / 1000``."""
+    """A run directory whose every column's evaluation return is ``slope * env_steps / 1000`` (a slope per
+    column, or one for all), under a B-Pref ``teacher`` given by ``--teacher``."""
     run.mkdir(parents=True)
     rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
     cfg = {"algo": algo, "env": {"task": task, "num_envs": 10}, "feedback": {"labels": 100},
-           "teacher": ORACLE, "sac": {"utd": 1.0}, "rebel": rebel, "reward": {"output": "tanh"},
-           "train": {"seed": 0}}  # fmt: skip
+           "teacher": dataclasses.asdict(TEACHERS[teacher]), "sac": {"utd": 1.0}, "rebel": rebel,
+           "reward": {"output": "tanh"}, "train": {"seed": 0}}  # fmt: skip
     meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
     (run / "config.json").write_text(json.dumps(cfg))
     (run / "meta.json").write_text(json.dumps(meta | {"columns": seeds}))
     steps = range(10_000, 200_001, 10_000)
-    lines = [json.dumps({"env_steps": s, "eval_return": [slope * s / 1000] * seeds}) for s in steps]
+    slopes = np.broadcast_to(slope, seeds)
+    lines = [json.dumps({"env_steps": s, "eval_return": (slopes * s / 1000).tolist()}) for s in steps]
     (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
 
 
@@ -443,6 +452,40 @@ def test_rebel_rows_against_a_hand_computation(tmp_path, monkeypatch):
     assert grid["log"] == ["results/runs/grid"] and grid["seeds"] == 3
     with pytest.raises(ValueError, match="no PEBBLE run"):
         rebel.rows("walker_walk", [tmp_path / "runs" / "grid"])
+
+
+def test_rebel_rows_under_a_teacher_are_against_that_teachers_pebble_and_pair_seeds(tmp_path, monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    monkeypatch.setattr(rebel, "RESULTS", tmp_path)
+    _fake_curve_run(tmp_path / "runs" / "pebble", "pebble", 1.0, 3)
+    _fake_curve_run(tmp_path / "runs" / "oracle", "rebel", 2.0, 3, lams=[0.1] * 3)
+    # One --lam-grid 0 0.1 --teacher mistake program: PEBBLE's columns at slope 2, REBEL's at 4, 6 and 1.
+    slopes, lams = [2, 2, 2, 4, 6, 1], [0] * 3 + [0.1] * 3
+    _fake_curve_run(tmp_path / "runs" / "mistake", "rebel", slopes, 6, lams, teacher="mistake")
+    run_dirs = [tmp_path / "runs" / n for n in ("pebble", "oracle", "mistake")]
+    rows = rebel.rows("walker_walk", run_dirs, tmp_path / "rebel_walker_walk.png")
+    by = {r["method"]: r for r in rows}
+    assert set(by) == {"pebble", "rebel lam=0.1", "pebble (rebel lam=0), mistake", "rebel lam=0.1, mistake"}
+    mistake, pebble_mistake = by["rebel lam=0.1, mistake"], by["pebble (rebel lam=0), mistake"]
+    assert (mistake["teacher"], mistake["pebble"], by["rebel lam=0.1"]["pebble"]) == (
+        "mistake",
+        "pebble (rebel lam=0), mistake",
+        "pebble",
+    )
+    # Only the oracle's PEBBLE sets the threshold: 0.8 * 155 = 124 (not the mistake teacher's lambda-0 columns).
+    assert {r["threshold"] for r in rows} == {124.0}
+    # The mean curve's slope is 11/3 against 2 of PEBBLE under the same teacher (the oracle's 1 would give 11/3).
+    assert mistake["efficiency_vs_pebble"] == round(11 / 6, 2) and pebble_mistake["efficiency_vs_pebble"] == 1.0
+    assert by["rebel lam=0.1"]["efficiency_vs_pebble"] == 2.0
+    assert rebel.chosen_lambda(rows, steps=200_000)["among"] == [0.1]  # the oracle's REBEL only
+    assert rebel.teacher_rows(rows, 0.1) == [("oracle", by["pebble"], by["rebel lam=0.1"]),
+                                             ("mistake", pebble_mistake, mistake)]  # fmt: skip
+    # Final returns (means of the last 10 evaluations): 155 per unit of slope. REBEL minus PEBBLE per seed.
+    (entry, pooled) = rebel.teacher_pairs(rows)
+    assert (entry["teacher"], entry["lam"], entry["differences"]) == ("mistake", 0.1, [310.0, 620.0, -155.0])
+    assert (entry["positive"], entry["pairs"], pooled["lam"]) == (2, 3, "all")
+    assert rebel.teacher_figure(rows, 0.1, tmp_path / "t.png", "t") == ["oracle", "mistake"]
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_rebel_on_policy_reward_averages_each_lambdas_columns_over_rounds_and_seeds(tmp_path, monkeypatch):
@@ -508,8 +551,11 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "task": "walker_walk"}
+    paper |= {"teacher": "oracle"}
     rows = [
         {**paper, "lam": 0.01, "iqm": 300.0, "env_steps": 500_000},
+        {**paper, "lam": 0.001, "iqm": 990.0, "env_steps": 500_000, "teacher": "noisy"},  # another teacher
+        {**paper, "lam": 0.0, "iqm": 990.0, "env_steps": 500_000},  # lambda 0 is PEBBLE, not a lambda to choose
         {**paper, "lam": -0.01, "iqm": 200.0, "env_steps": 500_000},
         {**paper, "lam": 0.1, "iqm": 900.0, "env_steps": 140_000},  # stopped early: not eligible
         {**paper, "lam": 0.001, "iqm": 800.0, "env_steps": 500_000, "estimator": "replay"},  # another V
@@ -517,7 +563,7 @@ def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypa
         {"algo": "pebble", "estimator": None, "variant": None, "lam": None, "iqm": 999.0, "env_steps": 500_000},
     ]
     assert rebel.chosen_lambda(rows) == {"task": "walker_walk", "lam": 0.01, "iqm": 300.0, "among": [-0.01, 0.01]}
-    assert rebel.chosen_lambda(rows[2:]) is None
+    assert rebel.chosen_lambda(rows[4:]) is None
 
 
 def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monkeypatch):
@@ -552,6 +598,7 @@ def test_rebel_sign_pairs_pair_seeds_within_one_program_and_sign_test_them(monke
 def test_rebel_paper_pairs_pair_the_papers_term_with_another_setting_of_the_same_seed_keys(monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     base = {"algo": "rebel", "task": "walker_walk", "variant": rebel.PAPER_VARIANT, "train_seed": 2, "seeds": 3}
+    base |= {"teacher": "oracle"}
     row = lambda estimator, lam, finals, log, **other: (
         base
         | {
@@ -571,6 +618,7 @@ def test_rebel_paper_pairs_pair_the_papers_term_with_another_setting_of_the_same
         row("replay", 0.001, [0.0, 0.0, 0.0], "c", train_seed=1),  # other seed keys: no pair
         row("replay", 0.01, [0.0, 0.0, 0.0], "d", variant="penalty, raw, tanh output"),  # another term
         row("onpolicy", 0.01, [3.0, 1.0, 2.0], "e", variant=rebel.SIGMOID_VARIANT),  # -1, 1, 0 against "a"
+        row("onpolicy", 0.01, [9.0, 9.0, 9.0], "f", teacher="noisy"),  # the paper's term under another teacher
         {"algo": "pebble", "task": "walker_walk", "lam": None, "variant": None, "final_returns": [0.0] * 3},
     ]
     out = rebel.paper_pairs(rows, estimator="replay")
@@ -593,6 +641,7 @@ def test_rebel_paper_pairs_pair_the_papers_term_with_another_setting_of_the_same
 def test_rebel_lambda_figure_draws_the_papers_v_at_500k_by_lambda(tmp_path, monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "method": "rebel", "task": "t"}
+    paper |= {"teacher": "oracle"}
     rows = [
         {**paper, "lam": 0.01, "iqm": 300.0, "iqm_ci": [250.0, 350.0], "env_steps": 500_000},
         {**paper, "lam": -0.01, "iqm": 200.0, "iqm_ci": [150.0, 260.0], "env_steps": 500_000},
