@@ -60,7 +60,9 @@
 #   SET "rebel_cheetah" with LAM=<lambda>: the lambda the rule of RESULTS.md chose on walker_walk (0.001
 #       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; LAM=0.001 ran in the tenth
 #       session (3 calls, 1,433 s held, 1,308 s of rounds: 114.6 s with the compile, then 12.05 s);
-#   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; not run yet;
+#   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; LAM=0.001 TEACHER=noisy
+#       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s with the
+#       compile, then 30.8 s); mistake, skip, equal and myopic remain, one machine each;
 #   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
 #       gradient, about 3 minutes; its JSON rows come back in $OUT;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
