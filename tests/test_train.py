@@ -192,6 +192,7 @@ SHARDED = textwrap.dedent(
 SHARDED_SEEDS, SHARDED_ROUNDS = 2, 2
 
 
+@pytest.mark.heavy  # make test runs the seeds vmapped on one device (test_vmap_over_seeds_equals_separate_runs)
 def test_seeds_sharded_over_devices_equal_unsharded(micro, tmp_path):
     """One seed per fake CPU device (a subprocess) against the module's vmapped program on one device."""
     _, init, round_fn = micro
