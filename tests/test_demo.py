@@ -114,13 +114,15 @@ PROBE = Config(
 def _loop_return(trainer: Trainer, params, key: jax.Array, random_actions: bool) -> float:
     """Mean return of the evaluation episodes stepped one by one in Python (the reference)."""
     key_reset, key_actions = jax.random.split(key)
-    states = [trainer.env.reset(k) for k in jax.random.split(key_reset, trainer.cfg.train.eval_episodes)]
+    # Each call jitted alone (one compile, not one per operation); the loop over steps and episodes stays Python's.
+    reset, step, act = (jax.jit(f) for f in (trainer.env.reset, trainer.env.step, trainer.sac.act_deterministic))
+    states = [reset(k) for k in jax.random.split(key_reset, trainer.cfg.train.eval_episodes)]
     totals = np.zeros(len(states))
     for key_t in jax.random.split(key_actions, trainer.env.episode_length):
         uniform = jax.random.uniform(key_t, (len(states), trainer.env.action_size), minval=-1.0, maxval=1.0)
         for i, state in enumerate(states):
-            action = uniform[i] if random_actions else trainer.sac.act_deterministic(params, state.obs[None])[0]
-            states[i] = trainer.env.step(state, action)
+            action = uniform[i] if random_actions else act(params, state.obs[None])[0]
+            states[i] = step(state, action)
             totals[i] += float(states[i].reward)
     return float(totals.mean())
 
