@@ -51,20 +51,30 @@ _CHEETAH = ["--task", "cheetah_run_pixels"]
 _RUN = ["--total-steps", "500000", "--seed-steps", "2000", "--eval-episodes", "10"]
 _DRQV2 = ["--algo", "drqv2", *_RUN, "--num-envs", "10", "--steps-per-round", "10000", "--eval-every", "10000"]
 # Preference runs: the first session (after the 2,000 seed steps) needs a complete 500-step episode, so
-# at most 4 envs; rounds of 1,000 agent steps divide the seed steps and SURF's 15,000-step interval.
-_PREF = [*_RUN, "--num-envs", "4", "--steps-per-round", "1000", "--eval-every", "10000", "--interval", "15000"]
-_SURF = ["--surf.crop", "2", "--surf.threshold", "0.99", "--surf.weight", "0.1", "--surf.ratio", "1"]
-_SURF += ["--surf.pool-size", "50", "--surf.reward-update", "20"]
-_WALKER_LABELS = ["--labels", "200", "--per-session", "10"]
-_CHEETAH_LABELS = ["--labels", "1000", "--per-session", "100"]
+# at most 4 envs; rounds of 1,000 agent steps divide the seed steps and SURF's session intervals. SURF's pixel
+# branch (alinlab/SURF, branch pixel, commit 214bc1d) samples queries uniformly only (pixel_train_PEBBLE_semi.py
+# :250-257, the other feed types commented out; pixel_train_PEBBLE.py's feed_type defaults to 0, uniform:
+# cfgs/config_pebble.yaml:44) from the last 20 episodes (reward_max_episodes: cfgs/config_pebble.yaml:56).
+_PREF = [*_RUN, "--num-envs", "4", "--steps-per-round", "1000", "--eval-every", "10000"]
+_PREF += ["--query.sampling", "uniform", "--query.recent-episodes", "20"]
+# SURF's commands (README.md:22 walker, :32 cheetah; num_interact in frames, so agent steps are half):
+# walker 200 labels, 10 per session, every 30k frames, time crop 2, lambda_u 0.1; cheetah 1,000 labels, 25 per
+# session, every 20k frames, time crop 5, lambda_u left at 1 (cfgs/config_pebble_semi.yaml:66). Both: threshold_u
+# 0.99, reward_update 20, mu 1 (config_pebble_semi.yaml:67), inv_label_ratio 5 (pool pairs per session: 5 x the
+# queries per session).
+_SURF = ["--surf.threshold", "0.99", "--surf.ratio", "1", "--surf.reward-update", "20"]
+_WALKER_LABELS = ["--labels", "200", "--per-session", "10", "--interval", "15000"]
+_CHEETAH_LABELS = ["--labels", "1000", "--per-session", "25", "--interval", "10000"]
+_WALKER_SURF = [*_SURF, "--surf.crop", "2", "--surf.weight", "0.1", "--surf.pool-size", "50"]
+_CHEETAH_SURF = [*_SURF, "--surf.crop", "5", "--surf.weight", "1.0", "--surf.pool-size", "125"]
 
 CONFIGS: dict[str, list[str]] = {
     "drqv2_walker": [*_DRQV2, *_WALKER],
     "drqv2_cheetah": [*_DRQV2, *_CHEETAH],
     "pebble_walker": ["--algo", "pebble", *_PREF, *_WALKER, *_WALKER_LABELS],
     "pebble_cheetah": ["--algo", "pebble", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
-    "surf_walker": ["--algo", "surf", *_PREF, *_WALKER, *_WALKER_LABELS, *_SURF],
-    "surf_cheetah": ["--algo", "surf", *_PREF, *_CHEETAH, *_CHEETAH_LABELS, *_SURF],
+    "surf_walker": ["--algo", "surf", *_PREF, *_WALKER, *_WALKER_LABELS, *_WALKER_SURF],
+    "surf_cheetah": ["--algo", "surf", *_PREF, *_CHEETAH, *_CHEETAH_LABELS, *_CHEETAH_SURF],
     "rebel_walker": ["--algo", "rebel", "--rebel.lam", "-0.01", *_PREF, *_WALKER, *_WALKER_LABELS],
     "rebel_cheetah": ["--algo", "rebel", "--rebel.lam", "-0.01", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
 }
