@@ -215,6 +215,18 @@ def paper_rows(rows: list[dict], steps: int = 500_000) -> list[dict]:
     return sorted(paper, key=lambda r: r["lam"])
 
 
+def _save_iqm_figure(fig, ax, path: pathlib.Path, title: str) -> None:
+    """Labels an IQM figure's y axis, titles it, adds the legend and writes it to ``path``."""
+    import matplotlib.pyplot as plt
+
+    ax.set_ylabel("final return, IQM over seeds")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def lambda_figure(rows: list[dict], path: pathlib.Path, title: str) -> tuple[list[float], list[float]]:
     """Writes ``path``: per lambda of :func:`paper_rows` its IQM with the 95% interval, over PEBBLE's IQM and
     interval (a line and a band) and PEBBLE+SURF's IQM (dashed, where ``SURF`` names a row); lambda on a
@@ -238,12 +250,7 @@ def lambda_figure(rows: list[dict], path: pathlib.Path, title: str) -> tuple[lis
     surf = next((r for r in rows if r["method"] == SURF.get(r["task"])), None)
     if surf is not None:
         ax.axhline(surf["iqm"], color="tab:green", linestyle="--", label=f"{surf['method']}: IQM")
-    ax.set_ylabel("final return, IQM over seeds")
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_iqm_figure(fig, ax, path, title)
     return lams, iqms
 
 
@@ -388,12 +395,7 @@ def teacher_figure(rows: list[dict], lam: float, path: pathlib.Path, title: str)
     ax.set_xticks(x)
     ax.set_xticklabels([teacher for teacher, _, _ in drawn])
     ax.set_xlabel("B-Pref teacher")
-    ax.set_ylabel("final return, IQM over seeds")
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_iqm_figure(fig, ax, path, title)
     return [teacher for teacher, _, _ in drawn]
 
 
