@@ -18,6 +18,7 @@ import argparse
 import datetime
 import functools
 import json
+import os
 import pathlib
 import sys
 
@@ -60,6 +61,7 @@ def throughput(args):
                     "task": task,
                     "solver": solver,
                     "unroll_substeps": args.unroll,
+                    "xla_flags": os.environ.get("XLA_FLAGS", ""),
                     "batch": batch,
                     "env_steps_per_s": batch / sec,
                     "ms_per_step": sec * 1e3,
@@ -164,7 +166,7 @@ def fidelity(args) -> dict:
     return out
 
 
-def main():
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("mode", choices=["throughput", "fidelity"])
     p.add_argument("--tasks", nargs="+", default=sorted(TASKS))
@@ -174,14 +176,34 @@ def main():
     p.add_argument("--max-dm-batch", type=int, default=4096, help="skip dm_control solver above this batch")
     p.add_argument("--fidelity-states", type=int, default=200)
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    args = p.parse_args()
+    p.add_argument(
+        "--xla-flags",
+        default=None,
+        help="XLA_FLAGS for this process (set before the backend starts; recorded in each row): e.g. the GPU's "
+        "command buffers, --xla_gpu_enable_command_buffer=...",
+    )
+    return p
+
+
+def main():
+    args = parser().parse_args()
+    if args.xla_flags is not None:  # Read by XLA when the first backend starts, after this.
+        os.environ["XLA_FLAGS"] = args.xla_flags
     results = _load(args.out)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.mode == "throughput":
-        key = lambda r: (r["device"], r["task"], r["solver"], r["batch"], r.get("unroll_substeps", False))
+        key = lambda r: (
+            r["device"],
+            r["task"],
+            r["solver"],
+            r["batch"],
+            r.get("unroll_substeps", False),
+            r.get("xla_flags", ""),
+        )
         for row in throughput(args):
             # Rows of the two presets form the main table; every setting also goes to the sweep behind the choice.
-            parts = ("rows", "solver_sweep") if row["solver"] in SOLVERS and not args.unroll else ("solver_sweep",)
+            main_table = row["solver"] in SOLVERS and not args.unroll and not row["xla_flags"]
+            parts = ("rows", "solver_sweep") if main_table else ("solver_sweep",)
             for part in parts:
                 results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]
             args.out.write_text(json.dumps(results, indent=1))

@@ -99,6 +99,19 @@ def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, mo
     assert args.seed_loop == ["on"] and args.kernel_grad == ["xla", "patches"]
 
 
+def test_the_command_buffers_set_times_walker_with_and_without_cuda_graphs(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
+    env_throughput = importlib.import_module("env_throughput")
+    commands = _commands(tmp_path, "command_buffers", {}, detach=False, program="benchmarks/")
+    runs = [env_throughput.parser().parse_args(argv[1:]) for argv in commands]
+    assert [argv[0] for argv in commands] == ["benchmarks/env_throughput.py"] * 3
+    assert [(a.mode, a.tasks, a.solvers, a.batches, a.out) for a in runs] == [
+        ("throughput", ["walker_walk"], ["default"], [1, 200], tmp_path / "env_throughput.json")
+    ] * 3
+    default, graphs, small = (a.xla_flags for a in runs)
+    assert default == "" and "WHILE" in graphs.split("=")[1].split(",") and small.startswith(graphs + " ")
+
+
 def test_a_set_without_its_variable_stops_with_its_name(tmp_path):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
