@@ -18,14 +18,13 @@ import argparse
 import datetime
 import functools
 import json
-import os
 import pathlib
 import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from timing import device_name, random_steps_seconds
+from timing import add_xla_flags_argument, device_name, random_steps_seconds, use_xla_flags, xla_flags
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
 
@@ -61,7 +60,7 @@ def throughput(args):
                     "task": task,
                     "solver": solver,
                     "unroll_substeps": args.unroll,
-                    "xla_flags": os.environ.get("XLA_FLAGS", ""),
+                    "xla_flags": xla_flags(),
                     "batch": batch,
                     "env_steps_per_s": batch / sec,
                     "ms_per_step": sec * 1e3,
@@ -176,19 +175,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-dm-batch", type=int, default=4096, help="skip dm_control solver above this batch")
     p.add_argument("--fidelity-states", type=int, default=200)
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    p.add_argument(
-        "--xla-flags",
-        default=None,
-        help="XLA_FLAGS for this process (set before the backend starts; recorded in each row): e.g. the GPU's "
-        "command buffers, --xla_gpu_enable_command_buffer=...",
-    )
+    add_xla_flags_argument(p)
     return p
 
 
 def main():
     args = parser().parse_args()
-    if args.xla_flags is not None:  # Read by XLA when the first backend starts, after this.
-        os.environ["XLA_FLAGS"] = args.xla_flags
+    use_xla_flags(args.xla_flags)
     results = _load(args.out)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.mode == "throughput":

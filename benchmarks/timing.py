@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
+import os
 import pathlib
 import statistics
 import sys
@@ -12,6 +14,28 @@ import time
 import jax
 
 from rebel_jax.cli import _git_commit
+
+
+def add_xla_flags_argument(p: argparse.ArgumentParser) -> None:
+    """``--xla-flags FLAGS``: this process's XLA_FLAGS (:func:`use_xla_flags`), recorded in each row."""
+    p.add_argument(
+        "--xla-flags",
+        default=None,
+        help="XLA_FLAGS for this process, e.g. --xla-flags=--xla_gpu_enable_command_buffer=... (default: the "
+        "environment's)",
+    )
+
+
+def use_xla_flags(flags: str | None) -> None:
+    """Sets XLA_FLAGS to ``flags`` (None keeps the environment's). XLA reads them when its first backend starts,
+    so call this before anything runs on a device."""
+    if flags is not None:
+        os.environ["XLA_FLAGS"] = flags
+
+
+def xla_flags() -> str:
+    """The XLA_FLAGS this process runs with: the ``xla_flags`` of a result row."""
+    return os.environ.get("XLA_FLAGS", "")
 
 
 def device_name() -> str:
@@ -25,6 +49,7 @@ def provenance() -> dict:
         "device": device_name(),
         "date": datetime.date.today().isoformat(),
         "jax": jax.__version__,
+        "xla_flags": xla_flags(),
         "commit": _git_commit(),
         "command": " ".join(["python"] + sys.argv),
     }

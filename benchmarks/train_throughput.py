@@ -28,7 +28,7 @@ import time
 
 import jax
 import jax.numpy as jnp
-from timing import device_name, median_seconds
+from timing import add_xla_flags_argument, device_name, median_seconds, use_xla_flags, xla_flags
 
 from rebel_jax import replay
 from rebel_jax.config import PRESETS
@@ -41,6 +41,7 @@ UPDATES_PER_CALL = 20
 
 def _row(**kw) -> dict:
     base = {"device": device_name(), "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    base["xla_flags"] = xla_flags()
     return {**base, "command": " ".join(["python"] + sys.argv), **kw}
 
 
@@ -250,7 +251,7 @@ def run_rows(args):
         }
 
 
-def main():
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("mode", choices=["update", "hlo", "runs"])
     p.add_argument("run_dirs", nargs="*", type=pathlib.Path)
@@ -259,9 +260,15 @@ def main():
     p.add_argument("--repeats", type=int, default=5, help="timed calls of UPDATES_PER_CALL updates per row")
     p.add_argument("--budget-s", type=float, default=0.0, help="skip the rows left after this many seconds (0: none)")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    args = p.parse_args()
+    add_xla_flags_argument(p)
+    return p
+
+
+def main():
+    args = parser().parse_args()
+    use_xla_flags(args.xla_flags)
     results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    fields = ("device", "what", "algo", "task", "seeds", "precision", "num_envs", "utd")
+    fields = ("device", "what", "algo", "task", "seeds", "precision", "num_envs", "utd", "xla_flags")
     key = lambda r: tuple(r.get(f) for f in fields)
     rows = {"update": update_rows, "hlo": hlo_rows, "runs": run_rows}[args.mode]
     for row in rows(args):

@@ -63,7 +63,8 @@
 #   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; LAM=0.001 TEACHER=noisy
 #       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s with the
 #       compile, then 30.8 s); mistake, skip, equal and myopic remain, one machine each;
-#   SET "command_buffers" (not run yet): walker's control step with CUDA graphs over its while loops, about 2 min;
+#   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
+#       loops, about 5 min;
 #   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
 #       gradient, about 3 minutes; its JSON rows come back in $OUT;
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
@@ -175,16 +176,18 @@ case "${2:-shared}" in
     timeout 150 python3 benchmarks/drqv2_parts.py --precision bf16 --out "$OUT/drqv2_parts.json"
     timeout 110 python3 benchmarks/drqv2_update.py --precision bf16 --seed-loop on --kernel-grad xla patches --out "$OUT/drqv2_update.json"
     exit 0 ;;
-  command_buffers)  # walker's control step (10 physics substeps of small kernels in while loops: about 12.5 ms
-    # at any batch up to 256) with the H100's command buffers (CUDA graphs) extended to while loops, at batch 1 and
-    # 200 (a 10-column walker program's training and evaluation envs), against XLA's default; about 2 minutes after
-    # the install; the rows come back in $OUT/env_throughput.json
+  command_buffers)  # the two halves of a walker round, with the H100's command buffers (CUDA graphs) extended to
+    # while loops against XLA's default: walker's control step (10 physics substeps of small kernels in while loops:
+    # about 12.5 ms at any batch up to 256) at batch 1 and 200 (a 10-column program's training and evaluation envs),
+    # and the 10-column bf16 SAC update; about 5 minutes after the install; the rows come back in $OUT
     export PYTHONPATH=/tmp/site:src:benchmarks
-    cp benchmarks/results/env_throughput.json "$OUT/" 2>/dev/null
+    cp benchmarks/results/env_throughput.json benchmarks/results/train_throughput.json "$OUT/" 2>/dev/null
     graphs=--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,CONDITIONAL,WHILE
     for flags in "" "$graphs" "$graphs --xla_gpu_graph_min_graph_size=1"; do
       timeout 60 python3 benchmarks/env_throughput.py throughput --tasks walker_walk --solvers default \
         --batches 1 200 --xla-flags="$flags" --out "$OUT/env_throughput.json" || echo "failed: XLA_FLAGS=$flags"
+      timeout 60 python3 benchmarks/train_throughput.py update --seeds 10 --precisions bf16 \
+        --xla-flags="$flags" --out "$OUT/train_throughput.json" || echo "failed: XLA_FLAGS=$flags"
     done
     exit 0 ;;
   pebble_env40)

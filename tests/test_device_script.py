@@ -99,16 +99,18 @@ def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, mo
     assert args.seed_loop == ["on"] and args.kernel_grad == ["xla", "patches"]
 
 
-def test_the_command_buffers_set_times_walker_with_and_without_cuda_graphs(tmp_path, monkeypatch):
+def test_the_command_buffers_set_times_walker_and_the_update_with_and_without_cuda_graphs(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
-    env_throughput = importlib.import_module("env_throughput")
     commands = _commands(tmp_path, "command_buffers", {}, detach=False, program="benchmarks/")
-    runs = [env_throughput.parser().parse_args(argv[1:]) for argv in commands]
-    assert [argv[0] for argv in commands] == ["benchmarks/env_throughput.py"] * 3
-    assert [(a.mode, a.tasks, a.solvers, a.batches, a.out) for a in runs] == [
-        ("throughput", ["walker_walk"], ["default"], [1, 200], tmp_path / "env_throughput.json")
-    ] * 3
-    default, graphs, small = (a.xla_flags for a in runs)
+    scripts = ["benchmarks/env_throughput.py", "benchmarks/train_throughput.py"]
+    assert [argv[0] for argv in commands] == scripts * 3
+    runs = [importlib.import_module(pathlib.Path(argv[0]).stem).parser().parse_args(argv[1:]) for argv in commands]
+    for env, update in zip(runs[::2], runs[1::2], strict=True):
+        assert (env.mode, env.tasks, env.solvers, env.batches) == ("throughput", ["walker_walk"], ["default"], [1, 200])
+        assert (update.mode, update.seeds, update.precisions) == ("update", [10], ["bf16"])
+        assert env.xla_flags == update.xla_flags
+        assert (env.out, update.out) == (tmp_path / "env_throughput.json", tmp_path / "train_throughput.json")
+    default, graphs, small = (a.xla_flags for a in runs[::2])
     assert default == "" and "WHILE" in graphs.split("=")[1].split(",") and small.startswith(graphs + " ")
 
 
