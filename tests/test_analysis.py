@@ -474,7 +474,8 @@ def test_rebel_rows_under_a_teacher_are_against_that_teachers_pebble_and_pair_se
     )
     # Only the oracle's PEBBLE sets the threshold: 0.8 * 155 = 124 (not the mistake teacher's lambda-0 columns).
     assert {r["threshold"] for r in rows} == {124.0}
-    # The mean curve's slope is 11/3 against 2 of PEBBLE under the same teacher (the oracle's 1 would give 11/3).
+    # REBEL's mean curve has slope 11/3: against PEBBLE under the same teacher (slope 2) the ratio is 11/6; against
+    # the oracle's PEBBLE (slope 1) it would be 11/3.
     assert mistake["efficiency_vs_pebble"] == round(11 / 6, 2) and pebble_mistake["efficiency_vs_pebble"] == 1.0
     assert by["rebel lam=0.1"]["efficiency_vs_pebble"] == 2.0
     assert rebel.chosen_lambda(rows, steps=200_000)["among"] == [0.1]  # the oracle's REBEL only
