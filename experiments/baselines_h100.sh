@@ -63,6 +63,7 @@
 #   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; LAM=0.001 TEACHER=noisy
 #       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s with the
 #       compile, then 30.8 s); mistake, skip, equal and myopic remain, one machine each;
+#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
 #   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
@@ -167,6 +168,16 @@ case "${2:-shared}" in
     esac
     # PRECISION=bf16 runs DrQ-v2's matmuls and convolutions in bf16 (named in the run directory)
     start drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${PRECISION:+_$PRECISION} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
+    exit 0 ;;
+  pixel_seed)  # issue 12's pixel preference runs, one seed per job (5 seeds fit no machine's loan): ALGO=pebble|surf|
+    # rebel, TASK=walker|cheetah, SEED=k, STEPS=<agent steps> (250000 = 500k frames, the issue's walker length; SURF
+    # runs 1M frames), with benchmarks/pixel_memory.CONFIGS' flags (SURF's pixel settings, notes/surf_pixel_audit.md);
+    # CAPACITY=<transitions> sets the replay (default 100k, the issue's; SURF keeps the whole run), PRECISION=bf16
+    # DrQ-v2's matmuls; each names the run
+    root=$(cd "$(dirname "$0")/.." && pwd)
+    flags=$(python3 -c "import sys; sys.path[:0] = ['$root/benchmarks', '$root/src']; from pixel_memory import CONFIGS; print(' '.join(CONFIGS['${ALGO:?set ALGO}_${TASK:?set TASK}']))") || exit 1
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${PRECISION:+_$PRECISION}
+    start "$name" --preset paper $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${PRECISION:+--drqv2.precision $PRECISION}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 3 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

@@ -12,6 +12,7 @@ import os
 import pathlib
 import shlex
 import subprocess
+import sys
 
 import pytest
 
@@ -19,6 +20,7 @@ from rebel_jax import cli, teachers
 
 SCRIPT = pathlib.Path(__file__).parents[1] / "experiments" / "baselines_h100.sh"
 STUB = """#!/usr/bin/env bash
+[ "$1" = -c ] && exec "$REAL_PYTHON" "$@"  # python3 -c: a set reading its flags from Python runs it for real
 [ "$1" = python3 ] && shift  # setsid python3 ...
 printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
 """
@@ -31,6 +33,8 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
     ("rebel_walker", {"LAM": "0.01"}),
     ("drqv2_seed", {"TASK": "walker", "SEED": "0", "PRECISION": "bf16"}),
     ("drqv2_seed", {"TASK": "cheetah", "SEED": "1"}),
+    ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "STEPS": "500000", "CAPACITY": "500000"}),
+    ("pixel_seed", {"ALGO": "rebel", "TASK": "walker", "SEED": "0", "STEPS": "250000", "PRECISION": "bf16"}),
     ("surf_cheetah_ru", {"RU": "100"}),
     *[("ladder", {"RUNG": str(rung)}) for rung in range(4)],
     *[(name, {}) for name in ("pebble500", "surf500", "surf500bf16", "pebble500bf16", "pebble1000")],
@@ -54,6 +58,7 @@ def _commands(
         **{k: v for k, v in os.environ.items() if k not in ("LAMS", "LAM", "DETACH")},
         "PATH": f"{bin_dir}:{os.environ['PATH']}",
         "CALLS": str(calls),
+        "REAL_PYTHON": sys.executable,
         "OUT": str(tmp_path),
         **env,
         **({"DETACH": "1"} if detach else {}),
@@ -67,7 +72,7 @@ def _commands(
 
 @pytest.mark.parametrize(("name", "env"), SETS, ids=[f"{n}-{'-'.join(e.values()) or 'default'}" for n, e in SETS])
 def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_path, name, env):
-    detach = name in ("rebel_ablation", "rebel_cheetah", "rebel_teacher", "drqv2_seed")
+    detach = name in ("rebel_ablation", "rebel_cheetah", "rebel_teacher", "drqv2_seed", "pixel_seed")
     commands = _commands(tmp_path, name, env, detach)
     assert commands, f"{name}: no training command"
     for argv in commands:
@@ -84,6 +89,16 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.teacher == teachers.PRESETS[env["TEACHER"]] and env["TEACHER"] in run_dir.name
         if detach:
             assert args.checkpoint_every == 0 and args.video_steps == 0  # nothing that cannot leave the machine
+        if name == "pixel_seed":  # pixel_memory.CONFIGS' run, at STEPS, one seed, the replay CAPACITY
+            task = {"walker": "walker_walk_pixels", "cheetah": "cheetah_run_pixels"}[env["TASK"]]
+            assert (args.config.algo, args.config.env.task) == (env["ALGO"], task)
+            assert (args.seeds, args.config.train.seed, args.config.train.total_steps) == (
+                1,
+                int(env["SEED"]),
+                int(env["STEPS"]),
+            )
+            assert args.config.train.buffer_capacity == int(env.get("CAPACITY", 0))
+            assert args.config.query.sampling == "uniform"
 
 
 def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, monkeypatch):
