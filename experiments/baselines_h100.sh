@@ -61,8 +61,8 @@
 #       since the ninth session) on cheetah_run, 1M steps, PEBBLE's cheetah seeds; LAM=0.001 ran in the tenth
 #       session (3 calls, 1,433 s held, 1,308 s of rounds: 114.6 s with the compile, then 12.05 s);
 #   SET "rebel_teacher" with LAM and TEACHER: PEBBLE and REBEL under one imperfect teacher; LAM=0.001 TEACHER=noisy
-#       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s with the
-#       compile, then 30.8 s); mistake, skip, equal and myopic remain, one machine each;
+#       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s for the
+#       first, its round program from the carried cache, then 30.8 s); mistake, skip, equal and myopic remain, one machine each;
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
