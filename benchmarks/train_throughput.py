@@ -269,7 +269,7 @@ def main():
     use_xla_flags(args.xla_flags)
     results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
     fields = ("device", "what", "algo", "task", "seeds", "precision", "num_envs", "utd", "xla_flags")
-    key = lambda r: tuple(r.get(f) for f in fields)
+    key = lambda r: tuple(r.get(f, "" if f == "xla_flags" else None) for f in fields)  # older rows: no flags set
     rows = {"update": update_rows, "hlo": hlo_rows, "runs": run_rows}[args.mode]
     for row in rows(args):
         results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
