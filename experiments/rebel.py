@@ -160,7 +160,8 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     for label, (steps, returns) in curves.items():
         m, info = stats["methods"][label], infos[label]
         mean_steps, mean_returns = mean_curve(distinct_evaluations((steps, returns)))
-        efficiency, ci = against((steps, returns), pebble_of(label))
+        pebble = pebble_of(label)
+        efficiency, ci = against((steps, returns), pebble)
         vs_surf, surf_ci = against((steps, returns), surf)
         estimator, variant = _setting(info["run_dirs"][0], info["algo"])
         out.append(
@@ -187,7 +188,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "steps_to_threshold": _round(steps_to_reach(mean_steps, mean_returns, threshold), None),
                 "efficiency_vs_pebble": _round(efficiency),
                 "efficiency_ci": [_round(v) for v in ci],
-                "pebble": pebble_of(label),
+                "pebble": pebble,
                 "efficiency_vs_surf": _round(vs_surf),
                 "efficiency_vs_surf_ci": [_round(v) for v in surf_ci],
                 "device": info["device"],
@@ -438,7 +439,8 @@ def main() -> None:
     chosen, signs = chosen_lambda(walker), sign_pairs(walker)
     lambda_figure(walker, RESULTS / "rebel_lambda_walker_walk.png", "walker_walk at 500k, 100 labels, oracle teacher")
     lam = chosen["lam"] if chosen else None
-    teacher_figure(walker, lam, RESULTS / "rebel_teachers_walker_walk.png", "walker_walk at 500k, 100 labels")
+    if chosen is not None:  # the teachers' REBEL is the chosen lambda's
+        teacher_figure(walker, lam, RESULTS / "rebel_teachers_walker_walk.png", "walker_walk at 500k, 100 labels")
     out = {
         "rows": table,
         "on_policy_reward": reward,
