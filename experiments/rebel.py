@@ -82,6 +82,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_walker_100_lams_0.001_0.01_sigmoid_bf16",
         "rebel/rebel_walker_100_lams_0.1_-0.1_bf16",
         "rebel/rebel_walker_100_lams_0_0.001_noisy_bf16",
+        "rebel/rebel_walker_100_lams_0_0.001_mistake_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
