@@ -47,7 +47,8 @@ warnings.filterwarnings("ignore", message=".*settotalmass.*")
 FAST_COMPILE = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 # With it, XLA's CPU backend also emits its fusions the older way (LLVM IR directly, not through the MLIR fusion
 # emitters): a compile of the human-session test's REBEL round took 7.8 s instead of 12.4 s, and cheetah's batched
-# MJX step 7.7 s instead of 12.6 s, with no slower runs (jaxlib 0.10.2, this 2-core machine, 2026-11-25). The flag
+# MJX step 7.7 s instead of 12.6 s, with no slower runs; the fresh-clone suite's tests took 349 s instead of 534 s
+# (jaxlib 0.10.2, this 2-core machine, 2026-11-25). At XLA's default optimisation it did not help. The flag
 # is jaxlib's (pinned in pyproject.toml); a jaxlib that no longer knows it would stop at start-up, naming it.
 LEGACY_FUSION_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
 
