@@ -83,6 +83,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_walker_100_lams_0.1_-0.1_bf16",
         "rebel/rebel_walker_100_lams_0_0.001_noisy_bf16",
         "rebel/rebel_walker_100_lams_0_0.001_mistake_bf16",
+        "rebel/rebel_walker_100_lams_0_0.001_skip_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
@@ -223,9 +224,9 @@ def _save_iqm_figure(fig, ax, path: pathlib.Path, title: str) -> None:
 
     ax.set_ylabel("final return, IQM over seeds")
     ax.set_title(title)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)  # below: clear of the bars
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
