@@ -54,10 +54,12 @@ import pathlib
 
 import numpy as np
 from analysis import (
+    bootstrap_ci,
     common_threshold,
     curve_figure,
     distinct_evaluations,
     final_returns,
+    iqm,
     mean_curve,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
@@ -117,6 +119,11 @@ def _round(x: float, digits: int = 2) -> float | str | None:
     if math.isnan(x):
         return None
     return round(float(x), digits) if math.isfinite(x) else "inf"
+
+
+def _log_dir(log: str) -> pathlib.Path:
+    """A row's ``log`` entry (``results/runs/...``) as its run directory."""
+    return RESULTS / "runs" / log.removeprefix("results/runs/")
 
 
 def _setting(run_dir: pathlib.Path, algo: str) -> tuple[str | None, str | None]:
@@ -382,6 +389,42 @@ def teacher_pairs(rows: list[dict]) -> list[dict]:
     return _sign_tested(entries)
 
 
+def oracle_labelled(run_dir: pathlib.Path) -> bool:
+    """Whether every label of a teacher's run was the oracle's: its teacher answers as the oracle does (``beta``
+    inf, ``gamma`` 1, no mistakes), and in every round with a session, every column's ``session_skipped`` and
+    ``session_equal`` are 0. B-Pref's skip teacher on walker_walk did so (RESULTS.md): such a run repeats the
+    oracle's protocol."""
+    teacher = json.loads((run_dir / "config.json").read_text())["teacher"]
+    if (teacher["beta"], teacher["gamma"], teacher["eps_mistake"]) != (math.inf, 1.0, 0.0):
+        return False
+    sessions = [r for r in _records(run_dir) if "session_skipped" in r]
+    counts = [v for r in sessions for k in ("session_skipped", "session_equal") for v in r[k] if v is not None]
+    return bool(sessions) and not any(counts)
+
+
+def oracle_pooled(rows: list[dict], lam: float) -> dict | None:
+    """PEBBLE and REBEL (the paper's V at ``lam``) over the oracle's rows and the imperfect teachers' rows of
+    runs whose every label was the oracle's (:func:`oracle_labelled`); None without both oracle rows.
+
+    A secondary analysis, chosen after the skip teacher turned out to skip nothing: more seeds of one protocol.
+    Per method: the teachers pooled, ``seeds``, ``final_returns``, ``iqm`` and its 95% bootstrap ``iqm_ci``."""
+    drawn = teacher_rows(rows, lam)
+    if not drawn or drawn[0][0] != "oracle":
+        return None
+    pooled = [d for d in drawn if d[0] == "oracle" or all(oracle_labelled(_log_dir(log)) for log in d[2]["log"])]
+    out: dict = {"lam": lam, "teachers": [teacher for teacher, _, _ in pooled]}
+    for name, k in (("pebble", 1), ("rebel", 2)):
+        scores = [v for d in pooled for v in d[k]["final_returns"]]
+        out[name] = {
+            "seeds": len(scores),
+            "final_returns": scores,
+            "iqm": _round(iqm(scores)),
+            "iqm_ci": [_round(v) for v in bootstrap_ci(scores)],
+            "log": sorted({log for d in pooled for log in d[k]["log"]}),
+        }
+    return out
+
+
 def teacher_figure(rows: list[dict], lam: float, path: pathlib.Path, title: str) -> list[str]:
     """Writes ``path``: per teacher of :func:`teacher_rows` PEBBLE's and REBEL's IQM with the 95% interval, side
     by side. Returns the teachers drawn."""
@@ -451,6 +494,7 @@ def main() -> None:
         "estimator_pairs": paper_pairs(walker, estimator="replay"),
         "output_pairs": paper_pairs(walker, variant=SIGMOID_VARIANT),
         "teacher_pairs": teacher_pairs(walker),
+        "oracle_pooled": oracle_pooled(walker, lam) if chosen else None,
     }
     (RESULTS / "rebel.json").write_text(json.dumps(out, indent=1) + "\n")
     print(
@@ -487,6 +531,14 @@ def main() -> None:
             f"| {rebel['iqm']:.1f} [{rebel['iqm_ci'][0]}, {rebel['iqm_ci'][1]}] | {pairs} "
             f"| {', '.join(f'`{log}`' for log in sorted({*pebble['log'], *rebel['log']}))} |"
         )
+    pooled = out["oracle_pooled"]
+    if pooled and len(pooled["teachers"]) > 1:
+        print(
+            f"\nThe oracle's labels pooled over the runs of teachers {pooled['teachers']} (every label the oracle's):\n"
+        )
+        for name in ("pebble", "rebel"):
+            p = pooled[name]
+            print(f"- {name}: IQM {p['iqm']} [{p['iqm_ci'][0]}, {p['iqm_ci'][1]}] over {p['seeds']} seeds")
     for title, entries in (
         ("+lambda against -lambda, seed by seed (walker_walk; final return at +lambda minus at -lambda)", signs),
         (

@@ -14,6 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+import scipy.stats  # noqa: E402
 
 _PATH = pathlib.Path(__file__).parents[1] / "experiments" / "analysis.py"
 _SPEC = importlib.util.spec_from_file_location("analysis", _PATH)
@@ -487,6 +488,46 @@ def test_rebel_rows_under_a_teacher_are_against_that_teachers_pebble_and_pair_se
     assert (entry["positive"], entry["pairs"], pooled["lam"]) == (2, 3, "all")
     assert rebel.teacher_figure(rows, 0.1, tmp_path / "t.png", "t") == ["oracle", "mistake"]
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _log_sessions(run: pathlib.Path, skipped: list[float], equal: list[float]) -> None:
+    """Adds per-column session counts to a fake run's rounds: a session every other round, NaN (null) between."""
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    for k, row in enumerate(rows):
+        none = [None] * len(skipped)
+        row.update(session_skipped=skipped if k % 2 else none, session_equal=equal if k % 2 else none)
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+
+
+def test_rebel_pools_the_oracle_with_teacher_runs_whose_every_label_was_the_oracles(tmp_path, monkeypatch):
+    rebel = _experiment(monkeypatch, "rebel")
+    monkeypatch.setattr(rebel, "RESULTS", tmp_path)
+    runs = tmp_path / "runs"
+    _fake_curve_run(runs / "pebble", "pebble", 1.0, 3)
+    _fake_curve_run(runs / "oracle", "rebel", 2.0, 3, lams=[0.1] * 3)
+    grid = dict(seeds=6, lams=[0] * 3 + [0.1] * 3)
+    _fake_curve_run(runs / "skip", "rebel", [2, 3, 2, 4, 6, 1], teacher="skip", **grid)
+    _log_sessions(runs / "skip", [0.0] * 6, [0.0] * 6)  # skipped nothing: every label the oracle's
+    _fake_curve_run(runs / "mistake", "rebel", [1, 1, 1, 5, 5, 5], teacher="mistake", **grid)
+    _log_sessions(runs / "mistake", [0.0] * 6, [0.0] * 6)  # its flips are not logged: never the oracle's
+    rows = rebel.rows("walker_walk", [runs / n for n in ("pebble", "oracle", "skip", "mistake")])
+    by = {r["method"]: r for r in rows}
+    assert rebel.oracle_labelled(runs / "skip") and not rebel.oracle_labelled(runs / "mistake")
+    pooled = rebel.oracle_pooled(rows, 0.1)
+    assert pooled["teachers"] == ["oracle", "skip"]
+    for name, labels in (
+        ("pebble", ("pebble", "pebble (rebel lam=0), skip")),
+        ("rebel", ("rebel lam=0.1", "rebel lam=0.1, skip")),
+    ):
+        scores = [v for label in labels for v in by[label]["final_returns"]]
+        assert pooled[name]["final_returns"] == scores and pooled[name]["seeds"] == 6
+        assert pooled[name]["iqm"] == pytest.approx(scipy.stats.trim_mean(scores, 0.25), abs=0.01)
+        low, high = pooled[name]["iqm_ci"]
+        assert min(scores) <= low <= pooled[name]["iqm"] <= high <= max(scores)
+    _log_sessions(runs / "skip", [0.0, 0.0, 1.0, 0.0, 0.0, 0.0], [0.0] * 6)  # one query skipped: not pooled
+    assert not rebel.oracle_labelled(runs / "skip") and rebel.oracle_pooled(rows, 0.1)["teachers"] == ["oracle"]
+    _log_sessions(runs / "skip", [0.0] * 6, [0.0] * 5 + [2.0])  # two equal answers: not pooled either
+    assert not rebel.oracle_labelled(runs / "skip")
 
 
 def test_rebel_on_policy_reward_averages_each_lambdas_columns_over_rounds_and_seeds(tmp_path, monkeypatch):
