@@ -445,6 +445,24 @@ def teacher_figure(rows: list[dict], lam: float, path: pathlib.Path, title: str)
     return [teacher for teacher, _, _ in drawn]
 
 
+def oracle_agreement(run_dir: pathlib.Path) -> dict[str, float]:
+    """Per method of the run: ``session_oracle_agreement`` (the share of its labels equal to the oracle's answers)
+    averaged over its columns' sessions; empty for a run that predates the metric."""
+    records = [r for r in _records(run_dir) if "session_oracle_agreement" in r]
+    out = {}
+    for label, (_, info) in methods(run_dir).items():
+        values = [v for r in records for v in np.asarray(r["session_oracle_agreement"], float)[info["columns"]]]
+        values = [v for v in values if math.isfinite(v)]  # NaN (null) in rounds without a session
+        if values:
+            out[label] = round(float(np.mean(values)), 3)
+    return out
+
+
+def _agreement(row: dict) -> float | str:
+    """A row's :func:`oracle_agreement`; "-" for a row of several runs or of a run that predates the metric."""
+    return oracle_agreement(_log_dir(row["log"][0])).get(row["method"], "-") if len(row["log"]) == 1 else "-"
+
+
 def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
     """Per method of the run: ``train.ROUND_REWARD_METRICS`` over rounds from ``ON_POLICY_FROM`` and seeds.
 
@@ -517,18 +535,20 @@ def main() -> None:
         print(f"\nlambda by the rule of RESULTS.md: {chosen['lam']} (IQM {chosen['iqm']}; among {chosen['among']})")
     print(f"\nUnder B-Pref's teachers (walker_walk, REBEL at lambda {lam}; final returns, IQM [95% CI]):\n")
     print(
-        "| teacher | PEBBLE | REBEL | REBEL minus PEBBLE, seed by seed: mean (positive of pairs, sign test p) | log |"
+        "| teacher | PEBBLE | REBEL | REBEL minus PEBBLE, seed by seed: mean (positive of pairs, sign test p) "
+        "| labels equal to the oracle's (PEBBLE, REBEL) | log |"
     )
-    print("|---|---:|---:|---:|---|")
+    print("|---|---:|---:|---:|---:|---|")
     paired = {(e["teacher"], e["lam"]): e for e in out["teacher_pairs"] if "teacher" in e}
     for teacher, pebble, rebel in teacher_rows(walker, lam):
         e = paired.get((teacher, lam))
         pairs = (
             f"{np.mean(e['differences']):+.1f} ({e['positive']} of {e['pairs']}, p = {e['sign_test_p']})" if e else "-"
         )
+        agreement = ", ".join(str(_agreement(r)) for r in (pebble, rebel))
         print(
             f"| {teacher} | {pebble['iqm']:.1f} [{pebble['iqm_ci'][0]}, {pebble['iqm_ci'][1]}] "
-            f"| {rebel['iqm']:.1f} [{rebel['iqm_ci'][0]}, {rebel['iqm_ci'][1]}] | {pairs} "
+            f"| {rebel['iqm']:.1f} [{rebel['iqm_ci'][0]}, {rebel['iqm_ci'][1]}] | {pairs} | {agreement} "
             f"| {', '.join(f'`{log}`' for log in sorted({*pebble['log'], *rebel['log']}))} |"
         )
     pooled = out["oracle_pooled"]

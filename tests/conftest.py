@@ -48,9 +48,13 @@ FAST_COMPILE = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 # With it, XLA's CPU backend also emits its fusions the older way (LLVM IR directly, not through the MLIR fusion
 # emitters): a compile of the human-session test's REBEL round took 7.8 s instead of 12.4 s, and cheetah's batched
 # MJX step 7.7 s instead of 12.6 s, with no slower runs; the fresh-clone suite's tests took 349 s instead of 534 s
-# (jaxlib 0.10.2, this 2-core machine, 2026-11-25). At XLA's default optimisation it did not help. The flag
-# is jaxlib's (pinned in pyproject.toml); a jaxlib that no longer knows it would stop at start-up, naming it.
-LEGACY_FUSION_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+# (jaxlib 0.10.2, this 2-core machine, 2026-11-25). At XLA's default optimisation it did not help. With the legacy
+# emitters alone, two programs that compute the same thing (PEBBLE, and REBEL at lambda 0) differed by an ulp, most
+# likely because LLVM contracts a multiply and an add into one FMA wherever a fusion holds both, and the programs
+# fuse differently: capping the instruction set at AVX (``--xla_cpu_max_isa=AVX``; FMA comes with AVX2) made them
+# equal bit for bit again, as under the new emitters. The flags are jaxlib's (pinned in pyproject.toml); a jaxlib
+# that no longer knows one would stop at start-up, naming it.
+LEGACY_FUSION_EMITTERS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_max_isa=AVX")
 
 
 def pytest_configure(config):
@@ -59,7 +63,8 @@ def pytest_configure(config):
     fast = os.environ.get(FAST_COMPILE, "0") not in ("", "0")
     jax.config.update("jax_disable_most_optimizations", fast)
     if fast:
-        _add_xla_flag(LEGACY_FUSION_EMITTERS)
+        for flag in LEGACY_FUSION_EMITTERS:
+            _add_xla_flag(flag)
 
 
 class CompiledEnv:

@@ -490,12 +490,14 @@ def test_rebel_rows_under_a_teacher_are_against_that_teachers_pebble_and_pair_se
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def _log_sessions(run: pathlib.Path, skipped: list[float], equal: list[float]) -> None:
-    """Adds per-column session counts to a fake run's rounds: a session every other round, NaN (null) between."""
+def _log_sessions(run: pathlib.Path, skipped: list[float], equal: list[float], agreement: list | None = None) -> None:
+    """Adds per-column session metrics to a fake run's rounds: a session every other round, NaN (null) between."""
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     for k, row in enumerate(rows):
         none = [None] * len(skipped)
         row.update(session_skipped=skipped if k % 2 else none, session_equal=equal if k % 2 else none)
+        if agreement is not None:
+            row["session_oracle_agreement"] = agreement if k % 2 else none
     (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
 
 
@@ -509,10 +511,15 @@ def test_rebel_pools_the_oracle_with_teacher_runs_whose_every_label_was_the_orac
     _fake_curve_run(runs / "skip", "rebel", [2, 3, 2, 4, 6, 1], teacher="skip", **grid)
     _log_sessions(runs / "skip", [0.0] * 6, [0.0] * 6)  # skipped nothing: every label the oracle's
     _fake_curve_run(runs / "mistake", "rebel", [1, 1, 1, 5, 5, 5], teacher="mistake", **grid)
-    _log_sessions(runs / "mistake", [0.0] * 6, [0.0] * 6)  # its flips are not logged: never the oracle's
+    # Its flips are not counted: never the oracle's labels, whatever its agreement.
+    _log_sessions(runs / "mistake", [0.0] * 6, [0.0] * 6, [1.0, 0.9, 0.8, 0.7, 0.6, 0.8])
     rows = rebel.rows("walker_walk", [runs / n for n in ("pebble", "oracle", "skip", "mistake")])
     by = {r["method"]: r for r in rows}
     assert rebel.oracle_labelled(runs / "skip") and not rebel.oracle_labelled(runs / "mistake")
+    # The labels' agreement with the oracle, per method over its columns' sessions; none logged by the skip run.
+    agreement = {"pebble (rebel lam=0), mistake": 0.9, "rebel lam=0.1, mistake": 0.7}
+    assert rebel.oracle_agreement(runs / "mistake") == agreement and rebel.oracle_agreement(runs / "skip") == {}
+    assert [rebel._agreement(by[m]) for m in agreement] == [0.9, 0.7] and rebel._agreement(by["pebble"]) == "-"
     pooled = rebel.oracle_pooled(rows, 0.1)
     assert pooled["teachers"] == ["oracle", "skip"]
     for name, labels in (

@@ -90,6 +90,8 @@ def test_schedule_sessions_and_budget(pebble_run):
     np.testing.assert_array_equal(state.reward.data.count, [48] * 4)
     for key in SESSION_METRICS:
         assert np.all(np.isfinite(metrics[2][key])), key
+    for m, s in zip(metrics, sessions, strict=True):  # the oracle agrees with itself; NaN without a session
+        np.testing.assert_array_equal(m["session_oracle_agreement"], 1.0 if s else np.nan)
 
 
 def test_pebble_learns_a_reward_that_agrees_with_the_teacher(pebble_run):
@@ -231,6 +233,13 @@ def test_surf_with_disagreement_queries_a_skipping_teacher_and_the_asked_budget(
     assert np.all(skipped > 0)  # half the margin skips some pairs of a near-random policy
     np.testing.assert_array_equal(metrics[-1]["labels_used"], 32 - skipped)
     np.testing.assert_array_equal(state.reward.data.count, 32 - skipped)
+    # Skips and equal answers are this teacher's only departures from the oracle: the agreement is over the kept
+    # answers (every session skipped some, so counting them would lower it), the "equal" ones disagreeing; NaN for a
+    # session that kept none.
+    for m in sessions:
+        kept = 16 - m["session_skipped"]
+        expected = np.where(kept > 0, (kept - m["session_equal"]) / np.maximum(kept, 1), np.nan)
+        np.testing.assert_allclose(m["session_oracle_agreement"], expected, rtol=1e-6)
     # A session whose answers were all skipped trains nothing and logs NaN; the last trained model fits.
     accuracy = np.array([m["reward_accuracy_all"] for m in sessions])  # (sessions, seeds)
     kept = np.array([m["session_labels"] for m in sessions])

@@ -69,6 +69,7 @@ SESSION_METRICS = (
     "session_labels",
     "session_skipped",
     "session_equal",
+    "session_oracle_agreement",
     "reward_accuracy_new",
     "reward_accuracy_all",
     "reward_epochs",
@@ -92,6 +93,11 @@ labels came from (high there but low on fresh segments points to a shift between
 segments: its mean, and the fraction of steps within 5% of the output's range from one of its bounds
 (``|r| > 0.9`` for tanh; below 0.05 or above 0.95 for sigmoid). Near its bounds a reward has little
 room left to rank one good behaviour above a better one.
+
+``session_oracle_agreement`` is the share of the answers the reward model learns from (kept and within the
+budget) that equal the oracle teacher's on the same segments: 1 for the oracle; for B-Pref's imperfect teachers
+and for a person, the label noise they actually put into the run (the human page's ``human_agreement`` compares
+a person with the hidden scripted teacher instead, which may itself be imperfect).
 """
 
 
@@ -374,7 +380,7 @@ class Trainer:
         session ``index`` (:func:`within_budget`).
 
         Returns:
-          labels (N,), mask (N,) and the teacher's ``num_skipped`` / ``num_equal`` counts.
+          labels (N,), mask (N,) and the teacher's counts (``teachers.label``'s ``info``).
         """
         query = self.cfg.query
         margin = queries.reward_margin(ts.buffer, self.horizon, self.cfg.env.episode_length, query.recent_episodes)
@@ -528,7 +534,17 @@ class Trainer:
         """
         ts, metrics = self.learn(ts, asked.key_learn, asked.seg_a, asked.seg_b, labels, mask, first)
         metrics = dict(metrics, session=1.0, session_skipped=info["num_skipped"], session_equal=info["num_equal"])
+        metrics["session_oracle_agreement"] = self._oracle_agreement(asked, labels, mask)
         return ts, self._session_summary(ts, metrics)
+
+    def _oracle_agreement(self, asked: SessionQueries, labels: jax.Array, mask: jax.Array) -> jax.Array:
+        """The share of the kept answers (``mask``) that equal the oracle teacher's on the same central steps; NaN
+        if none was kept."""
+        oracle, _, _ = teachers.label(
+            teachers.PRESETS["oracle"], asked.key_teach, self._central(asked.seg_a), self._central(asked.seg_b), 0.0
+        )
+        kept = jnp.sum(mask)
+        return jnp.where(kept > 0, jnp.sum(mask * (labels == oracle)) / jnp.maximum(kept, 1.0), jnp.nan)
 
     def _session_summary(self, ts: TrainState, metrics: dict) -> dict:
         nan = jnp.full((), jnp.nan, jnp.float32)
