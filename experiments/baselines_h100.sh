@@ -64,7 +64,8 @@
 #       ran in the twelfth session (3 calls, 1,733 s held, counted in full; 1,632 s of rounds: 123.4 s for the
 #       first, its round program from the carried cache, then 30.8 s); mistake and skip in the thirteenth (two machines
 #       counted at half, about 1,650 and 1,700 s held; 84.3 s first rounds, then 30.0 and 30.9 s); equal and myopic
-#       remain, one machine each;
+#       remain, one machine each. Since 79e1013 the round also logs session_oracle_agreement, so .gpu_cache no longer
+#       holds its program: the next teacher run's first round compiles it (about 35 s more, not measured);
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
