@@ -67,6 +67,8 @@
 #       remain, one machine each. Since 79e1013 the round also logs session_oracle_agreement, so .gpu_cache no longer
 #       holds its program: the next teacher run's first round compiles it (about 35 s more, not measured);
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
+#   SET "determinism" (not run yet): one walker PEBBLE program run twice from the same keys, compared bit for bit,
+#       without and with --xla_gpu_deterministic_ops, about 8 min;
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
 #   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
@@ -202,6 +204,18 @@ case "${2:-shared}" in
         --batches 1 200 --xla-flags="$flags" --out "$OUT/env_throughput.json" || echo "failed: XLA_FLAGS=$flags"
       timeout 60 python3 benchmarks/train_throughput.py update --seeds 10 --precisions bf16 \
         --xla-flags="$flags" --out "$OUT/train_throughput.json" || echo "failed: XLA_FLAGS=$flags"
+    done
+    exit 0 ;;
+  determinism)  # whether one program run twice from the same seed keys ends in the same state (RESULTS.md: the
+    # teacher programs' PEBBLE columns differed before any label), without and with XLA's deterministic GPU ops,
+    # and what those cost per round: walker PEBBLE, 5 seeds, bf16, 2 rounds per run (the second with the first
+    # session), benchmarks/determinism.py; about 8 minutes after the install (not measured); the rows come back in $OUT
+    export PYTHONPATH=/tmp/site:src:benchmarks
+    cp benchmarks/results/determinism.json "$OUT/" 2>/dev/null
+    run=(--preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16)
+    for flags in "" "--xla_gpu_deterministic_ops=true"; do
+      timeout 270 python3 benchmarks/determinism.py --rounds 2 --xla-flags="$flags" --out "$OUT/determinism.json" \
+        -- "${run[@]}" || echo "failed: XLA_FLAGS=$flags"
     done
     exit 0 ;;
   pebble_env40)

@@ -129,6 +129,23 @@ def test_the_command_buffers_set_times_walker_and_the_update_with_and_without_cu
     assert default == "" and "WHILE" in graphs.split("=")[1].split(",") and small.startswith(graphs + " ")
 
 
+def test_the_determinism_set_runs_one_walker_program_twice_without_and_with_deterministic_ops(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
+    commands = _commands(tmp_path, "determinism", {}, detach=False, program="benchmarks/")
+    assert [argv[0] for argv in commands] == ["benchmarks/determinism.py"] * 2
+    runs = [importlib.import_module("determinism").parser().parse_args(argv[1:]) for argv in commands]
+    assert [a.xla_flags for a in runs] == ["", "--xla_gpu_deterministic_ops=true"]
+    for a in runs:
+        assert a.rounds == 2 and a.out == tmp_path / "determinism.json"
+        args = cli.parse(a.flags)
+        assert (args.config.algo, args.config.env.task, args.seeds, args.config.sac.precision) == (
+            "pebble",
+            "walker_walk",
+            5,
+            "bf16",
+        )
+
+
 def test_a_set_without_its_variable_stops_with_its_name(tmp_path):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()

@@ -41,12 +41,14 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import tyro
+from jax.sharding import NamedSharding
 
 from rebel_jax import plots, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
@@ -522,6 +524,26 @@ def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pa
     return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
 
 
+def column_keys(args: Args, sharding: NamedSharding | None = None) -> jax.Array:
+    """One key per column: the seed keys tiled over the grid (each lambda's and teacher's seed i uses key i)."""
+    keys = jnp.tile(seed_keys(args.config.train.seed, args.seeds), (args.columns // args.seeds, 1))
+    return sweep.shard_seeds(keys, sharding)
+
+
+def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSharding | None = None):
+    """The run's first state: ``init`` (of ``train.compiled``) of the :func:`column_keys`, with each column's
+    lambda and teacher knobs set."""
+    cfg = args.config
+    state = init(keys)
+    grid = args.grid()
+    if cfg.algo == "rebel":
+        state = state.replace(lam=jnp.asarray([lam for lam, _ in grid], jnp.float32))
+    if args.teacher_grid:
+        knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
+        state = state.replace(teacher=jax.tree.map(lambda *xs: jnp.stack(xs), *knobs))
+    return sweep.shard_seeds(state, sharding)
+
+
 def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None = None) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
 
@@ -551,16 +573,9 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     sharding = sweep.seed_sharding(args.columns)
     init, round_fn, evaluate = compiled(trainer, sharding)
-    keys = jnp.tile(seed_keys(cfg.train.seed, args.seeds), (args.columns // args.seeds, 1))
-    keys = sweep.shard_seeds(keys, sharding)
-    state = init(keys)
+    keys = column_keys(args, sharding)
+    state = initial_state(args, init, keys, sharding)
     grid = args.grid()
-    if cfg.algo == "rebel":
-        state = state.replace(lam=jnp.asarray([lam for lam, _ in grid], jnp.float32))
-    if args.teacher_grid:
-        knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
-        state = state.replace(teacher=jax.tree.map(lambda *xs: jnp.stack(xs), *knobs))
-    state = sweep.shard_seeds(state, sharding)
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
     ckpt = Checkpointer(run_dir / "checkpoints") if use_ckpt else None
     start = 0
