@@ -15,7 +15,6 @@ same initial state. Results are merged into ``benchmarks/results/env_throughput.
 from __future__ import annotations
 
 import argparse
-import datetime
 import functools
 import json
 import pathlib
@@ -24,7 +23,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-from timing import add_xla_flags_argument, device_name, random_steps_seconds, use_xla_flags, xla_flags
+from timing import add_xla_flags_argument, provenance, random_steps_seconds, use_xla_flags
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
 
@@ -44,7 +43,6 @@ def time_rollout(env, batch: int, repeats: int = 5) -> float:
 
 def throughput(args):
     """Yields one result row per (task, solver, batch)."""
-    device, date = device_name(), datetime.date.today().isoformat()
     for task in args.tasks:
         for solver in args.solvers:
             env = make_env(task, solver=solver, unroll_substeps=args.unroll)
@@ -53,14 +51,10 @@ def throughput(args):
                     continue
                 sec = time_rollout(env, batch)
                 row = {
-                    "device": device,
-                    "date": date,
-                    "jax": jax.__version__,
-                    "command": " ".join(["python"] + sys.argv),
+                    **provenance(),
                     "task": task,
                     "solver": solver,
                     "unroll_substeps": args.unroll,
-                    "xla_flags": xla_flags(),
                     "batch": batch,
                     "env_steps_per_s": batch / sec,
                     "ms_per_step": sec * 1e3,
@@ -201,13 +195,7 @@ def main():
                 results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]
             args.out.write_text(json.dumps(results, indent=1))
     else:
-        results["fidelity"] = {
-            "date": datetime.date.today().isoformat(),
-            "jax": jax.__version__,
-            "device": device_name(),
-            "command": " ".join(["python"] + sys.argv),
-            "tasks": fidelity(args),
-        }
+        results["fidelity"] = {**provenance(), "tasks": fidelity(args)}
         args.out.write_text(json.dumps(results, indent=1))
 
 

@@ -18,17 +18,15 @@ rounds after the first (which includes compilation) and the projected wall time 
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import pathlib
 import re
 import statistics
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
-from timing import add_xla_flags_argument, device_name, median_seconds, use_xla_flags, xla_flags
+from timing import add_xla_flags_argument, device_name, median_seconds, provenance, use_xla_flags
 
 from rebel_jax import replay
 from rebel_jax.config import PRESETS
@@ -40,9 +38,7 @@ UPDATES_PER_CALL = 20
 
 
 def _row(**kw) -> dict:
-    base = {"device": device_name(), "date": datetime.date.today().isoformat(), "jax": jax.__version__}
-    base["xla_flags"] = xla_flags()
-    return {**base, "command": " ".join(["python"] + sys.argv), **kw}
+    return {**provenance(), **kw}
 
 
 def _update_scan(num_seeds: int, precision: str):
