@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import agent_preference, frame_replay, pixel_reward, surf
+from rebel_jax import agent_preference, frame_replay, pixel_reward, surf, teachers
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
@@ -21,6 +21,7 @@ from rebel_jax.pixel_train import PixelTrainer, policy_of
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.surf import SURFConfig
+from rebel_jax.teachers import TeacherConfig
 from rebel_jax.train import compiled, seed_keys
 
 STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2
@@ -176,6 +177,11 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
     assert trainer.trace_count == 1
     used = [float(m["labels_used"][0]) for m in metrics]
     assert used == [0.0, 4.0, 8.0, 12.0]  # 4 pairs per session, none skipped by the oracle
+    assert np.all(np.isnan(metrics[0]["session_oracle_agreement"]))  # no session in round 0
+    for m in metrics[1:]:  # the oracle agrees with itself
+        np.testing.assert_array_equal(m["session_oracle_agreement"], 1.0)
+        np.testing.assert_array_equal(m["session_skipped"], 0.0)
+        np.testing.assert_array_equal(m["session_equal"], 0.0)
     assert np.all(np.isnan(metrics[0]["reward_loss"]))  # no session before the seed steps are done
     for m in metrics[1:]:
         for key in ("reward_loss", "reward_accuracy_all", "reward_correlation", "critic_loss"):
@@ -217,6 +223,44 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
                 assert start % length <= length - horizon  # inside one episode
                 returns.append(sum(float(true[seed, start + h, e]) for h in range(horizon)))
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
+
+
+def test_an_imperfect_teachers_answers_and_oracle_agreement_match_numpy_segment_returns(run):
+    """A skipping, "equal" and mistaken teacher through the pixel ``teach``, on the replay of the run: its mask,
+    counts and labels, and the share of its kept answers that are the oracle's, against NumPy returns of the
+    stored true rewards; over 16 teacher keys (the mistakes are drawn)."""
+    trainer, _, state, _ = run
+    ts = jax.tree.map(lambda x: x[0], state)
+    ts = ts.replace(reward=ts.reward.replace(data=ts.reward.data.replace(count=jnp.zeros_like(ts.reward.data.count))))
+    seg_a, seg_b = jax.jit(trainer.select, static_argnums=2)(ts, jax.random.PRNGKey(5), False)
+    true, horizon = np.asarray(ts.buffer.true_reward), MICRO.query.segment_length
+    returns_a, returns_b = (
+        np.array([true[r : r + horizon, e].sum() for r, e in zip(np.asarray(s.row), np.asarray(s.env), strict=True)])
+        for s in (seg_a, seg_b)
+    )
+    margin = horizon * true[: int(ts.buffer.size)].mean()
+    # Thresholds from the data: the pair with the lowest best return is skipped, the closest kept pair is equal.
+    # (Each threshold lies halfway between two of the returns, clear of float32 rounding.)
+    best, gap = np.maximum(returns_a, returns_b), np.abs(returns_a - returns_b)
+    lowest = np.sort(best)
+    skipped = best < lowest[:2].mean()
+    closest = np.sort(gap[~skipped])
+    teacher = TeacherConfig(eps_mistake=0.5, eps_skip=lowest[:2].mean() / margin, eps_equal=closest[:2].mean() / margin)
+    assert margin > 0 and lowest[0] < lowest[1] and len(closest) >= 2 and closest[0] < closest[1]
+    ts = ts.replace(teacher=teachers.knobs(teacher))
+    keys = jax.random.split(jax.random.PRNGKey(6), 16)
+    teach = jax.jit(jax.vmap(trainer.teach, in_axes=(None, 0, None, None, None)))
+    labels, mask, info = jax.device_get(teach(ts, keys, seg_a, seg_b, jnp.int32(0)))
+    equal, oracle = (gap < closest[:2].mean()) & ~skipped, (returns_a < returns_b).astype(np.float32)
+    np.testing.assert_array_equal(mask, np.broadcast_to(~skipped, mask.shape).astype(np.float32))
+    np.testing.assert_array_equal(info["num_skipped"], skipped.sum())
+    np.testing.assert_array_equal(info["num_equal"], equal.sum())
+    np.testing.assert_array_equal(labels[:, equal], 0.5)
+    answered = ~skipped & ~equal
+    assert np.all((labels[:, answered] == oracle[answered]) | (labels[:, answered] == 1 - oracle[answered]))
+    expected = np.mean(labels[:, ~skipped] == oracle[~skipped], axis=1)
+    np.testing.assert_allclose(info["oracle_agreement"], expected, rtol=1e-6)
+    assert len(set(expected.tolist())) > 1  # the drawn mistakes move the agreement
 
 
 # The paper's V (rebel.source onpolicy, the default): the evaluation episode's 10 agent steps, whole.

@@ -77,6 +77,9 @@ PIXEL_SESSION_METRICS = (
     "session",
     "labels_used",
     "session_labels",
+    "session_skipped",
+    "session_equal",
+    "session_oracle_agreement",
     "reward_accuracy_new",
     "reward_accuracy_all",
     "reward_epochs",
@@ -85,7 +88,8 @@ PIXEL_SESSION_METRICS = (
 )
 """Per-round metrics of a pixel feedback session (NaN in rounds without one, except ``labels_used``).
 ``reward_correlation`` is the Pearson correlation of the relabelled (learned) and the true reward over
-every written row of the replay, per step."""
+every written row of the replay, per step. ``session_skipped``, ``session_equal`` and ``session_oracle_agreement``
+are the scripted teacher's, as in :data:`rebel_jax.train.SESSION_METRICS`."""
 
 METRICS = ("critic_loss", "actor_loss", "q", "target_q", "std")
 
@@ -326,6 +330,10 @@ class PixelTrainer:
         session ``index`` (:func:`rebel_jax.train.within_budget`).
 
         The margin (skip / equal thresholds) is ``H x`` the mean true reward of the written rows.
+
+        Returns:
+          ``(labels, mask, info)``: :func:`rebel_jax.teachers.label`'s, the mask limited to the budget, and
+          ``info`` with the share of the kept answers that are the oracle's (``oracle_agreement``).
         """
         buffer = ts.buffer
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None]
@@ -335,8 +343,10 @@ class PixelTrainer:
         seg_a, seg_b = self._central(seg_a), self._central(seg_b)
         true_a = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_a, self.horizon))
         true_b = Segments(obs=None, action=None, true_reward=pixel_reward.true_returns(buffer, seg_b, self.horizon))
-        labels, mask, _ = teachers.label(teachers.TeacherConfig(**ts.teacher), key, true_a, true_b, margin)
-        return labels, within_budget(self.cfg.feedback, mask, ts.reward.data.count, index)
+        labels, mask, info = teachers.label(teachers.TeacherConfig(**ts.teacher), key, true_a, true_b, margin)
+        mask = within_budget(self.cfg.feedback, mask, ts.reward.data.count, index)
+        info = dict(info, oracle_agreement=teachers.oracle_agreement(key, true_a, true_b, labels, mask))
+        return labels, mask, info
 
     def _central(self, seg: pixel_reward.SegmentPlaces) -> pixel_reward.SegmentPlaces:
         return seg.replace(row=seg.row + self.crop)
@@ -513,9 +523,14 @@ class PixelTrainer:
         key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
         seg_a, seg_b = self.select(ts, key_select, first)
-        labels, mask = self.teach(ts, key_teach, seg_a, seg_b, index)
+        labels, mask, info = self.teach(ts, key_teach, seg_a, seg_b, index)
         ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first, agent_step)
-        return ts, self._session_summary(ts, dict(metrics, session=1.0))
+        teacher = dict(
+            session_skipped=info["num_skipped"],
+            session_equal=info["num_equal"],
+            session_oracle_agreement=info["oracle_agreement"],
+        )
+        return ts, self._session_summary(ts, dict(metrics, session=1.0, **teacher))
 
     def _session_summary(self, ts: PixelTrainState, metrics: dict) -> dict:
         nan = jnp.full((), jnp.nan, jnp.float32)

@@ -165,3 +165,19 @@ def label(
         "num_equal": jnp.sum(equal & ~skipped).astype(jnp.int32),
     }
     return labels, mask, info
+
+
+def oracle_agreement(key: jax.Array, seg_a: Any, seg_b: Any, labels: jax.Array, mask: jax.Array) -> jax.Array:
+    """The share of the kept answers (``mask``) that equal the oracle's on the same segments; NaN if none was kept.
+
+    The label noise a teacher (scripted, or a person) actually put into a session: 1 for the oracle, the
+    flipped and "equal" answers lowering it. Skipped pairs (mask 0) do not count.
+
+    Args:
+      key: any PRNG key (the oracle draws nothing from it).
+      seg_a, seg_b: as for :func:`label`.
+      labels: (N,) the answers; mask: (N,) 1 for a kept answer, 0 otherwise.
+    """
+    oracle, _, _ = label(PRESETS["oracle"], key, seg_a, seg_b, 0.0)
+    kept = jnp.sum(mask)
+    return jnp.where(kept > 0, jnp.sum(mask * (labels == oracle)) / jnp.maximum(kept, 1.0), jnp.nan)

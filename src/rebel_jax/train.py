@@ -534,17 +534,10 @@ class Trainer:
         """
         ts, metrics = self.learn(ts, asked.key_learn, asked.seg_a, asked.seg_b, labels, mask, first)
         metrics = dict(metrics, session=1.0, session_skipped=info["num_skipped"], session_equal=info["num_equal"])
-        metrics["session_oracle_agreement"] = self._oracle_agreement(asked, labels, mask)
-        return ts, self._session_summary(ts, metrics)
-
-    def _oracle_agreement(self, asked: SessionQueries, labels: jax.Array, mask: jax.Array) -> jax.Array:
-        """The share of the kept answers (``mask``) that equal the oracle teacher's on the same central steps; NaN
-        if none was kept."""
-        oracle, _, _ = teachers.label(
-            teachers.PRESETS["oracle"], asked.key_teach, self._central(asked.seg_a), self._central(asked.seg_b), 0.0
+        metrics["session_oracle_agreement"] = teachers.oracle_agreement(
+            asked.key_teach, self._central(asked.seg_a), self._central(asked.seg_b), labels, mask
         )
-        kept = jnp.sum(mask)
-        return jnp.where(kept > 0, jnp.sum(mask * (labels == oracle)) / jnp.maximum(kept, 1.0), jnp.nan)
+        return ts, self._session_summary(ts, metrics)
 
     def _session_summary(self, ts: TrainState, metrics: dict) -> dict:
         nan = jnp.full((), jnp.nan, jnp.float32)
