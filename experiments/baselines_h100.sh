@@ -65,14 +65,18 @@
 #       first, its round program from the carried cache, then 30.8 s); mistake and skip in the thirteenth (two machines
 #       counted at half, about 1,650 and 1,700 s held; 84.3 s first rounds, then 30.0 and 30.9 s); equal and myopic
 #       remain, one machine each. Since 79e1013 the round also logs session_oracle_agreement, so .gpu_cache no longer
-#       holds its program: the next teacher run's first round compiles it (about 35 s more, not measured);
+#       held its program: equal's first round (fourteenth session, code 83927f7; 3 calls, about 1,673 s held, counted
+#       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic remains, one machine;
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
-#   SET "determinism" (not run yet): one walker PEBBLE program run twice from the same keys, compared bit for bit,
-#       without and with --xla_gpu_deterministic_ops, about 8 min;
+#   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
+#       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
+#       none with; rounds 22.5 s against 28.3 s);
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
-#   SET "drqv2_bench" (issue 12, not run yet): DrQ-v2's update timed by parts and with the patch-product kernel
-#       gradient, about 3 minutes; its JSON rows come back in $OUT;
+#   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
+#       JSON rows come back in $OUT. Fourteenth session: under timeouts of 150 s and 110 s it wrote 4 parts and the XLA
+#       update row, not the conv parts nor the patch rows (each part compiles its own program); now 330 s and 200 s,
+#       about 9 minutes (not measured);
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's
 #       10-column rounds take about 31 s).
@@ -184,13 +188,13 @@ case "${2:-shared}" in
     name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${PRECISION:+_$PRECISION}
     start "$name" --preset paper $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${PRECISION:+--drqv2.precision $PRECISION}
     exit 0 ;;
-  drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 3 min after the install): where one
+  drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel
     # gradients against the patch product (drqv2_update.py); the rows merge into copies of the repo's tables in $OUT
     export PYTHONPATH=/tmp/site:src:benchmarks
     cp benchmarks/results/drqv2_parts.json benchmarks/results/drqv2_update.json "$OUT/" 2>/dev/null
-    timeout 150 python3 benchmarks/drqv2_parts.py --precision bf16 --out "$OUT/drqv2_parts.json"
-    timeout 110 python3 benchmarks/drqv2_update.py --precision bf16 --seed-loop on --kernel-grad xla patches --out "$OUT/drqv2_update.json"
+    timeout 330 python3 benchmarks/drqv2_parts.py --precision bf16 --out "$OUT/drqv2_parts.json"
+    timeout 200 python3 benchmarks/drqv2_update.py --precision bf16 --seed-loop on --kernel-grad xla patches --out "$OUT/drqv2_update.json"
     exit 0 ;;
   command_buffers)  # the two halves of a walker round, with the H100's command buffers (CUDA graphs) extended to
     # while loops against XLA's default: walker's control step (10 physics substeps of small kernels in while loops:
@@ -209,7 +213,7 @@ case "${2:-shared}" in
   determinism)  # whether one program run twice from the same seed keys ends in the same state (RESULTS.md: the
     # teacher programs' PEBBLE columns differed before any label), without and with XLA's deterministic GPU ops,
     # and what those cost per round: walker PEBBLE, 5 seeds, bf16, 2 rounds per run (the second with the first
-    # session), benchmarks/determinism.py; about 8 minutes after the install (not measured); the rows come back in $OUT
+    # session), benchmarks/determinism.py; 494 s with the install on a fresh H100 (fourteenth session); rows in $OUT
     export PYTHONPATH=/tmp/site:src:benchmarks
     cp benchmarks/results/determinism.json "$OUT/" 2>/dev/null
     run=(--preset paper --algo pebble --task walker_walk --labels 100 --seeds 5 --precision bf16)
