@@ -46,6 +46,21 @@ BAD = {
     "run-dir-proc": (["--run-dir", "/proc/rebel_jax_test/run"], ["run_dir='/proc/rebel_jax_test/run'", "writable"]),
     "resume-and-overwrite": (["--run-dir", "r", "--resume", "--overwrite"], ["overwrite", "--resume"]),
     "distributed-without-run-dir": (["--distributed"], ["run_dir=None", "--distributed", "share"]),
+    # Settings the run would silently ignore (the tiny preset's algo is sac).
+    "labels-with-sac": (
+        ["--labels", "-3"],
+        ["feedback settings", "--algo sac", "feedback only with a preference algo"],
+    ),
+    "teacher-with-sac": (["--teacher", "equal"], ["teacher settings", "teacher only with a preference algo"]),
+    "rebel-with-pebble": (
+        ["--algo", "pebble", "--rebel.lam", "0.1"],
+        ["rebel settings", "rebel only with --algo rebel"],
+    ),
+    "drqv2-on-a-state-task": (["--drqv2.nstep", "1"], ["drqv2 settings", "drqv2 only with a pixel task"]),
+    "precision-on-pixels": (
+        ["--task", "probe_point_pixels", "--algo", "drqv2", "--precision", "bf16", "--surf.crop", "2"],
+        ["sac, surf settings", "'probe_point_pixels'", "sac only with a state task; surf only with --algo surf"],
+    ),
 }
 
 

@@ -718,6 +718,13 @@ def _check_args(args: Args, preset: Config) -> None:
     unknown = [t for t in args.teacher_grid if t not in teachers.PRESETS]
     if unknown:
         raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
+    changed = {part: where for part, where in cfg.unused_parts().items() if getattr(cfg, part) != getattr(preset, part)}
+    if changed:
+        allowed = "; ".join(f"{part} only with {where}" for part, where in changed.items())
+        raise ConfigError(
+            f"{', '.join(changed)} settings are invalid with --algo {cfg.algo} on {cfg.env.task!r} (the run would"
+            f" ignore them): allowed {allowed}"
+        )
     capacity = cfg.reward.label_capacity
     if cfg.preference and capacity != preset.reward.label_capacity and capacity < cfg.feedback.labels:
         raise ConfigError(

@@ -257,6 +257,24 @@ class Config:
         """Whether the task observes frame stacks (``<task>_pixels``)."""
         return self.env.task.endswith("_pixels")
 
+    def unused_parts(self) -> dict[str, str]:
+        """The parts of this config that the run never reads, each with where it is read instead: ``sac`` on
+        state tasks, ``drqv2`` on pixel tasks; ``feedback``, ``query``, ``teacher``, ``pretrain`` and ``reward``
+        (``pixel_reward`` on pixels) by the preference methods; ``surf`` and ``rebel`` by their own algo."""
+        where = {
+            "sac": "a state task",
+            "drqv2": "a pixel task",
+            **dict.fromkeys(("feedback", "query", "teacher", "pretrain"), "a preference algo (pebble, surf, rebel)"),
+            "reward": "a preference algo on a state task",
+            "pixel_reward": "a preference algo on a pixel task",
+            "surf": "--algo surf",
+            "rebel": "--algo rebel",
+        }
+        used = {"drqv2" if self.pixels else "sac", self.algo}
+        if self.preference:
+            used |= {"feedback", "query", "teacher", "pretrain", "pixel_reward" if self.pixels else "reward"}
+        return {part: text for part, text in where.items() if part not in used}
+
     @property
     def feedback_start(self) -> int:
         """Env step of the first feedback session (= end of pre-training).
