@@ -45,39 +45,19 @@ GIB = 2**30
 GPU_BYTES = 78 * GIB
 """What the lent H100 gives a process (about 78 GiB of its 80 GB)."""
 
-_WALKER = ["--task", "walker_walk_pixels", "--drqv2.nstep", "1", "--drqv2.batch-size", "512"]
-_WALKER += ["--drqv2.std-steps", "100000"]
-_CHEETAH = ["--task", "cheetah_run_pixels"]
-_RUN = ["--total-steps", "500000", "--seed-steps", "2000", "--eval-episodes", "10"]
-_DRQV2 = ["--algo", "drqv2", *_RUN, "--num-envs", "10", "--steps-per-round", "10000", "--eval-every", "10000"]
-# Preference runs: the first session (after the 2,000 seed steps) needs a complete 500-step episode, so
-# at most 4 envs; rounds of 1,000 agent steps divide the seed steps and SURF's session intervals. SURF's pixel
-# branch (alinlab/SURF, branch pixel, commit 214bc1d) samples queries uniformly only (pixel_train_PEBBLE_semi.py
-# :250-257, the other feed types commented out; pixel_train_PEBBLE.py's feed_type defaults to 0, uniform:
-# cfgs/config_pebble.yaml:44) from the last 20 episodes (reward_max_episodes: cfgs/config_pebble.yaml:56).
-_PREF = [*_RUN, "--num-envs", "4", "--steps-per-round", "1000", "--eval-every", "10000"]
-_PREF += ["--query.sampling", "uniform", "--query.recent-episodes", "20"]
-# SURF's commands (README.md:22 walker, :32 cheetah; num_interact in frames, so agent steps are half):
-# walker 200 labels, 10 per session, every 30k frames, time crop 2, lambda_u 0.1; cheetah 1,000 labels, 25 per
-# session, every 20k frames, time crop 5, lambda_u left at 1 (cfgs/config_pebble_semi.yaml:66). Both: threshold_u
-# 0.99, reward_update 20, mu 1 (config_pebble_semi.yaml:67), inv_label_ratio 5 (pool pairs per session: 5 x the
-# queries per session).
-_SURF = ["--surf.threshold", "0.99", "--surf.ratio", "1", "--surf.reward-update", "20"]
-_WALKER_LABELS = ["--labels", "200", "--per-session", "10", "--interval", "15000"]
-_CHEETAH_LABELS = ["--labels", "1000", "--per-session", "25", "--interval", "10000"]
-_WALKER_SURF = [*_SURF, "--surf.crop", "2", "--surf.weight", "0.1", "--surf.pool-size", "50"]
-_CHEETAH_SURF = [*_SURF, "--surf.crop", "5", "--surf.weight", "1.0", "--surf.pool-size", "125"]
-
+# SURF's pixel protocol is the presets surf_pixels_walker / surf_pixels_cheetah (rebel_jax.config._surf_pixels);
+# the DrQ-v2 runs take 10 envs and rounds of 10,000 agent steps instead of its 4 envs and 1,000.
+# REBEL at the lambda the rule of RESULTS.md chose on state walker_walk (0.001), carried over unchanged.
+_ALGO = {
+    "drqv2": ["--algo", "drqv2", "--num-envs", "10", "--steps-per-round", "10000"],
+    "pebble": ["--algo", "pebble"],
+    "surf": ["--algo", "surf"],
+    "rebel": ["--algo", "rebel", "--rebel.lam", "0.001"],
+}
 CONFIGS: dict[str, list[str]] = {
-    "drqv2_walker": [*_DRQV2, *_WALKER],
-    "drqv2_cheetah": [*_DRQV2, *_CHEETAH],
-    "pebble_walker": ["--algo", "pebble", *_PREF, *_WALKER, *_WALKER_LABELS],
-    "pebble_cheetah": ["--algo", "pebble", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
-    "surf_walker": ["--algo", "surf", *_PREF, *_WALKER, *_WALKER_LABELS, *_WALKER_SURF],
-    "surf_cheetah": ["--algo", "surf", *_PREF, *_CHEETAH, *_CHEETAH_LABELS, *_CHEETAH_SURF],
-    # REBEL at the lambda the rule of RESULTS.md chose on state walker_walk (0.001), carried over unchanged.
-    "rebel_walker": ["--algo", "rebel", "--rebel.lam", "0.001", *_PREF, *_WALKER, *_WALKER_LABELS],
-    "rebel_cheetah": ["--algo", "rebel", "--rebel.lam", "0.001", *_PREF, *_CHEETAH, *_CHEETAH_LABELS],
+    f"{algo}_{task}": ["--preset", f"surf_pixels_{task}", *flags]
+    for algo, flags in _ALGO.items()
+    for task in ("walker", "cheetah")
 }
 """The CLI flags of each configuration (``python -m rebel_jax.train --seeds 5 FLAGS``)."""
 
@@ -187,11 +167,8 @@ def schedule(trainer: PixelTrainer) -> dict:
 
 
 def with_total_steps(flags: list[str], total_steps: int) -> list[str]:
-    """``flags`` with ``--total-steps`` replaced (0: unchanged)."""
-    flags = list(flags)
-    if total_steps:
-        flags[flags.index("--total-steps") + 1] = str(total_steps)
-    return flags
+    """``flags`` with ``--total-steps`` (0: the preset's)."""
+    return [*flags, "--total-steps", str(total_steps)] if total_steps else list(flags)
 
 
 def of_variant(rows: list[dict], variant: str = "") -> list[dict]:
@@ -298,7 +275,7 @@ def main() -> None:
     }
     for name in args.configs:
         flags = with_total_steps(CONFIGS[name], args.total_steps) + args.flags.split()
-        trainer = PixelTrainer(parse(["--preset", "paper", *flags]).config)
+        trainer = PixelTrainer(parse(flags).config)
         command = f"python -m rebel_jax.train --seeds {args.seeds} " + " ".join(flags)
         base = {"config": name, "variant": args.flags, "command": command, **meta}
         base.update(schedule(trainer))

@@ -60,8 +60,7 @@ def job_flags(job: str, steps_per_round: int, total_steps: int, tiny: bool) -> l
     flags = with_total_steps(CONFIGS[job], total_steps)
     if tiny:
         return ["--preset", "tiny", "--algo", flags[flags.index("--algo") + 1], *TINY]
-    flags[flags.index("--steps-per-round") + 1] = str(steps_per_round)
-    return ["--preset", "paper", *flags]
+    return [*flags, "--steps-per-round", str(steps_per_round)]
 
 
 def peak_gib() -> float | None:

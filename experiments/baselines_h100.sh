@@ -186,7 +186,7 @@ case "${2:-shared}" in
     root=$(cd "$(dirname "$0")/.." && pwd)
     flags=$(python3 -c "import sys; sys.path[:0] = ['$root/benchmarks', '$root/src']; from pixel_memory import CONFIGS; print(' '.join(CONFIGS['${ALGO:?set ALGO}_${TASK:?set TASK}']))") || exit 1
     name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${PRECISION:+_$PRECISION}
-    start "$name" --preset paper $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${PRECISION:+--drqv2.precision $PRECISION}
+    start "$name" $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${PRECISION:+--drqv2.precision $PRECISION}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

@@ -15,7 +15,7 @@ from rebel_jax import agent_preference, frame_replay, pixel_reward, surf, teache
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
-from rebel_jax.drqv2 import DrQV2Config
+from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
 from rebel_jax.pixel_train import PixelTrainer, policy_of
 from rebel_jax.pretrain import PretrainConfig
@@ -383,6 +383,33 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
         dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(episodes=2)).validate()  # 1 evaluation env
     with pytest.raises(ValueError, match="rebel.horizon"):
         PixelTrainer(dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(horizon=11)))  # episodes of 10
+
+
+@pytest.mark.parametrize("task", ["walker", "cheetah"])
+def test_the_surf_pixel_presets_are_surfs_commands_for_every_pixel_algo(task):
+    """``--preset surf_pixels_<task>``: SURF's pixel commands (alinlab/SURF branch pixel, README.md:22 walker and
+    :32 cheetah, num_interact and num_seed_steps in frames, which are 2 agent steps here), DrQ-v2's per-task
+    agent, and a valid run for each pixel algo."""
+    frames_per_step = 2
+    surf_commands = {  # max_feedback, reward_batch, num_interact (frames), segment crop, lambda_u (unlabel weight)
+        "walker": dict(labels=200, per_session=10, interval_frames=30_000, crop=2, weight=0.1),
+        "cheetah": dict(labels=1000, per_session=25, interval_frames=20_000, crop=5, weight=1.0),
+    }[task]
+    name = {"walker": "walker_walk", "cheetah": "cheetah_run"}[task]
+    for algo in ("pebble", "surf", "rebel", "drqv2"):
+        cfg = parse(["--preset", f"surf_pixels_{task}", "--algo", algo]).config
+        assert cfg.env.task == f"{name}_pixels" and cfg.drqv2 == task_config(name)
+        assert cfg.train.seed_steps * frames_per_step == 4_000  # DrQ-v2's num_seed_frames (cfgs/config.yaml:11)
+        fb = cfg.feedback
+        assert (fb.labels, fb.per_session) == (surf_commands["labels"], surf_commands["per_session"])
+        assert fb.interval * frames_per_step == surf_commands["interval_frames"]
+        assert (cfg.surf.crop, cfg.surf.weight, cfg.surf.threshold) == (
+            surf_commands["crop"],
+            surf_commands["weight"],
+            0.99,
+        )
+        assert cfg.surf.pool_size == 5 * fb.per_session  # inv_label_ratio 5
+        assert (cfg.query.sampling, cfg.query.recent_episodes) == ("uniform", 20)
 
 
 # -- REBEL's on-policy V on pixels: the evaluation episode's kept frames -------------------------------

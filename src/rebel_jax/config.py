@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 import tyro
 
 from rebel_jax.agent_preference import AgentPreferenceConfig
-from rebel_jax.drqv2 import DrQV2Config
+from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
 from rebel_jax.pixel_reward import PixelRewardConfig
@@ -388,17 +388,54 @@ def _demo() -> Config:
     )
 
 
+_PAPER = Config(
+    query=QueryConfig(sampling="disagreement"),
+    pretrain=PretrainConfig(running_std="bpref"),
+    feedback=FeedbackConfig(budget="asked"),
+)
+
+
+def _surf_pixels(task: str) -> Config:
+    """SURF's pixel protocol on ``task`` (alinlab/SURF, branch ``pixel``; notes/surf_pixel_audit.md), for
+    ``--algo pebble`` (the default), ``surf``, ``rebel`` and ``drqv2``: the ``paper`` preset's accounting with
+    DrQ-v2's agent for the task (``drqv2.task_config``), 500k agent steps (1M frames; the issue's walker runs stop
+    at 250k, ``--total-steps``), DrQ-v2's 4,000 seed frames, 10 evaluation episodes every 10k steps.
+
+    - Queries: uniform only (pixel_train_PEBBLE_semi.py:250-257; feed_type 0, cfgs/config_pebble.yaml:44) from the
+      last 20 episodes (reward_max_episodes, config_pebble.yaml:56).
+    - Labels (README.md:22 walker, :32 cheetah; num_interact in frames, so agent steps are half): walker 200, 10
+      per session, every 30k frames; cheetah 1,000, 25 per session, every 20k frames.
+    - SURF (same commands): threshold_u 0.99, mu 1, reward_update 20, pool 5 x the session's queries
+      (inv_label_ratio 5); walker time crop 2 and lambda_u 0.1, cheetah crop 5 and lambda_u left at 1
+      (cfgs/config_pebble_semi.yaml:66-67).
+    - 4 envs and rounds of 1,000 agent steps: the first session (after the 2,000 seed steps) needs a complete
+      500-step episode in each env, and 1,000 divides the seed steps and both session intervals. The DrQ-v2 runs
+      so far used 10 envs (``--num-envs 10``, with rounds that divide the 500-step episodes' seed steps).
+    """
+    walker = task.startswith("walker")
+    queries, interval, labels = (10, 15_000, 200) if walker else (25, 10_000, 1_000)
+    crop, weight = (2, 0.1) if walker else (5, 1.0)
+    return dataclasses.replace(
+        _PAPER,
+        algo="pebble",
+        env=EnvConfig(task=f"{task}_pixels", num_envs=4),
+        train=TrainConfig(total_steps=500_000, seed_steps=2_000, steps_per_round=1_000, eval_every=10_000),
+        feedback=FeedbackConfig(labels=labels, per_session=queries, interval=interval, budget="asked"),
+        query=dataclasses.replace(_PAPER.query, sampling="uniform", recent_episodes=20),
+        surf=SURFConfig(threshold=0.99, ratio=1, reward_update=20, crop=crop, weight=weight, pool_size=5 * queries),
+        drqv2=task_config(task),
+    )
+
+
 PRESETS: dict[str, Config] = {
-    "paper": Config(
-        query=QueryConfig(sampling="disagreement"),
-        pretrain=PretrainConfig(running_std="bpref"),
-        feedback=FeedbackConfig(budget="asked"),
-    ),
+    "paper": _PAPER,
     "tiny": _tiny(),
     "demo": _demo(),
+    "surf_pixels_walker": _surf_pixels("walker_walk"),
+    "surf_pixels_cheetah": _surf_pixels("cheetah_run"),
 }
 """``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2), with its disagreement query
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
 ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small preference-learning run that learns on a
-CPU (``_demo``)."""
+CPU (``_demo``). ``surf_pixels_walker`` and ``surf_pixels_cheetah``: SURF's pixel runs (``_surf_pixels``)."""
