@@ -47,10 +47,13 @@ TINY = [
     "--task", "probe_point_pixels", "--episode-length", "20", "--num-envs", "2", "--total-steps", "200",
     "--seed-steps", "20", "--steps-per-round", "20", "--eval-every", "20", "--eval-episodes", "1",
     "--drqv2.batch-size", "16", "--drqv2.hidden", "16", "--drqv2.feature-dim", "8", "--drqv2.nstep", "1",
+]  # fmt: skip
+TINY_PREFERENCE = [
     "--labels", "12", "--per-session", "4", "--interval", "20", "--query.segment-length", "4",
     "--pretrain.reset-updates", "2",
 ]  # fmt: skip
-"""``--tiny``: 16x16 probe_point_pixels, episodes of 10 agent steps, rounds of 20 (a session every round)."""
+"""``--tiny``: 16x16 probe_point_pixels, episodes of 10 agent steps, rounds of 20 (with a preference algo,
+``TINY_PREFERENCE``: a session every round)."""
 
 
 def job_flags(job: str, steps_per_round: int, total_steps: int, tiny: bool) -> list[str]:
@@ -59,7 +62,8 @@ def job_flags(job: str, steps_per_round: int, total_steps: int, tiny: bool) -> l
     ``tiny`` its algorithm on :data:`TINY`'s probe."""
     flags = with_total_steps(CONFIGS[job], total_steps)
     if tiny:
-        return ["--preset", "tiny", "--algo", flags[flags.index("--algo") + 1], *TINY]
+        algo = flags[flags.index("--algo") + 1]
+        return ["--preset", "tiny", "--algo", algo, *TINY, *([] if algo == "drqv2" else TINY_PREFERENCE)]
     return [*flags, "--steps-per-round", str(steps_per_round)]
 
 
