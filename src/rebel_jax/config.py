@@ -270,7 +270,7 @@ class Config:
             "surf": "--algo surf",
             "rebel": "--algo rebel",
         }
-        used = {"drqv2" if self.pixels else "sac", self.algo}
+        used = {"drqv2" if self.pixels else "sac", self.algo}  # the algo's own part: surf or rebel
         if self.preference:
             used |= {"feedback", "query", "teacher", "pretrain", "pixel_reward" if self.pixels else "reward"}
         return {part: text for part, text in where.items() if part not in used}
@@ -409,8 +409,8 @@ def _surf_pixels(task: str) -> Config:
       (inv_label_ratio 5); walker time crop 2 and lambda_u 0.1, cheetah crop 5 and lambda_u left at 1
       (cfgs/config_pebble_semi.yaml:66-67).
     - 4 envs and rounds of 1,000 agent steps: the first session (after the 2,000 seed steps) needs a complete
-      500-step episode in each env, and 1,000 divides the seed steps and both session intervals. The DrQ-v2 runs
-      so far used 10 envs (``--num-envs 10``, with rounds that divide the 500-step episodes' seed steps).
+      500-step episode in each env, and 1,000 divides the seed steps and both session intervals. DrQ-v2 alone
+      needs no such episode; its runs so far used 10 envs (``--num-envs 10``).
     """
     walker = task.startswith("walker")
     queries, interval, labels = (10, 15_000, 200) if walker else (25, 10_000, 1_000)

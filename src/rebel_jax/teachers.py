@@ -174,7 +174,7 @@ def oracle_agreement(key: jax.Array, seg_a: Any, seg_b: Any, labels: jax.Array, 
     flipped and "equal" answers lowering it. Skipped pairs (mask 0) do not count.
 
     Args:
-      key: any PRNG key (the oracle draws nothing from it).
+      key: any PRNG key (the oracle's answers do not depend on it).
       seg_a, seg_b: as for :func:`label`.
       labels: (N,) the answers; mask: (N,) 1 for a kept answer, 0 otherwise.
     """
