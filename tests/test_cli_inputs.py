@@ -147,6 +147,20 @@ def _strict_loads(text: str):
     return json.loads(text, parse_constant=refuse)
 
 
+def test_without_the_bar_each_round_prints_one_plain_line(tmp_path, capsys):
+    logger = RunLogger(tmp_path, 2_000, progress=False, tensorboard=False)
+    for r, (eval_return, labels) in enumerate([(np.nan, 0.0), (12.5, 40.0)]):
+        metrics = {"eval_return": np.array([eval_return, eval_return]), "labels_used": np.array([labels, labels])}
+        logger.write(1_000 * (r + 1), metrics, {"env_steps_per_s": 250.0 * (r + 1)})
+    logger.close()
+    out = capsys.readouterr()
+    assert out.out.splitlines() == [
+        "1,000/2,000 steps  steps/s 250  labels 0",  # no evaluation yet: its mean is null, so not shown
+        "2,000/2,000 steps  steps/s 500  eval 12.5  labels 40",
+    ]
+    assert "\r" not in out.err  # no bar
+
+
 def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path, capsys):
     logger = RunLogger(tmp_path, 100, progress=True, tensorboard=False, names=["seed 0", "seed 1 (lambda 1)"])
     nan, inf = math.nan, math.inf

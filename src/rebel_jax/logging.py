@@ -58,7 +58,8 @@ class RunLogger:
       run_dir: the run's directory (``metrics.jsonl`` and ``tb/`` go there).
       total_steps: environment steps per seed of the whole run (for the bar and the ETA).
       start_steps: steps already done (when resuming).
-      progress: show the tqdm bar.
+      progress: show the tqdm bar; without it, print one plain line per round (for logs, where a bar's carriage
+        returns would pile up).
       tensorboard: write TensorBoard event files.
       names: a name for each column (seed), used to report divergence; default ``seed i``.
     """
@@ -79,6 +80,7 @@ class RunLogger:
 
             self.tb = SummaryWriter(str(run_dir / "tb"))
         self.names = names
+        self.progress, self.total_steps = progress, total_steps
         self.bar = tqdm(total=total_steps, initial=start_steps, unit="step", disable=not progress, dynamic_ncols=True)
 
     def write(self, env_steps: int, metrics: dict[str, np.ndarray], extra: dict[str, float]) -> None:
@@ -115,6 +117,9 @@ class RunLogger:
             postfix["DIVERGED"] = ", ".join(names[i] for i in np.flatnonzero(diverged))
         self.bar.set_postfix(postfix, refresh=False)
         self.bar.update(env_steps - self.bar.n)
+        if not self.progress:
+            fields = "  ".join(f"{k} {v}" for k, v in postfix.items())
+            print(f"{env_steps:,}/{self.total_steps:,} steps  {fields}", flush=True)
 
     def close(self) -> None:
         self.bar.close()
