@@ -28,26 +28,29 @@ STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2
 REWARD = PixelRewardConfig(hidden=8, batch_size=4, max_epochs=3, lr=1e-3, chunk=3)
 
 
-def _filled_buffer(rng, steps: int):
-    """A frame replay of ``steps`` vector steps of synchronised simulated pixel envs, and the naive stacks."""
-    buffer = frame_replay.init(steps * ENVS, ENVS, (SIZE, SIZE, 3), ACTIONS, LENGTH, STACK, true_reward=True)
+def _filled_buffer(rng, steps: int, buffer=None, length: int = LENGTH):
+    """A frame replay of ``steps`` vector steps of synchronised simulated pixel envs, and the naive stacks:
+    ``buffer`` (empty; episodes of ``length`` agent steps) filled, or a new one of this module's sizes."""
+    if buffer is None:
+        buffer = frame_replay.init(steps * ENVS, ENVS, (SIZE, SIZE, 3), ACTIONS, length, STACK, true_reward=True)
+    envs, frame, actions_size, depth = buffer.num_envs, buffer.frames.shape[2:], buffer.action.shape[-1], buffer.stack
     stacks, actions, true = [], [], []
     stack = None
     for t in range(steps):
-        if t % LENGTH == 0:
-            reset = rng.integers(0, 256, (ENVS, SIZE, SIZE, 3), dtype=np.uint8)
-            stack = np.concatenate([reset] * STACK, axis=-1)
-        nxt = np.concatenate([stack[..., 3:], rng.integers(0, 256, (ENVS, SIZE, SIZE, 3), dtype=np.uint8)], axis=-1)
-        action = rng.uniform(-1, 1, (ENVS, ACTIONS)).astype(np.float32)
-        reward = rng.normal(size=ENVS).astype(np.float32)
+        if t % length == 0:
+            reset = rng.integers(0, 256, (envs, *frame), dtype=np.uint8)
+            stack = np.concatenate([reset] * depth, axis=-1)
+        nxt = np.concatenate([stack[..., 3:], rng.integers(0, 256, (envs, *frame), dtype=np.uint8)], axis=-1)
+        action = rng.uniform(-1, 1, (envs, actions_size)).astype(np.float32)
+        reward = rng.uniform(0, 1, size=envs).astype(np.float32)  # non-negative, as the tasks' rewards
         step = frame_replay.FrameStep(
             obs=jnp.asarray(stack),
             action=jnp.asarray(action),
             next_obs=jnp.asarray(nxt),
-            reward=jnp.zeros(ENVS),
-            terminal=jnp.zeros(ENVS),
-            truncated=jnp.full(ENVS, float(t % LENGTH == LENGTH - 1)),
-            episode_step=jnp.int32(t % LENGTH),
+            reward=jnp.zeros(envs),
+            terminal=jnp.zeros(envs),
+            truncated=jnp.full(envs, float(t % length == length - 1)),
+            episode_step=jnp.int32(t % length),
             true_reward=jnp.asarray(reward),
         )
         buffer = frame_replay.add(buffer, step)
@@ -225,13 +228,16 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
             assert data.labels[seed, i] == (1.0 if returns[0] < returns[1] else 0.0)
 
 
-def test_an_imperfect_teachers_answers_and_oracle_agreement_match_numpy_segment_returns(run):
-    """A skipping, "equal" and mistaken teacher through the pixel ``teach``, on the replay of the run: its mask,
-    counts and labels, and the share of its kept answers that are the oracle's, against NumPy returns of the
-    stored true rewards; over 16 teacher keys (the mistakes are drawn)."""
-    trainer, _, state, _ = run
-    ts = jax.tree.map(lambda x: x[0], state)
-    ts = ts.replace(reward=ts.reward.replace(data=ts.reward.data.replace(count=jnp.zeros_like(ts.reward.data.count))))
+def test_an_imperfect_teachers_answers_and_oracle_agreement_match_numpy_segment_returns():
+    """A skipping, "equal" and mistaken teacher through the pixel ``teach``, on a replay of random frames and
+    true rewards (four episodes): its mask, counts and labels, and the share of its kept answers that are the
+    oracle's, against NumPy returns of the stored true rewards; over 16 teacher keys (the mistakes are drawn)."""
+    trainer = PixelTrainer(MICRO)
+    ts = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    buffer, _, _, _ = _filled_buffer(
+        np.random.default_rng(4), 4 * trainer.episode_length, ts.buffer, trainer.episode_length
+    )
+    ts = ts.replace(buffer=buffer)
     seg_a, seg_b = jax.jit(trainer.select, static_argnums=2)(ts, jax.random.PRNGKey(5), False)
     true, horizon = np.asarray(ts.buffer.true_reward), MICRO.query.segment_length
     returns_a, returns_b = (
