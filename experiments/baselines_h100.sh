@@ -71,6 +71,8 @@
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
+#   SET "pixel_smoke" with JOBS, SEEDS and MAX (issue 12): a few rounds of pixel jobs, their round seconds and peak
+#       memory (benchmarks/pixel_preference_smoke.py), rows in $OUT;
 #   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
 #       loops, about 5 min;
 #   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
@@ -195,6 +197,14 @@ case "${2:-shared}" in
     cp benchmarks/results/drqv2_parts.json benchmarks/results/drqv2_update.json "$OUT/" 2>/dev/null
     timeout 330 python3 benchmarks/drqv2_parts.py --precision bf16 --out "$OUT/drqv2_parts.json"
     timeout 200 python3 benchmarks/drqv2_update.py --precision bf16 --seed-loop on --kernel-grad xla patches --out "$OUT/drqv2_update.json"
+    exit 0 ;;
+  pixel_smoke)  # issue 12's plan: a few rounds of pixel jobs (JOBS, default pebble_walker) at SEEDS seeds (default 5):
+    # compile time, seconds per round (seed steps, the first session, plain updates) and the device's peak memory,
+    # whether 5 seeds of a preference job now fit (the fifth session's did not); MAX seconds in all (default 330)
+    export PYTHONPATH=/tmp/site:src:benchmarks
+    cp benchmarks/results/pixel_smoke.json "$OUT/" 2>/dev/null
+    timeout $((${MAX:-330} + 60)) python3 benchmarks/pixel_preference_smoke.py --jobs ${JOBS:-pebble_walker} \
+      --seeds "${SEEDS:-5}" --rounds 4 --max-seconds "${MAX:-330}" --out "$OUT/pixel_smoke.json"
     exit 0 ;;
   command_buffers)  # the two halves of a walker round, with the H100's command buffers (CUDA graphs) extended to
     # while loops against XLA's default: walker's control step (10 physics substeps of small kernels in while loops:
