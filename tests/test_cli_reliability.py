@@ -298,9 +298,16 @@ def test_a_run_killed_anywhere_resumes_to_the_same_result(whole, tmp_path, capsy
 def test_time_limit_stops_after_a_round_with_its_checkpoint_and_resume_finishes_the_same_run(whole, tmp_path, capsys):
     run_dir = tmp_path / "timed"
     _main(run_dir, "--time-limit", "1e-9")
-    assert "stopped after round 0" in capsys.readouterr().out
+    out = capsys.readouterr().out.splitlines()
+    # --no-progress: a line before the first round's compile, one per round, then the stop.
+    assert (
+        out[0]
+        == f"0/120 steps: compiling the round program, then round 1 of {ROUNDS} (minutes for a large preset on a CPU)"
+    )
+    assert out[1].startswith("40/120 steps") and "stopped after round 0" in out[2]
     assert _steps_on_disk(run_dir) == [1] and not (run_dir / "final.json").exists() and len(_metrics(run_dir)) == 1
     _main(run_dir, "--resume")
+    assert capsys.readouterr().out.startswith(f"40/120 steps: compiling the round program, then round 2 of {ROUNDS}")
     _same_run(whole, run_dir)
     _same_checkpoint(whole, run_dir)
 

@@ -594,6 +594,12 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     logger = None
     if primary:
         logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
+    if primary and not args.progress and start < cfg.train.num_rounds:  # A plain log says what its first wait is.
+        print(
+            f"{start * per_round:,}/{cfg.train.total_steps:,} steps: compiling the round program, then round "
+            f"{start + 1} of {cfg.train.num_rounds} (minutes for a large preset on a CPU)",
+            flush=True,
+        )
     started, slowest = time.perf_counter(), 0.0
     ever_diverged = np.zeros(args.columns, bool)
     slow_save_noted = False
