@@ -66,7 +66,8 @@
 #       counted at half, about 1,650 and 1,700 s held; 84.3 s first rounds, then 30.0 and 30.9 s); equal and myopic
 #       remain, one machine each. Since 79e1013 the round also logs session_oracle_agreement, so .gpu_cache no longer
 #       held its program: equal's first round (fourteenth session, code 83927f7; 3 calls, about 1,673 s held, counted
-#       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic remains, one machine;
+#       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic in the fifteenth (code 8cc84bc, 3 calls, 1,670 s
+#       held; the carried cache held the round program: 84.6 s first round, then 30.2 s): all five teachers have run;
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,

@@ -87,6 +87,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_walker_100_lams_0_0.001_mistake_bf16",
         "rebel/rebel_walker_100_lams_0_0.001_skip_bf16",
         "rebel/rebel_walker_100_lams_0_0.001_equal_bf16",
+        "rebel/rebel_walker_100_lams_0_0.001_myopic_bf16",
     ],
     "cheetah_run": [
         "baselines/sac_cheetah_fixed",
