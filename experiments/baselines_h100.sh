@@ -73,13 +73,15 @@
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
 #   SET "pixel_smoke" with JOBS, SEEDS and MAX (issue 12): a few rounds of pixel jobs, their round seconds and peak
-#       memory (benchmarks/pixel_preference_smoke.py), rows in $OUT;
-#   SET "command_buffers" (not run yet): walker's control step and the SAC update with CUDA graphs over while
-#       loops, about 5 min;
+#       memory (benchmarks/pixel_preference_smoke.py), rows in $OUT; fifteenth session: pebble_walker at 5 seeds
+#       (MAX=420, 237 s: 45.9 GiB, 22.3 s rounds) and 1 seed (MAX=200, 171 s: 10.3 s rounds);
+#   SET "command_buffers": walker's control step and the SAC update with CUDA graphs over while loops; ran in the
+#       fifteenth session (205 s: the graphs made the step 11-18% slower and left the update unchanged);
 #   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
 #       JSON rows come back in $OUT. Fourteenth session: under timeouts of 150 s and 110 s it wrote 4 parts and the XLA
 #       update row, not the conv parts nor the patch rows (each part compiles its own program); now 330 s and 200 s,
-#       about 9 minutes (not measured);
+#       about 9 minutes (not measured). Fifteenth session: the patch row alone, by hand (drqv2_update.py --kernel-grad
+#       patches: 24.97 ms per 5-seed update against XLA's 19.49, BENCHMARKS.md);
 #   SET "rebel_walker" with LAM=<lambda>: REBEL at lambda LAM (on-policy V, normalised) beside
 #       lambda 0 (= PEBBLE, five more seeds) in one program of 10 columns (--seed 2); not run (rebel_ablation's
 #       10-column rounds take about 31 s).
