@@ -101,7 +101,7 @@ def main() -> None:
         "round_seconds": [[round(t, 2) for t in times] for times in seconds],
     }
     row["identical"] = row["differing_leaves"] == 0 and row["metrics_equal"]
-    merge_rows(args.out, [row], ("device", "flags", "rounds", "xla_flags"))
+    merge_rows(args.out, [row], ("device", "commit", "flags", "rounds", "xla_flags"))
     print(
         f"identical: {row['identical']} ({row['differing_leaves']} of {row['leaves']} state leaves differ, largest "
         f"absolute difference {row['max_abs_difference']:.3g}); round seconds {row['round_seconds']}"

@@ -179,8 +179,9 @@ def main():
     results = _load(args.out)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.mode == "throughput":
-        key = lambda r: (
+        key = lambda r: (  # A row replaces only its own code's measurement: other commits' rows stay.
             r["device"],
+            r.get("commit"),
             r["task"],
             r["solver"],
             r["batch"],

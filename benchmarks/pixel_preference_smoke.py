@@ -138,7 +138,7 @@ def run_job(job: str, args, results: Results, deadline: float) -> None:
         )
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--jobs", nargs="+", default=["drqv2_walker", "pebble_walker"], choices=list(CONFIGS))
     p.add_argument("--seeds", type=int, default=5)
@@ -147,11 +147,15 @@ def main() -> None:
     p.add_argument("--total-steps", type=int, default=0, help="agent steps of the run (sizes a preference replay)")
     p.add_argument("--max-seconds", type=float, default=540.0, help="wall-time cap of the whole invocation")
     p.add_argument("--tiny", action="store_true", help="probe_point_pixels at 16x16 (a CPU check)")
-    p.add_argument("--out", default=str(RESULTS))
-    args = p.parse_args()
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    return p
+
+
+def main() -> None:
+    args = parser().parse_args()
     deadline = time.time() + args.max_seconds
     stamp = datetime.datetime.now().isoformat(timespec="seconds")
-    results = Results(pathlib.Path(args.out), stamp)
+    results = Results(args.out, stamp)
     device = jax.devices()[0]
     print(json.dumps({"device": str(device), "kind": device.device_kind, "jax": jax.__version__}), flush=True)
     results.add({"what": "meta", "device": device.device_kind, "backend": jax.default_backend(), "jax": jax.__version__,

@@ -57,7 +57,8 @@ def provenance() -> dict:
 
 def merge_rows(out: pathlib.Path, rows, fields: tuple[str, ...]) -> None:
     """Writes each row of ``rows`` into ``out``'s ``{"rows": [...]}`` as it comes, replacing an earlier row
-    with the same ``fields``."""
+    with the same ``fields`` (a field a row lacks counts as None). With ``commit`` among them, a measurement
+    replaces only its own code's: the rows of other commits stay, as the numbers quoted from them."""
     results = json.loads(out.read_text()) if out.exists() else {"rows": []}
     key = lambda r: tuple(r.get(f) for f in fields)
     out.parent.mkdir(parents=True, exist_ok=True)

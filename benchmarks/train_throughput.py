@@ -26,7 +26,7 @@ import time
 
 import jax
 import jax.numpy as jnp
-from timing import add_xla_flags_argument, device_name, median_seconds, provenance, use_xla_flags
+from timing import add_xla_flags_argument, device_name, median_seconds, merge_rows, provenance, use_xla_flags
 
 from rebel_jax import replay
 from rebel_jax.config import PRESETS
@@ -263,14 +263,9 @@ def parser() -> argparse.ArgumentParser:
 def main():
     args = parser().parse_args()
     use_xla_flags(args.xla_flags)
-    results = json.loads(args.out.read_text()) if args.out.exists() else {"rows": []}
-    fields = ("device", "what", "algo", "task", "seeds", "precision", "num_envs", "utd", "xla_flags")
-    key = lambda r: tuple(r.get(f, "" if f == "xla_flags" else None) for f in fields)  # older rows: no flags set
     rows = {"update": update_rows, "hlo": hlo_rows, "runs": run_rows}[args.mode]
-    for row in rows(args):
-        results["rows"] = [r for r in results["rows"] if key(r) != key(row)] + [row]
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(results, indent=1))
+    fields = ("device", "commit", "what", "algo", "task", "seeds", "precision", "num_envs", "utd", "xla_flags")
+    merge_rows(args.out, rows(args), fields)
 
 
 if __name__ == "__main__":

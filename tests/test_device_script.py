@@ -129,6 +129,20 @@ def test_the_command_buffers_set_times_walker_and_the_update_with_and_without_cu
     assert default == "" and "WHILE" in graphs.split("=")[1].split(",") and small.startswith(graphs + " ")
 
 
+@pytest.mark.parametrize(
+    ("env", "jobs", "seeds", "seconds"),
+    [({}, ["pebble_walker"], 5, 330.0), ({"JOBS": "drqv2_walker surf_cheetah", "SEEDS": "1", "MAX": "200"},
+                                          ["drqv2_walker", "surf_cheetah"], 1, 200.0)],
+)  # fmt: skip
+def test_the_pixel_smoke_set_passes_its_jobs_seeds_and_time_cap(tmp_path, monkeypatch, env, jobs, seeds, seconds):
+    monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
+    commands = _commands(tmp_path, "pixel_smoke", env, detach=False, program="benchmarks/")
+    assert [argv[0] for argv in commands] == ["benchmarks/pixel_preference_smoke.py"]
+    args = importlib.import_module("pixel_preference_smoke").parser().parse_args(commands[0][1:])
+    assert (args.jobs, args.seeds, args.max_seconds, args.rounds) == (jobs, seeds, seconds, 4)
+    assert args.out == tmp_path / "pixel_smoke.json"
+
+
 def test_the_determinism_set_runs_one_walker_program_twice_without_and_with_deterministic_ops(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
     commands = _commands(tmp_path, "determinism", {}, detach=False, program="benchmarks/")

@@ -1,0 +1,25 @@
+"""``benchmarks/timing.merge_rows``: a new measurement replaces its own code's row, never another commit's, so
+the numbers BENCHMARKS.md quotes from earlier commits stay in the results files."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import pathlib
+
+FIELDS = ("device", "commit", "batch")
+
+
+def test_a_measurement_replaces_its_own_commits_row_and_keeps_other_commits_rows(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    merge_rows = importlib.import_module("timing").merge_rows
+    out = tmp_path / "rows.json"
+    first = {"device": "H100", "commit": "aaa", "batch": 1, "ms": 12.5}
+    other_batch = {**first, "batch": 200, "ms": 13.4}
+    merge_rows(out, [first, other_batch], FIELDS)
+    newer = {**first, "commit": "bbb", "ms": 11.8}
+    merge_rows(out, [newer], FIELDS)
+    assert json.loads(out.read_text())["rows"] == [first, other_batch, newer]
+    again = {**newer, "ms": 11.9}  # the same code measured again: its row is replaced
+    merge_rows(out, [again], FIELDS)
+    assert json.loads(out.read_text())["rows"] == [first, other_batch, again]
