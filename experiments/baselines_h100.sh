@@ -68,7 +68,8 @@
 #       held its program: equal's first round (fourteenth session, code 83927f7; 3 calls, about 1,673 s held, counted
 #       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic in the fifteenth (code 8cc84bc, 3 calls, 1,670 s
 #       held; the carried cache held the round program: 84.6 s first round, then 30.2 s): all five teachers have run;
-#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run;
+#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run; ENVS and
+#       SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below);
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
@@ -190,8 +191,11 @@ case "${2:-shared}" in
     # DrQ-v2's matmuls; each names the run
     root=$(cd "$(dirname "$0")/.." && pwd)
     flags=$(python3 -c "import sys; sys.path[:0] = ['$root/benchmarks', '$root/src']; from pixel_memory import CONFIGS; print(' '.join(CONFIGS['${ALGO:?set ALGO}_${TASK:?set TASK}']))") || exit 1
-    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${PRECISION:+_$PRECISION}
-    start "$name" $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${PRECISION:+--drqv2.precision $PRECISION}
+    # ENVS=<envs per seed> with SEED_STEPS=<agent steps> (e.g. 20 and 10000: every env ends an episode before the
+    # first session, which queries complete episodes): the physics of the preset's 4 envs is about 7.5 s of a 10 s
+    # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
+    start "$name" $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

@@ -35,6 +35,10 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
     ("drqv2_seed", {"TASK": "cheetah", "SEED": "1"}),
     ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "STEPS": "500000", "CAPACITY": "500000"}),
     ("pixel_seed", {"ALGO": "rebel", "TASK": "walker", "SEED": "0", "STEPS": "250000", "PRECISION": "bf16"}),
+    (
+        "pixel_seed",
+        {"ALGO": "pebble", "TASK": "walker", "SEED": "1", "STEPS": "250000", "ENVS": "20", "SEED_STEPS": "10000"},
+    ),
     ("surf_cheetah_ru", {"RU": "100"}),
     *[("ladder", {"RUNG": str(rung)}) for rung in range(4)],
     *[(name, {}) for name in ("pebble500", "surf500", "surf500bf16", "pebble500bf16", "pebble1000")],
@@ -98,6 +102,9 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
                 int(env["STEPS"]),
             )
             assert args.config.train.buffer_capacity == int(env.get("CAPACITY", 0))
+            assert args.config.env.num_envs == int(env.get("ENVS", 4))  # the preset's unless ENVS
+            assert args.config.train.seed_steps == int(env.get("SEED_STEPS", 2_000))
+            assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.query.sampling == "uniform"
 
 
