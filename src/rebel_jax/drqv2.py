@@ -91,8 +91,8 @@ class DrQV2Config:
     kernel_grad: Literal["xla", "patches"] = "xla"
     """How the encoder's kernel gradients are computed: XLA's backward-filter convolutions, or one matrix
     product of the input patches with the output gradient each (:func:`rebel_jax.networks.conv_patch_kernel_grad`).
-    The same gradients up to float rounding; a speed setting for ``benchmarks/drqv2_update.py`` and
-    ``benchmarks/drqv2_parts.py`` to decide (not a DrQ-v2 setting)."""
+    The same gradients up to float rounding; a speed setting, not a DrQ-v2 one. On one H100 (bf16, 5 seeds
+    looped, 2026-11-25) ``patches`` was 28% slower (BENCHMARKS.md), so ``xla`` stays the default."""
     seed_loop: bool = True
     """Run a ``vmap`` of :meth:`DrQV2.update` (the trainer's over seeds) as a loop over its entries
     (``jax.custom_batching.sequential_vmap``: ``lax.map``), one seed's update at a time, instead of one
