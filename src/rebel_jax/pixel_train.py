@@ -525,12 +525,7 @@ class PixelTrainer:
         seg_a, seg_b = self.select(ts, key_select, first)
         labels, mask, info = self.teach(ts, key_teach, seg_a, seg_b, index)
         ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first, agent_step)
-        teacher = dict(
-            session_skipped=info["num_skipped"],
-            session_equal=info["num_equal"],
-            session_oracle_agreement=info["oracle_agreement"],
-        )
-        return ts, self._session_summary(ts, dict(metrics, session=1.0, **teacher))
+        return ts, self._session_summary(ts, dict(metrics, session=1.0, **teachers.session_metrics(info)))
 
     def _session_summary(self, ts: PixelTrainState, metrics: dict) -> dict:
         nan = jnp.full((), jnp.nan, jnp.float32)

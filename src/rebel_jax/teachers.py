@@ -181,3 +181,13 @@ def oracle_agreement(key: jax.Array, seg_a: Any, seg_b: Any, labels: jax.Array, 
     oracle, _, _ = label(PRESETS["oracle"], key, seg_a, seg_b, 0.0)
     kept = jnp.sum(mask)
     return jnp.where(kept > 0, jnp.sum(mask * (labels == oracle)) / jnp.maximum(kept, 1.0), jnp.nan)
+
+
+def session_metrics(info: dict) -> dict:
+    """A session's teacher metrics as both trainers log them (``train.SESSION_METRICS``): :func:`label`'s
+    ``info`` counts and its ``oracle_agreement`` (:func:`oracle_agreement`)."""
+    return {
+        "session_skipped": info["num_skipped"],
+        "session_equal": info["num_equal"],
+        "session_oracle_agreement": info["oracle_agreement"],
+    }

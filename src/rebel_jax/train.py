@@ -533,11 +533,11 @@ class Trainer:
           info: the teacher's ``num_skipped`` and ``num_equal`` counts.
         """
         ts, metrics = self.learn(ts, asked.key_learn, asked.seg_a, asked.seg_b, labels, mask, first)
-        metrics = dict(metrics, session=1.0, session_skipped=info["num_skipped"], session_equal=info["num_equal"])
-        metrics["session_oracle_agreement"] = teachers.oracle_agreement(
+        agreement = teachers.oracle_agreement(
             asked.key_teach, self._central(asked.seg_a), self._central(asked.seg_b), labels, mask
         )
-        return ts, self._session_summary(ts, metrics)
+        teacher = teachers.session_metrics(dict(info, oracle_agreement=agreement))
+        return ts, self._session_summary(ts, dict(metrics, session=1.0, **teacher))
 
     def _session_summary(self, ts: TrainState, metrics: dict) -> dict:
         nan = jnp.full((), jnp.nan, jnp.float32)
