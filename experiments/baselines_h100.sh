@@ -176,13 +176,17 @@ case "${2:-shared}" in
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
-  drqv2_seed)  # DrQ-v2 on pixels, one seed per job: seed_loop runs seeds one after another anyway
+  drqv2_seed)  # DrQ-v2 on pixels, SEEDS seeds per job (default 1; seed_loop runs their updates one after another)
     case ${TASK:?set TASK=walker or cheetah} in
       walker) task=(--task walker_walk_pixels --drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000) ;;
       cheetah) task=(--task cheetah_run_pixels) ;;
     esac
-    # PRECISION=bf16 runs DrQ-v2's matmuls and convolutions in bf16 (named in the run directory)
-    start drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${PRECISION:+_$PRECISION} --preset paper --algo drqv2 --seeds 1 --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs 10 --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
+    # PRECISION=bf16 runs DrQ-v2's matmuls and convolutions in bf16; ENVS=<envs per seed> (default 10): the walker
+    # physics is about 13 ms a control step whatever the batch, so 20 envs halve it (2.56 s of a 4.67 s round at
+    # 10); each is named in the run directory, as SEEDS above 1 (the seeds are fold_in(PRNGKey(SEED), i))
+    seeds=${SEEDS:-1}
+    name=drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${SEEDS:+_seeds$seeds}${ENVS:+_envs$ENVS}${PRECISION:+_$PRECISION}
+    start "$name" --preset paper --algo drqv2 --seeds "$seeds" --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs "${ENVS:-10}" --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
     exit 0 ;;
   pixel_seed)  # issue 12's pixel preference runs, one seed per job (5 seeds fit no machine's loan): ALGO=pebble|surf|
     # rebel, TASK=walker|cheetah, SEED=k, STEPS=<agent steps> (250000 = 500k frames, the issue's walker length; SURF

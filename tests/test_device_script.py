@@ -33,6 +33,7 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
     ("rebel_walker", {"LAM": "0.01"}),
     ("drqv2_seed", {"TASK": "walker", "SEED": "0", "PRECISION": "bf16"}),
     ("drqv2_seed", {"TASK": "cheetah", "SEED": "1"}),
+    ("drqv2_seed", {"TASK": "walker", "SEED": "3", "SEEDS": "2", "ENVS": "20", "PRECISION": "bf16"}),
     ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "STEPS": "500000", "CAPACITY": "500000"}),
     ("pixel_seed", {"ALGO": "rebel", "TASK": "walker", "SEED": "0", "STEPS": "250000", "PRECISION": "bf16"}),
     (
@@ -106,6 +107,15 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.train.seed_steps == int(env.get("SEED_STEPS", 2_000))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.query.sampling == "uniform"
+        if name == "drqv2_seed":  # SEEDS seeds (default 1) from SEED, ENVS envs each (default 10), 500k frames
+            assert (args.config.algo, args.seeds, args.config.train.seed) == (
+                "drqv2",
+                int(env.get("SEEDS", 1)),
+                int(env["SEED"]),
+            )
+            assert (args.config.env.num_envs, args.config.train.total_steps) == (int(env.get("ENVS", 10)), 250_000)
+            assert ("SEEDS" in env) == ("_seeds" in run_dir.name) and ("ENVS" in env) == ("_envs" in run_dir.name)
+            assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)
 
 
 def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, monkeypatch):
