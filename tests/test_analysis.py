@@ -220,6 +220,18 @@ def test_load_runs_with_nulls(tmp_path):
     assert returns[0, 0] == 1.0 and math.isnan(returns[0, 1]) and returns[0, 2] == 3.0
 
 
+def test_load_runs_counts_seeds_when_the_first_rounds_log_no_evaluation(tmp_path):
+    # A DrQ-v2 run's seed-step rounds have no "eval_return" key at all; 5 seeds read as 1 before (the
+    # 5-seed cheetah run of 2026-11-25 stopped in its learning-curve plot on this).
+    run_dir = write_run(tmp_path / "run", RETURNS)
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line]
+    del records[0]["eval_return"]
+    (run_dir / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in records) + "\n")
+    steps, returns = analysis.load_runs(run_dir)
+    assert steps.tolist() == [20, 30, 40, 50] and returns.shape == (4, 3)
+    np.testing.assert_array_equal(returns[1:], np.array(RETURNS[2:], dtype=float))
+
+
 def test_load_runs_keeps_the_last_record_of_a_resumed_round(tmp_path):
     run_dir = write_run(tmp_path / "run", RETURNS)
     with open(run_dir / "metrics.jsonl", "a") as f:  # a resume re-logging the round at step 40
