@@ -25,9 +25,10 @@ from compare import compare, gather
 from rebel_jax.envs import make_env
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
-RUNS: dict[str, list[str]] = {}
-"""Pixel task (``<task>_pixels``) -> its run directories under ``results/runs``; no whole pixel run has landed
-yet (BENCHMARKS.md, "Pixel runs": the device plans)."""
+RUNS: dict[str, list[str]] = {
+    "cheetah_run_pixels": ["pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16"],
+}
+"""Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``."""
 STOPPED: dict[str, list[str]] = {
     "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16_stopped218k"],
 }
