@@ -25,10 +25,13 @@
 #       with --surf.reward-update RU. RU=100 ran in the sixth session to 790k (620.8, RESULTS.md;
 #       12.4 s rounds, about 1,520 s to 1M); its 1M figure is owed. Its first call on a fresh machine with
 #       LIMIT 560 passed the call's 600 s and lost its work; 480 was safe;
-#   SET "drqv2_seed" with TASK=walker|cheetah and SEED=k: DrQ-v2 on pixels, one seed, 500k frames
-#       (250k agent steps at action repeat 2). At 5 seeds a walker round of 1,000 agent steps took 18.8 s
-#       with seed_loop (BENCHMARKS.md): about 78 min per 5-seed job, longer than one machine is held,
-#       and its replay checkpoint (2.1 GB per seed) cannot travel. One seed per job is about a fifth;
+#   SET "drqv2_seed" with TASK=walker|cheetah and SEED=k: DrQ-v2 on pixels, SEEDS seeds (default 1), 500k frames
+#       (250k agent steps at action repeat 2). Sixteenth session: TASK=cheetah SEEDS=5 PRECISION=bf16 in one
+#       program, 6.90 s rounds, 1,798 s of rounds, four chained calls (LIMIT 300, 560, 575, 580), 1,930 s held: a
+#       machine goes back after 30 minutes held only at the end of the call then in flight. Walker at 5 seeds is
+#       projected at about 13 s per round in bf16 (BENCHMARKS.md): about 55 min per 5-seed job, longer than one
+#       machine is held, and its replay checkpoint (2.1 GB per seed) cannot travel. One walker seed per job is
+#       about 21 min held (4.67 s rounds at 10 envs);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -68,8 +71,8 @@
 #       held its program: equal's first round (fourteenth session, code 83927f7; 3 calls, about 1,673 s held, counted
 #       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic in the fifteenth (code 8cc84bc, 3 calls, 1,670 s
 #       held; the carried cache held the round program: 84.6 s first round, then 30.2 s): all five teachers have run;
-#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): one seed of a pixel preference run; ENVS and
-#       SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below);
+#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): SEEDS seeds (default 1) of a pixel preference
+#       run; ENVS and SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below);
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
@@ -188,9 +191,11 @@ case "${2:-shared}" in
     name=drqv2_${TASK}_500kframes_seed${SEED:?set SEED}${SEEDS:+_seeds$seeds}${ENVS:+_envs$ENVS}${PRECISION:+_$PRECISION}
     start "$name" --preset paper --algo drqv2 --seeds "$seeds" --seed "$SEED" --total-steps 250000 --seed-steps 2000 --num-envs "${ENVS:-10}" --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
     exit 0 ;;
-  pixel_seed)  # issue 12's pixel preference runs, one seed per job (5 seeds fit no machine's loan): ALGO=pebble|surf|
-    # rebel, TASK=walker|cheetah, SEED=k, STEPS=<agent steps> (250000 = 500k frames, the issue's walker length; SURF
-    # runs 1M frames), with benchmarks/pixel_memory.CONFIGS' flags (SURF's pixel settings, notes/surf_pixel_audit.md);
+  pixel_seed)  # issue 12's pixel preference runs, SEEDS seeds per job (default 1; 5 walker seeds fit no machine's
+    # loan; cheetah's physics is cheap, so a few seeds may: measure with pixel_smoke JOBS=pebble_cheetah first):
+    # ALGO=pebble|surf|rebel, TASK=walker|cheetah, SEED=k, STEPS=<agent steps> (250000 = 500k frames, the issue's
+    # walker length; SURF runs 1M frames), with benchmarks/pixel_memory.CONFIGS' flags (SURF's pixel settings,
+    # notes/surf_pixel_audit.md); SEEDS above 1 is named in the run directory (seeds fold_in(PRNGKey(SEED), i));
     # CAPACITY=<transitions> sets the replay (default 100k, the issue's; SURF keeps the whole run), PRECISION=bf16
     # DrQ-v2's matmuls; each names the run
     root=$(cd "$(dirname "$0")/.." && pwd)
@@ -198,8 +203,8 @@ case "${2:-shared}" in
     # ENVS=<envs per seed> with SEED_STEPS=<agent steps> (e.g. 20 and 10000: every env ends an episode before the
     # first session, which queries complete episodes): the physics of the preset's 4 envs is about 7.5 s of a 10 s
     # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
-    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
-    start "$name" $flags --total-steps "$STEPS" --seeds 1 --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION}
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
+    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

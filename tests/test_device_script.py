@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import os
 import pathlib
+import re
 import shlex
 import subprocess
 import sys
@@ -40,6 +41,7 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
         "pixel_seed",
         {"ALGO": "pebble", "TASK": "walker", "SEED": "1", "STEPS": "250000", "ENVS": "20", "SEED_STEPS": "10000"},
     ),
+    ("pixel_seed", {"ALGO": "pebble", "TASK": "cheetah", "SEED": "0", "SEEDS": "3", "STEPS": "250000"}),
     ("surf_cheetah_ru", {"RU": "100"}),
     *[("ladder", {"RUNG": str(rung)}) for rung in range(4)],
     *[(name, {}) for name in ("pebble500", "surf500", "surf500bf16", "pebble500bf16", "pebble1000")],
@@ -98,10 +100,11 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             task = {"walker": "walker_walk_pixels", "cheetah": "cheetah_run_pixels"}[env["TASK"]]
             assert (args.config.algo, args.config.env.task) == (env["ALGO"], task)
             assert (args.seeds, args.config.train.seed, args.config.train.total_steps) == (
-                1,
+                int(env.get("SEEDS", 1)),
                 int(env["SEED"]),
                 int(env["STEPS"]),
             )
+            assert ("SEEDS" in env) == bool(re.search(r"_seeds\d", run_dir.name))  # not "_seedsteps"
             assert args.config.train.buffer_capacity == int(env.get("CAPACITY", 0))
             assert args.config.env.num_envs == int(env.get("ENVS", 4))  # the preset's unless ENVS
             assert args.config.train.seed_steps == int(env.get("SEED_STEPS", 2_000))
@@ -114,7 +117,8 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
                 int(env["SEED"]),
             )
             assert (args.config.env.num_envs, args.config.train.total_steps) == (int(env.get("ENVS", 10)), 250_000)
-            assert ("SEEDS" in env) == ("_seeds" in run_dir.name) and ("ENVS" in env) == ("_envs" in run_dir.name)
+            assert ("SEEDS" in env) == bool(re.search(r"_seeds\d", run_dir.name))
+            assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)
 
 
