@@ -197,14 +197,17 @@ case "${2:-shared}" in
     # walker length; SURF runs 1M frames), with benchmarks/pixel_memory.CONFIGS' flags (SURF's pixel settings,
     # notes/surf_pixel_audit.md); SEEDS above 1 is named in the run directory (seeds fold_in(PRNGKey(SEED), i));
     # CAPACITY=<transitions> sets the replay (default 100k, the issue's; SURF keeps the whole run), PRECISION=bf16
-    # DrQ-v2's matmuls; each names the run
+    # DrQ-v2's matmuls; LAMS="0 0.001" with ALGO=rebel runs PEBBLE (lambda 0, the same program as --algo pebble:
+    # tests/test_pixel_preference.py) and REBEL side by side in one program of SEEDS columns each, sharing the
+    # physics, the batched part of a round; each names the run
+    [ -n "${LAMS:-}" ] && [ "$ALGO" != rebel ] && { echo "LAMS needs ALGO=rebel"; exit 1; }
     root=$(cd "$(dirname "$0")/.." && pwd)
     flags=$(python3 -c "import sys; sys.path[:0] = ['$root/benchmarks', '$root/src']; from pixel_memory import CONFIGS; print(' '.join(CONFIGS['${ALGO:?set ALGO}_${TASK:?set TASK}']))") || exit 1
     # ENVS=<envs per seed> with SEED_STEPS=<agent steps> (e.g. 20 and 10000: every env ends an episode before the
     # first session, which queries complete episodes): the physics of the preset's 4 envs is about 7.5 s of a 10 s
     # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
-    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
-    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION}
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
+    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

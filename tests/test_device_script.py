@@ -42,6 +42,10 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
         {"ALGO": "pebble", "TASK": "walker", "SEED": "1", "STEPS": "250000", "ENVS": "20", "SEED_STEPS": "10000"},
     ),
     ("pixel_seed", {"ALGO": "pebble", "TASK": "cheetah", "SEED": "0", "SEEDS": "3", "STEPS": "250000"}),
+    (
+        "pixel_seed",
+        {"ALGO": "rebel", "TASK": "cheetah", "SEED": "0", "SEEDS": "2", "STEPS": "250000", "LAMS": "0 0.001"},
+    ),
     ("surf_cheetah_ru", {"RU": "100"}),
     *[("ladder", {"RUNG": str(rung)}) for rung in range(4)],
     *[(name, {}) for name in ("pebble500", "surf500", "surf500bf16", "pebble500bf16", "pebble1000")],
@@ -91,7 +95,9 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.algo == "rebel"
         if "LAMS" in env:
             assert args.lams == tuple(float(lam) for lam in env["LAMS"].split())
-            assert run_dir.name.startswith("rebel_walker_100_lams_" + env["LAMS"].replace(" ", "_"))
+            assert args.columns == args.seeds * len(args.lams)
+            prefix = "rebel_walker_100" if name == "rebel_ablation" else f"rebel_{env.get('TASK')}_pixels"
+            assert run_dir.name.startswith(prefix) and "_lams_" + env["LAMS"].replace(" ", "_") in run_dir.name
         if "TEACHER" in env:
             assert args.config.teacher == teachers.PRESETS[env["TEACHER"]] and env["TEACHER"] in run_dir.name
         if detach:
