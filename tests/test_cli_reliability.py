@@ -119,6 +119,21 @@ def test_overwrite_replaces_a_run_and_the_record_is_portable(whole, tmp_path):
     assert command.startswith("python -m rebel_jax.train --preset tiny") and command.endswith("--overwrite")
 
 
+def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp_path, monkeypatch, capsys):
+    # The 5-seed DrQ-v2 run of 2026-11-25 ended with a traceback in its plot, 30 minutes in; the figure is a
+    # convenience drawn after final.json, so its failure must not fail the run.
+    def broken(run_dir):
+        raise ValueError("cannot reshape")
+
+    monkeypatch.setattr(cli.plots, "load_runs", broken)
+    _main(tmp_path / "run", "--checkpoint-every", "0")
+    out = capsys.readouterr()
+    assert "warning: learning_curve.png not written (ValueError: cannot reshape)" in out.err, out.err
+    assert "final evaluation return over 2 seed(s)" in out.out  # the summary is still printed
+    assert not (tmp_path / "run" / "learning_curve.png").exists()
+    _same_run(whole, tmp_path / "run")  # final.json and metrics.jsonl as a run without the failure
+
+
 def test_resume_refuses_changed_fields_naming_them(whole, tmp_path, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(whole, run_dir)

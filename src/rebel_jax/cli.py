@@ -510,8 +510,25 @@ def _eval_clip(args: Args, trainer: Trainer, actor_params, run_dir: pathlib.Path
     return path
 
 
-def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path:
-    """Writes ``learning_curve.png``: the evaluation return of each group of seeds (lambda, teacher), and random's."""
+def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path | None:
+    """Writes ``learning_curve.png``: the evaluation return of each group of seeds (lambda, teacher), and random's.
+
+    A failure here is a warning, not the run's: it comes after ``final.json``, and the figure can be drawn again
+    from ``metrics.jsonl`` (``python experiments/curves.py RUN_DIR --name NAME``).
+    """
+    try:
+        return _draw_learning_curve(args, run_dir, random)
+    except Exception as error:  # Any plotting failure: the run's results are already on disk.
+        print(
+            f"warning: learning_curve.png not written ({type(error).__name__}: {error}); final.json and "
+            f"metrics.jsonl are (experiments/curves.py {run_dir} --name NAME draws it)",
+            file=sys.stderr,
+        )
+        return None
+
+
+def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path:
+    """:func:`_learning_curve`'s figure."""
     cfg = args.config
     steps, returns = plots.load_runs(run_dir)
     runs = {}
