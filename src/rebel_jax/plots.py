@@ -66,9 +66,10 @@ def load_runs(run_dir: str | os.PathLike) -> Curve:
     rounds = records(pathlib.Path(run_dir))
     rows = [(r["env_steps"], per_seed(r.get("eval_return"))) for r in rounds]
     rows = [(s, v) for s, v in rows if any(math.isfinite(x) for x in v)]
-    # The seed count comes from the rounds with an evaluation: a pixel run's first rounds log no
-    # ``eval_return`` at all (not a list of nulls), which read as one seed.
-    seeds = max((len(v) for _, v in rows), default=0)
+    # The seed count comes from the rounds that log ``eval_return`` (a list, of nulls before the first
+    # evaluation): a pixel run's first rounds log none at all, which read as one seed.
+    logged = [per_seed(r["eval_return"]) for r in rounds if r.get("eval_return") is not None]
+    seeds = max((len(v) for v in logged), default=0)
     steps = np.array([s for s, _ in rows], dtype=np.int64)
     returns = np.array([v for _, v in rows], dtype=float).reshape(len(rows), seeds)
     return steps, returns
