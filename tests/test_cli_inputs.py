@@ -57,6 +57,14 @@ BAD = {
         ["rebel settings", "rebel only with --algo rebel"],
     ),
     "drqv2-on-a-state-task": (["--drqv2.nstep", "1"], ["drqv2 settings", "drqv2 only with a pixel task"]),
+    "obs-state-on-a-pixel-task": (
+        ["--obs", "state", "--task", "walker_walk_pixels"],
+        ["obs='state'", "'walker_walk_pixels'", "--obs pixels, or --task walker_walk"],
+    ),
+    "obs-pixels-without-a-pixel-version": (
+        ["--obs", "pixels", "--task", "walker_fly"],
+        ["env.task='walker_fly_pixels'"],
+    ),
     "precision-on-pixels": (
         ["--task", "probe_point_pixels", "--algo", "drqv2", "--precision", "bf16", "--surf.crop", "2"],
         ["sac, surf settings", "'probe_point_pixels'", "sac only with a state task; surf only with --algo surf"],
@@ -175,6 +183,64 @@ def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path,
     assert ok["reward_loss"] == [2.0, None] and ok["diverged"] == [False, False]
     assert bad["status"] == "diverged" and bad["diverged"] == [False, True]
     assert bad["loss"] == [1.0, None] and bad["loss_mean"] is None and bad["reward_loss_mean"] is None
+
+
+@pytest.mark.parametrize(
+    "argv,same_as",
+    [
+        # --obs pixels names the pixel task; without --preset a walker or cheetah pixel task takes SURF's pixel preset.
+        (["--obs", "pixels", "--task", "walker_walk"], ["--preset", "surf_pixels_walker"]),
+        (["--task", "walker_walk_pixels"], ["--preset", "surf_pixels_walker"]),
+        (["--obs", "pixels"], ["--preset", "surf_pixels_walker"]),  # the paper preset's task, walker_walk
+        (
+            ["--obs", "pixels", "--task", "cheetah_run", "--algo", "drqv2"],
+            ["--preset", "surf_pixels_cheetah", "--algo", "drqv2"],
+        ),
+        (
+            ["--obs", "pixels", "--task", "walker_run"],
+            ["--preset", "surf_pixels_walker", "--task", "walker_run_pixels"],
+        ),
+        # An explicit preset stays; --obs pixels on a pixel task, and --obs state on a state task, change nothing.
+        (
+            ["--preset", "paper", "--obs", "pixels", "--algo", "drqv2"],
+            ["--preset", "paper", "--algo", "drqv2", "--task", "walker_walk_pixels"],
+        ),
+        (
+            ["--preset", "tiny", "--obs", "pixels", "--task", "probe_point", "--algo", "drqv2"],
+            ["--preset", "tiny", "--task", "probe_point_pixels", "--algo", "drqv2"],
+        ),
+        (["--obs", "pixels", "--task", "cheetah_run_pixels"], ["--preset", "surf_pixels_cheetah"]),
+        (["--obs", "state", "--task", "cheetah_run"], ["--preset", "paper", "--task", "cheetah_run"]),
+    ],
+    ids=[
+        "walker",
+        "pixel-task",
+        "default-task",
+        "cheetah",
+        "walker-run",
+        "paper",
+        "tiny-probe",
+        "pixels-twice",
+        "state",
+    ],
+)
+def test_obs_and_a_pixel_task_pick_the_task_and_its_preset(argv, same_as):
+    config = cli.parse(argv).config
+    assert config == cli.parse(same_as).config
+    assert config.pixels == (config.env.task.endswith("_pixels"))
+
+
+def test_a_pixel_run_without_a_preset_gets_surf_s_pixel_protocol():
+    config = cli.parse(["--obs", "pixels", "--task", "walker_walk", "--algo", "surf"]).config
+    assert config.env.task == "walker_walk_pixels" and config.algo == "surf"
+    walker = PRESETS["surf_pixels_walker"]
+    assert (config.feedback, config.train, config.surf, config.drqv2) == (
+        walker.feedback,
+        walker.train,
+        walker.surf,
+        walker.drqv2,
+    )
+    assert config.train != PRESETS["paper"].train
 
 
 def test_the_preset_label_capacity_is_not_a_user_choice():

@@ -3,7 +3,9 @@
     python -m rebel_jax.train --preset paper --algo sac --task walker_walk --seeds 5
     python -m rebel_jax.train --preset paper --algo pebble --labels 100 --teacher noisy
 
-``--preset`` (``paper``, ``tiny`` or ``demo``, the last ``make train``'s) picks the defaults and
+``--preset`` (``paper``, ``tiny``, ``demo``, the last ``make train``'s, or SURF's pixel protocols
+``surf_pixels_walker`` and ``surf_pixels_cheetah``, the defaults on those pixel tasks) picks the defaults,
+``--obs pixels`` runs the task's pixel version (``walker_walk`` -> ``walker_walk_pixels``) and
 ``--teacher`` (a B-Pref teacher: oracle, noisy, mistake, skip, equal, myopic) the teacher; every
 other flag overrides one field of :class:`rebel_jax.config.Config` (``--help`` lists them with
 their docs).
@@ -53,6 +55,7 @@ from jax.sharding import NamedSharding
 from rebel_jax import plots, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
+from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
 from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.pixel_train import PixelTrainer
@@ -71,6 +74,8 @@ RUN_FILES = (
 )
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
 EXIT_USAGE = 2
+OBS = ("state", "pixels")
+"""``--obs``: what the agent observes; ``pixels`` runs the task's pixel version (``<task>_pixels``)."""
 EXIT_DIVERGED = 3
 NO_CPU_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 """jaxlib 0.10.2's CPU runtime at times deadlocks (every thread idle in ``device_get``) unless
@@ -782,26 +787,60 @@ def check_devices(args: Args, devices: int) -> None:
         )
 
 
+def observed_task(task: str, obs: str | None) -> str:
+    """The task ``--obs`` asks for: ``pixels`` names the task's pixel version (``walker_walk`` ->
+    ``walker_walk_pixels``), ``state`` refuses a pixel task, and None keeps the task (raises ConfigError)."""
+    pixel = task.endswith(PIXEL_SUFFIX)
+    if obs == "state" and pixel:
+        state = task.removesuffix(PIXEL_SUFFIX)
+        raise ConfigError(
+            f"obs='state' is invalid with the pixel task {task!r}: allowed --obs pixels, or --task {state}"
+        )
+    return f"{task}{PIXEL_SUFFIX}" if obs == "pixels" and not pixel else task
+
+
+def default_preset(task: str) -> str:
+    """``--preset`` when none is given: SURF's pixel protocol (``surf_pixels_walker`` or ``surf_pixels_cheetah``)
+    for a walker or cheetah pixel task, whose agent steps, rounds and sessions the ``paper`` preset does not fit;
+    ``paper`` otherwise."""
+    if task.endswith(PIXEL_SUFFIX):
+        for family in ("walker", "cheetah"):
+            if task.startswith(f"{family}_"):
+                return f"surf_pixels_{family}"
+    return "paper"
+
+
 def parse(argv: list[str] | None = None) -> Args:
-    """Reads ``--preset`` and ``--teacher`` first, then every other flag as an override of them."""
-    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
-    pre.add_argument("--preset", choices=sorted(PRESETS), default="paper")
+    """Reads ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag as an override of
+    the preset."""
+    pre = argparse.ArgumentParser(prog="python -m rebel_jax.train", add_help=False, allow_abbrev=False)
+    pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
     pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
+    pre.add_argument("--obs", choices=OBS, default=None)
+    pre.add_argument("--task", default=None)
     known, rest = pre.parse_known_args(argv)
+    try:
+        task = observed_task(known.task or PRESETS[known.preset or "paper"].env.task, known.obs)
+    except ConfigError as err:
+        raise _usage_error(err) from err
+    preset = known.preset or default_preset(task)
+    rest = [*rest, "--task", task]
     host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
     scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
     description = (
-        f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper)."
+        f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper; on a walker or cheetah pixel"
+        " task surf_pixels_walker or surf_pixels_cheetah).\nObservations: --obs {state,pixels} (default: the task's;"
+        " pixels: the task's pixel version, <task>_pixels)."
         f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it;"
         " --teacher human asks a person on a web page (--human.*), --teacher replay --human.labels FILE"
         " re-runs a human run's answers."
     )
-    config = dataclasses.replace(PRESETS[known.preset], teacher=teachers.PRESETS[scripted])
+    config = dataclasses.replace(PRESETS[preset], teacher=teachers.PRESETS[scripted])
     args = tyro.cli(Args, default=Args(config=config), args=rest, description=description)
     args = dataclasses.replace(args, host_teacher=host_teacher)
     try:
         args.config.validate()
-        _check_args(args, PRESETS[known.preset])
+        _check_args(args, PRESETS[preset])
         if host_teacher:
             _check_host_teacher(args)
     except ConfigError as err:
