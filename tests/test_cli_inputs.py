@@ -61,6 +61,8 @@ BAD = {
         ["--obs", "state", "--task", "walker_walk_pixels"],
         ["obs='state'", "'walker_walk_pixels'", "--obs pixels, or --task walker_walk"],
     ),
+    "obs-unknown": (["--obs", "depth"], ["argument --obs", "invalid choice: 'depth'", "'state', 'pixels'"]),
+    "preset-unknown": (["--preset", "huge"], ["argument --preset", "invalid choice: 'huge'", "'paper'"]),
     "obs-pixels-without-a-pixel-version": (
         ["--obs", "pixels", "--task", "walker_fly"],
         ["env.task='walker_fly_pixels'"],

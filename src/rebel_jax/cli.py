@@ -787,6 +787,14 @@ def check_devices(args: Args, devices: int) -> None:
         )
 
 
+class _FirstFlags(argparse.ArgumentParser):
+    """The flags read before the preset's: a bad one raises ConfigError (one line, exit status 2), as a bad
+    config value does, instead of argparse's usage text."""
+
+    def error(self, message: str):
+        raise ConfigError(message)
+
+
 def observed_task(task: str, obs: str | None) -> str:
     """The task ``--obs`` asks for: ``pixels`` names the task's pixel version (``walker_walk`` ->
     ``walker_walk_pixels``), ``state`` refuses a pixel task, and None keeps the task (raises ConfigError)."""
@@ -813,13 +821,13 @@ def default_preset(task: str) -> str:
 def parse(argv: list[str] | None = None) -> Args:
     """Reads ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag as an override of
     the preset."""
-    pre = argparse.ArgumentParser(prog="python -m rebel_jax.train", add_help=False, allow_abbrev=False)
+    pre = _FirstFlags(add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
     pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
     pre.add_argument("--obs", choices=OBS, default=None)
     pre.add_argument("--task", default=None)
-    known, rest = pre.parse_known_args(argv)
     try:
+        known, rest = pre.parse_known_args(argv)
         task = observed_task(known.task or PRESETS[known.preset or "paper"].env.task, known.obs)
     except ConfigError as err:
         raise _usage_error(err) from err
