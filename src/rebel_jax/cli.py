@@ -821,7 +821,7 @@ def default_preset(task: str) -> str:
 def parse(argv: list[str] | None = None) -> Args:
     """Reads ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag as an override of
     the preset."""
-    pre = _FirstFlags(add_help=False, allow_abbrev=False)
+    pre = _FirstFlags(prog="python -m rebel_jax.train", add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
     pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
     pre.add_argument("--obs", choices=OBS, default=None)
@@ -844,7 +844,7 @@ def parse(argv: list[str] | None = None) -> Args:
         " re-runs a human run's answers."
     )
     config = dataclasses.replace(PRESETS[preset], teacher=teachers.PRESETS[scripted])
-    args = tyro.cli(Args, default=Args(config=config), args=rest, description=description)
+    args = tyro.cli(Args, prog=pre.prog, default=Args(config=config), args=rest, description=description)
     args = dataclasses.replace(args, host_teacher=host_teacher)
     try:
         args.config.validate()
