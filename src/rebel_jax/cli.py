@@ -74,9 +74,9 @@ RUN_FILES = (
 )
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
 EXIT_USAGE = 2
+EXIT_DIVERGED = 3
 OBS = ("state", "pixels")
 """``--obs``: what the agent observes; ``pixels`` runs the task's pixel version (``<task>_pixels``)."""
-EXIT_DIVERGED = 3
 NO_CPU_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 """jaxlib 0.10.2's CPU runtime at times deadlocks (every thread idle in ``device_get``) unless
 this scheduler is off; the CLI sets it on CPU before the backend starts (as tests/conftest.py)."""
