@@ -327,6 +327,31 @@ def test_time_limit_stops_after_a_round_with_its_checkpoint_and_resume_finishes_
     _same_checkpoint(whole, run_dir)
 
 
+# A pixel PEBBLE run of 3 rounds (16x16 probe frames, episodes of 10 agent steps): seed steps, then a session of 4
+# labels at the starts of rounds 1 and 2 (as test_pixel_preference.MICRO, through the CLI).
+PIXEL = (
+    "--preset tiny --obs pixels --task probe_point --algo pebble --num-envs 2 --episode-length 20"
+    " --drqv2.feature-dim 8 --drqv2.hidden 16 --drqv2.batch-size 16 --drqv2.nstep 3 --drqv2.std-steps 40"
+    " --total-steps 60 --seed-steps 20 --steps-per-round 20 --eval-every 20 --eval-episodes 1"
+    " --labels 8 --per-session 4 --interval 20 --query.segment-length 4 --pretrain.reset-updates 2"
+    " --pixel-reward.hidden 8 --pixel-reward.batch-size 4 --pixel-reward.max-epochs 3 --pixel-reward.lr 1e-3"
+    " --pixel-reward.chunk 3 --seeds 2 --seed 7 --no-tensorboard --no-progress"
+).split()
+
+
+def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp_path, capsys):
+    # Its checkpoint holds the frame replay, the reward ensemble and the label store's segment copies (4 labels).
+    whole, extended = tmp_path / "whole", tmp_path / "extended"
+    cli.main([*PIXEL, "--run-dir", str(whole)])
+    cli.main([*PIXEL, "--run-dir", str(extended), "--total-steps", "40"])  # rounds 0 and 1: the first session
+    assert _steps_on_disk(extended) == [1, 2]
+    assert [row["labels_used"] for row in _metrics(extended)] == [[0.0, 0.0], [4.0, 4.0]]
+    cli.main([*PIXEL, "--run-dir", str(extended), "--resume"])  # round 2, after the checkpoint of round 1
+    _same_run(whole, extended)
+    assert _metrics(extended)[-1]["labels_used"] == [8.0, 8.0]
+    _same_checkpoint(whole, extended)
+
+
 def test_gpu_batch_resumes_a_job_killed_before_its_first_checkpoint(tmp_path):
     # A new run refuses a directory holding a run: gpu_batch must pass --resume (which restarts it).
     sys.path.insert(0, str(ROOT / "experiments"))

@@ -377,37 +377,47 @@ def keep_rounds_before(metrics: pathlib.Path, rounds: int) -> None:
     os.replace(tmp, metrics)
 
 
-def _grow_buffer(state, rows: int):
-    """``state`` with its replay buffer (leading seed axis) padded to ``rows`` rows.
+def _grow_buffer(state, like):
+    """``state`` with each replay-buffer leaf padded with zeros, after its seed axis, to the shape of ``like``'s.
 
     Only for a run extended with a larger ``--total-steps`` whose capacity is its length: such a
-    buffer never wrapped, so its ``size`` rows are the first ones and writing continues at ``size``.
+    buffer never wrapped, so its ``size`` rows are the first ones and writing continues at ``size``. A pixel
+    run's frame ring (``frame_replay.FrameBuffer``) never wrapped either (it holds every frame of its rows):
+    its frame rows are padded too, and its next frame row stays where it was.
     """
-    buffer = state.buffer
 
-    def pad(x):
-        return jnp.concatenate([x, jnp.zeros((x.shape[0], rows - x.shape[1], *x.shape[2:]), x.dtype)], axis=1)
+    def pad(x, target):
+        if x.shape == target.shape:
+            return x
+        rows = (x.shape[0], target.shape[1] - x.shape[1], *x.shape[2:])
+        return jnp.concatenate([x, jnp.zeros(rows, x.dtype)], axis=1)
 
-    fields = [f.name for f in dataclasses.fields(buffer) if getattr(buffer, f.name) is not None]  # qpos may be None
-    data = [name for name in fields if getattr(buffer, name).ndim >= 3]  # not ptr, size
-    grown = {name: pad(getattr(buffer, name)) for name in data}
-    return state.replace(buffer=buffer.replace(**grown, ptr=jnp.array(buffer.size, copy=True)))  # not donated twice
+    grown = jax.tree.map(pad, state.buffer, like.buffer)
+    return state.replace(buffer=grown.replace(ptr=jnp.array(grown.size, copy=True)))  # not donated twice
 
 
 def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     """(first round to run, state) from the newest readable checkpoint; (0, ``state``) if there is none.
 
     A checkpoint of a run now extended by a larger ``--total-steps`` holds a smaller replay buffer:
-    it is restored as saved (its size read from the checkpoint) and then grown.
+    it is restored as saved (each buffer leaf's rows read from the checkpoint) and then grown.
     """
     rows = state.buffer.reward.shape[1]  # (seeds, rows, envs)
-    reward_leaf = str(next(i for i, x in enumerate(jax.tree.leaves(state)) if x is state.buffer.reward))
+    leaves = jax.tree.leaves(state)
+    reward_leaf = next(i for i, x in enumerate(leaves) if x is state.buffer.reward)
+    first = next(i for i, x in enumerate(leaves) if x is jax.tree.leaves(state.buffer)[0])  # the buffer's leaves
 
     def adapt(like, shapes):
-        saved_rows = shapes[reward_leaf][1]
-        if saved_rows == rows:
+        if shapes[str(reward_leaf)][1] == rows:
             return like
-        return like.replace(buffer=jax.tree.map(lambda x: x[:, :saved_rows] if x.ndim >= 3 else x, like.buffer))
+
+        def saved_rows(i, x):  # x[:, :n] where the saved leaf has n < x.shape[1] rows and x's other axes
+            saved = shapes.get(str(first + i), x.shape)
+            same_rest = len(saved) == x.ndim >= 2 and tuple(saved[2:]) == x.shape[2:] and saved[0] == x.shape[0]
+            return x[:, : saved[1]] if same_rest and saved[1] < x.shape[1] else x
+
+        buffer, treedef = jax.tree.flatten(like.buffer)
+        return like.replace(buffer=jax.tree.unflatten(treedef, [saved_rows(i, x) for i, x in enumerate(buffer)]))
 
     if ckpt.latest() is None:
         print(f"note: --resume: no checkpoint in {run_dir} yet; starting the run from scratch", file=sys.stderr)
@@ -424,7 +434,7 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
         print(f"note: --resume: {err}; starting the run from scratch", file=sys.stderr)
         return 0, state
     if restored.buffer.reward.shape[1] != rows:
-        restored = sweep.shard_seeds(_grow_buffer(restored, rows), sharding)
+        restored = sweep.shard_seeds(_grow_buffer(restored, state), sharding)
     return start, restored
 
 
