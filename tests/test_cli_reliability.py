@@ -339,14 +339,42 @@ PIXEL = (
 ).split()
 
 
-def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp_path, capsys):
+@pytest.mark.parametrize(
+    "algo",
+    [
+        [],
+        # SURF's unlabelled pool and REBEL's kept evaluation frames are in the checkpoint too; make test covers
+        # their restore only through the CLI's shared code.
+        pytest.param(
+            [
+                "--algo",
+                "surf",
+                "--surf.crop",
+                "1",
+                "--surf.pool-size",
+                "8",
+                "--surf.reward-update",
+                "3",
+                "--surf.ratio",
+                "1",
+            ],
+            marks=pytest.mark.heavy,
+        ),
+        pytest.param(
+            ["--algo", "rebel", "--rebel.lam", "0.001", "--rebel.horizon", "5", "--rebel.episodes", "1"],
+            marks=pytest.mark.heavy,
+        ),
+    ],
+    ids=["pebble", "surf", "rebel"],
+)
+def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp_path, capsys, algo):
     # Its checkpoint holds the frame replay, the reward ensemble and the label store's segment copies (4 labels).
-    whole, extended = tmp_path / "whole", tmp_path / "extended"
-    cli.main([*PIXEL, "--run-dir", str(whole)])
-    cli.main([*PIXEL, "--run-dir", str(extended), "--total-steps", "40"])  # rounds 0 and 1: the first session
+    flags, whole, extended = [*PIXEL, *algo], tmp_path / "whole", tmp_path / "extended"
+    cli.main([*flags, "--run-dir", str(whole)])
+    cli.main([*flags, "--run-dir", str(extended), "--total-steps", "40"])  # rounds 0 and 1: the first session
     assert _steps_on_disk(extended) == [1, 2]
     assert [row["labels_used"] for row in _metrics(extended)] == [[0.0, 0.0], [4.0, 4.0]]
-    cli.main([*PIXEL, "--run-dir", str(extended), "--resume"])  # round 2, after the checkpoint of round 1
+    cli.main([*flags, "--run-dir", str(extended), "--resume"])  # round 2, after the checkpoint of round 1
     _same_run(whole, extended)
     assert _metrics(extended)[-1]["labels_used"] == [8.0, 8.0]
     _same_checkpoint(whole, extended)
