@@ -25,7 +25,9 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
-from rebel_jax import cli
+from rebel_jax import cli, video
+from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.train import seed_keys
 
 ROOT = pathlib.Path(__file__).parents[1]
 
@@ -378,6 +380,13 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
     _same_run(whole, extended)
     assert _metrics(extended)[-1]["labels_used"] == [8.0, 8.0]
     _same_checkpoint(whole, extended)
+    # `python -m rebel_jax.video RUN_DIR`'s policy of each column is the one final.json evaluated.
+    final = _final(whole)["final_eval_return"]
+    for column in range(2):
+        trainer, step, params = video.load_policy(whole, column)
+        assert isinstance(trainer, PixelTrainer) and step == 3
+        key = seed_keys(7, 2)[column]
+        np.testing.assert_allclose(jax.jit(trainer.evaluate)(params, key), final[column], rtol=1e-4, atol=1e-4)
 
 
 def test_gpu_batch_resumes_a_job_killed_before_its_first_checkpoint(tmp_path):

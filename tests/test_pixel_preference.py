@@ -456,7 +456,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
     np.testing.assert_array_equal(naive[1:, ..., -3:], frames[1:])  # the kept frames are the newest ones
     np.testing.assert_array_equal(frame_replay.episode_stacks(frames[None], STACK)[0], naive)  # rebuilt stacks
     # The actions are the mean actions of the policy frozen at the episode's start, on those stacks.
-    expected = trainer._mean_action(frozen, jnp.asarray(naive))
+    expected = trainer.mean_action(frozen, jnp.asarray(naive))
     np.testing.assert_allclose(actions, np.asarray(expected), rtol=1e-5, atol=1e-6)
     # V: each member's own apply on each step, looped in Python, discounted over the horizon.
     (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))

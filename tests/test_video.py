@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 
 import imageio.v3 as iio
+import jax
 import numpy as np
 import pytest
 
-from rebel_jax import video
+from rebel_jax import render, video
 from rebel_jax.config import PRESETS
+from rebel_jax.drqv2 import DrQV2, DrQV2Config
+from rebel_jax.envs import dmc
+from rebel_jax.envs.pixels import PixelEnv
 
 
 def test_gif_round_trip(tmp_path):
@@ -40,3 +45,27 @@ def test_config_read_back_from_a_run_directory_equals_the_original(preset):
     cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, task="cheetah_run"))
     text = json.dumps(dataclasses.asdict(cfg))  # what cli._write_meta writes as config.json
     assert video._from_dict(type(cfg), json.loads(text)) == cfg
+
+
+def test_a_pixel_policy_s_clip_is_its_episode_seen_by_the_clip_camera():
+    # A pixel task's policy acts on its own frame stacks (here 16x16); the clip's camera (24x24) draws the same
+    # physics. Against a Python loop of reset, policy, step and render.
+    env = PixelEnv(dmc.make_env("walker_walk", episode_length=20), size=16)
+    agent = DrQV2(DrQV2Config(feature_dim=8, hidden=16), env.observation_shape, env.action_size)
+    params = agent.init(jax.random.PRNGKey(0))
+    policy = functools.partial(agent.act_deterministic, params)
+    camera = render.make_camera(env.mj_model, 0, 24, 24)
+    key, steps = jax.random.PRNGKey(1), 4
+    frames, total = jax.jit(lambda k: video.episode_frames(env, policy, k, steps, camera))(key)
+    state = jax.jit(env.reset)(key)
+    expected, rewards = [camera.render(state.pipeline_state)], []
+    step = jax.jit(lambda s: env.step(s, policy(s.obs)))
+    for _ in range(steps):
+        state = step(state)
+        expected.append(camera.render(state.pipeline_state))
+        rewards.append(float(state.reward))
+    expected = np.stack(expected)
+    assert frames.shape == expected.shape == (steps + 1, 24, 24, 3) and len(np.unique(expected[-1])) > 2
+    assert np.mean(np.abs(np.asarray(frames, int) - expected) <= 1) > 0.99  # the same pixels, up to rounding
+    assert not np.array_equal(expected[0], expected[-1])  # the walker moved
+    np.testing.assert_allclose(total, sum(rewards), rtol=1e-5)

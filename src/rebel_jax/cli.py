@@ -125,7 +125,7 @@ class Args:
 
     video_steps: int = 250
     """Agent steps of the evaluation clip written at the end of the run (``eval.gif``: the first
-    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks, and not
+    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks (state or pixel), and not
     under ``--time-limit`` (``python -m rebel_jax.video RUN_DIR`` renders one later)."""
 
     teacher_grid: tuple[str, ...] = ()
@@ -503,10 +503,11 @@ def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logge
     return "\n".join(lines)
 
 
-def _eval_clip(args: Args, trainer: Trainer, actor_params, run_dir: pathlib.Path) -> pathlib.Path | None:
+def _eval_clip(args: Args, trainer: Trainer | PixelTrainer, policy, run_dir: pathlib.Path) -> pathlib.Path | None:
     """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path.
 
-    ``actor_params``: the actor's parameters of every column, on the host.
+    ``policy``: ``trainer.policy_params`` of every column, on the host. A pixel run's policy sees its own 84x84
+    frame stacks; the clip is drawn by a camera of its own, as a state run's.
     """
     if args.time_limit:
         # Runs split over time-limited calls have no time budgeted for compiling the clip.
@@ -517,11 +518,10 @@ def _eval_clip(args: Args, trainer: Trainer, actor_params, run_dir: pathlib.Path
     except ImportError:
         print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
         return None
-    params = jax.tree.map(lambda x: jnp.asarray(x[0]), actor_params)
-    policy = functools.partial(trainer.sac.act_deterministic, params)
+    params = jax.tree.map(lambda x: jnp.asarray(x[0]), policy)
     key = jax.random.PRNGKey(args.config.train.seed)
     path = run_dir / "eval.gif"
-    video.policy_video(trainer.env, policy, key, path, args.video_steps, 120)
+    video.policy_video(trainer.env, functools.partial(trainer.mean_action, params), key, path, args.video_steps, 120)
     return path
 
 
@@ -694,10 +694,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         if primary:
             write_json(run_dir / "final.json", result)
             files.append(_learning_curve(args, run_dir, random))
-        if args.video_steps > 0 and hasattr(trainer.env, "mj_model") and not cfg.pixels:  # no pixel clip yet
-            actor = sweep.to_host(state.sac.actor_params)  # Every process: a collective with several.
+        if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
+            policy = sweep.to_host(policy)  # Every process: a collective with several.
             if primary:
-                files.append(_eval_clip(args, trainer, actor, run_dir))
+                files.append(_eval_clip(args, trainer, policy, run_dir))
     finally:
         if host is not None:
             host.close()

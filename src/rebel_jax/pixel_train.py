@@ -225,7 +225,8 @@ class PixelTrainer:
     def _reset_envs(self, key: jax.Array) -> State:
         return jax.vmap(self.env.reset)(jax.random.split(key, self.num_all))
 
-    def _mean_action(self, policy: dict, obs: jax.Array) -> jax.Array:
+    def mean_action(self, policy: dict, obs: jax.Array) -> jax.Array:
+        """The deterministic action of ``policy`` (:meth:`policy_params`) at frame stacks ``obs`` (..., H, W, C)."""
         return self.agent.actor.apply(policy["actor"], self.agent.encoder.apply(policy["encoder"], obs))
 
     def _act(self, ts: PixelTrainState, t: jax.Array, key: jax.Array) -> jax.Array:
@@ -234,7 +235,7 @@ class PixelTrainer:
         explore = self.agent.act(ts.sac, obs[:n], key_policy, t * n)
         random = jax.random.uniform(key_random, explore.shape, minval=-1.0, maxval=1.0)
         train_action = jnp.where(t * n < self.cfg.train.seed_steps, random, explore)
-        return jnp.concatenate([train_action, self._mean_action(ts.eval_policy, obs[n:])])
+        return jnp.concatenate([train_action, self.mean_action(ts.eval_policy, obs[n:])])
 
     def _record(self, ts: PixelTrainState, nxt: State, action: jax.Array, t: jax.Array):
         n = self.num_train
@@ -581,7 +582,7 @@ class PixelTrainer:
         def body(carry, key):
             state, total = carry
             uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
-            action = jnp.where(random_actions, uniform, self._mean_action(policy, state.obs))
+            action = jnp.where(random_actions, uniform, self.mean_action(policy, state.obs))
             state = jax.vmap(self.env.step)(state, action)
             return (state, total + state.reward), None
 

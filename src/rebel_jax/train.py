@@ -222,6 +222,10 @@ class Trainer:
         """What :meth:`evaluate` takes: the actor's parameters."""
         return ts.sac.actor_params
 
+    def mean_action(self, actor_params, obs: jax.Array) -> jax.Array:
+        """The deterministic action of ``actor_params`` (:meth:`policy_params`) at ``obs``."""
+        return self.sac.act_deterministic(actor_params, obs)
+
     # -- init -----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
         """A fresh run of one seed."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import pathlib
 import typing
@@ -87,9 +88,11 @@ def _from_dict(cls, data: dict):
 
 
 def load_policy(run_dir: pathlib.Path, column: int = 0):
-    """The trainer and the deterministic policy of one column of a run's latest checkpoint."""
+    """(trainer, checkpoint step, policy parameters) of one column of a run's latest checkpoint; the trainer
+    (``PixelTrainer`` for a pixel run) acts with them through ``trainer.mean_action(params, obs)``."""
     from rebel_jax.checkpoint import Checkpointer
     from rebel_jax.config import Config
+    from rebel_jax.pixel_train import PixelTrainer
     from rebel_jax.train import Trainer, seed_keys
 
     cfg = _from_dict(Config, json.loads((run_dir / "config.json").read_text()))
@@ -97,7 +100,7 @@ def load_policy(run_dir: pathlib.Path, column: int = 0):
     columns = int(meta["columns"])
     if not 0 <= column < columns:
         raise ValueError(f"column {column} out of range: the run has {columns} columns")
-    trainer = Trainer(cfg)
+    trainer = PixelTrainer(cfg) if cfg.pixels else Trainer(cfg)
     keys = seed_keys(cfg.train.seed, columns)
     like = jax.eval_shape(jax.vmap(trainer.init), keys)
     ckpt = Checkpointer(run_dir / "checkpoints")
@@ -105,8 +108,7 @@ def load_policy(run_dir: pathlib.Path, column: int = 0):
         step, state = ckpt.restore(like)
     finally:
         ckpt.close()
-    params = jax.tree.map(lambda x: jnp.asarray(x[column]), state.sac.actor_params)
-    return trainer, step, lambda obs: trainer.sac.act_deterministic(params, obs)
+    return trainer, step, jax.tree.map(lambda x: jnp.asarray(x[column]), trainer.policy_params(state))
 
 
 def main(argv: list[str] | None = None) -> pathlib.Path:
@@ -119,7 +121,8 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
     parser.add_argument("--camera", default="0", help="camera id or name")
     parser.add_argument("--seed", type=int, default=0, help="reset key")
     args = parser.parse_args(argv)
-    trainer, step, policy = load_policy(args.run_dir, args.column)
+    trainer, step, params = load_policy(args.run_dir, args.column)
+    policy = functools.partial(trainer.mean_action, params)
     env = trainer.env
     if not hasattr(env, "mj_model"):
         raise ValueError(f"task {trainer.cfg.env.task!r} has no MuJoCo model to render")
