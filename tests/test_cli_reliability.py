@@ -330,7 +330,7 @@ def test_time_limit_stops_after_a_round_with_its_checkpoint_and_resume_finishes_
 
 
 # A pixel PEBBLE run of 3 rounds (16x16 probe frames, episodes of 10 agent steps): seed steps, then a session of 4
-# labels at the starts of rounds 1 and 2 (as test_pixel_preference.MICRO, through the CLI).
+# labels at the starts of rounds 1 and 2 (like test_pixel_preference.MICRO, through the CLI).
 PIXEL = (
     "--preset tiny --obs pixels --task probe_point --algo pebble --num-envs 2 --episode-length 20"
     " --drqv2.feature-dim 8 --drqv2.hidden 16 --drqv2.batch-size 16 --drqv2.nstep 3 --drqv2.std-steps 40"

@@ -411,10 +411,9 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
         if shapes[str(reward_leaf)][1] == rows:
             return like
 
-        def saved_rows(i, x):  # x[:, :n] where the saved leaf has n < x.shape[1] rows and x's other axes
-            saved = shapes.get(str(first + i), x.shape)
-            same_rest = len(saved) == x.ndim >= 2 and tuple(saved[2:]) == x.shape[2:] and saved[0] == x.shape[0]
-            return x[:, : saved[1]] if same_rest and saved[1] < x.shape[1] else x
+        def saved_rows(i, x):  # x[:, :n] where the saved leaf has n < x.shape[1] rows (any other difference is
+            saved = shapes.get(str(first + i), x.shape)  # left for the checkpoint's shape check to refuse)
+            return x[:, : saved[1]] if x.ndim >= 2 and len(saved) == x.ndim and saved[1] < x.shape[1] else x
 
         buffer, treedef = jax.tree.flatten(like.buffer)
         return like.replace(buffer=jax.tree.unflatten(treedef, [saved_rows(i, x) for i, x in enumerate(buffer)]))
@@ -821,11 +820,8 @@ def default_preset(task: str) -> str:
     """``--preset`` when none is given: SURF's pixel protocol (``surf_pixels_walker`` or ``surf_pixels_cheetah``)
     for a walker or cheetah pixel task, whose agent steps, rounds and sessions the ``paper`` preset does not fit;
     ``paper`` otherwise."""
-    if task.endswith(PIXEL_SUFFIX):
-        for family in ("walker", "cheetah"):
-            if task.startswith(f"{family}_"):
-                return f"surf_pixels_{family}"
-    return "paper"
+    pixel_preset = f"surf_pixels_{task.split('_', 1)[0]}"
+    return pixel_preset if task.endswith(PIXEL_SUFFIX) and pixel_preset in PRESETS else "paper"
 
 
 def parse(argv: list[str] | None = None) -> Args:
