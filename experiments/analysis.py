@@ -447,12 +447,15 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
 
 
 # -- plots -------------------------------------------------------------------------------
-def curve_figure(curves: Mapping[str, Curve], path: pathlib.Path, title: str, xlabel: str | None = None) -> None:
-    """Writes ``path``: each label's mean +- std curve over seeds (``plot_curves``), titled, on one axes."""
+def curve_figure(
+    curves: Mapping[str, Curve], path: pathlib.Path, title: str, xlabel: str | None = None, seeds: bool = False
+) -> None:
+    """Writes ``path``: each label's mean +- std curve over seeds (``plot_curves``, with each seed's curve
+    if ``seeds``), titled, on one axes."""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_curves(ax, curves)
+    plot_curves(ax, curves, seeds=seeds)
     ax.legend(fontsize=8)
     if xlabel is not None:
         ax.set_xlabel(xlabel)

@@ -19,7 +19,7 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure
+from analysis import curve_figure, final_returns
 from compare import compare, gather
 
 from rebel_jax.envs import make_env
@@ -30,7 +30,10 @@ RUNS: dict[str, list[str]] = {
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``."""
 STOPPED: dict[str, list[str]] = {
-    "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16_stopped218k"],
+    "walker_walk_pixels": [
+        "pixels/drqv2_walker_500kframes_seed0_bf16_stopped218k",
+        "pixels/drqv2_walker_500kframes_seed1_seeds2_bf16_stopped245k",
+    ],
 }
 """Pixel runs that the device budget stopped early: drawn in the task's figure and listed with every
 evaluation under ``pixels.json``'s ``stopped``, but not rows (their last 10 evaluations are not a final score)."""
@@ -80,29 +83,35 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
 
 
 def figure(task: str, curves: dict, path: pathlib.Path) -> None:
-    """Each method's mean +- std evaluation return against frames, as DrQ-v2 and SURF draw them."""
-    curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)")
+    """Each method's mean +- std evaluation return against frames, as DrQ-v2 and SURF draw them, and each
+    seed's curve (thin): DrQ-v2 fails on some walker seeds, its own curves included (RESULTS.md)."""
+    curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)", seeds=True)
 
 
 def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
-    """A stopped run's entries and its curves, labelled "(stopped)": per method ``evaluations`` (each as
-    ``[frames, seed-mean return]``) and ``frames``, those of its last evaluation."""
-    curves, infos = gather(run_dirs)
+    """The stopped runs' entries and curves, one per run directory (each stopped at its own length, often
+    on other code): per method ``evaluations`` (each as ``[frames, seed-mean return]``), ``frames`` (those
+    of its last evaluation) and ``last10_returns`` (per seed the mean of its last 10 evaluations, as
+    ``final_returns``, but of a run that did not reach its end). Curves are labelled "(stopped at <frames>)"."""
     repeat = action_repeat(task)
     out, frames = [], {}
-    for label, (steps, returns) in curves.items():
-        means = np.nanmean(returns, axis=1)
-        kept = np.isfinite(means)
-        evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
-        frames[f"{label} (stopped)"] = (steps * repeat, returns)
-        out.append(
-            {
-                **_described(task, label, infos[label]),
-                "seeds": returns.shape[1],
-                "frames": int(steps[-1]) * repeat,
-                "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
-            }
-        )
+    for run_dir in run_dirs:
+        curves, infos = gather([run_dir])
+        for label, (steps, returns) in curves.items():
+            means = np.nanmean(returns, axis=1)
+            kept = np.isfinite(means)
+            evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
+            last = int(steps[-1]) * repeat
+            frames[f"{label} (stopped at {last // 1000}k)"] = (steps * repeat, returns)
+            out.append(
+                {
+                    **_described(task, label, infos[label]),
+                    "seeds": returns.shape[1],
+                    "frames": last,
+                    "last10_returns": [round(float(v), 2) for v in final_returns(returns)],
+                    "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
+                }
+            )
     return out, frames
 
 
@@ -125,7 +134,9 @@ def main() -> None:
         )
     for r in early:
         shown = ", ".join(f"{f // 1000}k: {v:.0f}" for f, v in r["evaluations"])
+        last10 = ", ".join(f"{v:.1f}" for v in r["last10_returns"])
         print(f"\n{r['task']} {r['method']} ({r['seeds']} seed(s), stopped at {r['frames']:,} frames): {shown}")
+        print(f"  per seed, the mean of its last 10 evaluations: {last10}")
 
 
 if __name__ == "__main__":

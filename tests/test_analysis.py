@@ -288,6 +288,15 @@ def test_plot_curves_and_iqm(tmp_path):
     analysis.plot_curves(ax_curves, {"REBEL": run, "SAC": (run[0], 2 * run[1])})
     assert [t.get_text() for t in ax_curves.get_legend().get_texts()] == ["REBEL (3 seeds)", "SAC (3 seeds)"]
     np.testing.assert_allclose(ax_curves.get_lines()[1].get_ydata(), [4.0, 8.0, 16.0, 20.0])
+    _, ax_seeds = plt.subplots()
+    analysis.plot_curves(ax_seeds, {"REBEL": run}, seeds=True)  # the mean, then each seed's own curve
+    lines = ax_seeds.get_lines()
+    assert len(lines) == 1 + run[1].shape[1] and len({line.get_color() for line in lines}) == 1
+    for j, line in enumerate(lines[1:]):  # a seed's curve skips its missing evaluations
+        kept = np.isfinite(run[1][:, j])
+        np.testing.assert_array_equal(line.get_xdata(), run[0][kept])
+        np.testing.assert_array_equal(line.get_ydata(), run[1][kept, j])
+    assert len(lines[2].get_ydata()) == len(run[0]) - 1
     scores = {"REBEL": [0.9, 0.8, 0.85, 0.7, 0.95], "PEBBLE": np.full((5, 2), 0.5)}
     stats = analysis.plot_iqm(ax_iqm, scores)
     assert [t.get_text() for t in ax_iqm.get_yticklabels()] == ["REBEL", "PEBBLE"]
@@ -601,12 +610,20 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     rows.insert(1, {"env_steps": 15_000, "eval_return": None})  # a round without an evaluation
     (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    entries, curves = pixels.stopped("walker_walk_pixels", [run])
-    (entry,) = entries
+    shorter = tmp_path / "runs" / "drqv2_stopped_earlier"  # two seeds, stopped at 100k agent steps
+    _fake_curve_run(shorter, "drqv2", 1.0, 2, task="walker_walk_pixels")
+    rows = [json.loads(line) for line in (shorter / "metrics.jsonl").read_text().splitlines()]
+    (shorter / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows if r["env_steps"] <= 100_000) + "\n")
+    entries, curves = pixels.stopped("walker_walk_pixels", [run, shorter])
+    entry, earlier = entries
     # Every evaluation (10k..200k agent steps, return 2 per thousand steps) at twice the steps in frames.
     assert entry["evaluations"] == [[2 * s, 2.0 * s / 1000] for s in range(10_000, 200_001, 10_000)]
     assert entry["frames"] == 400_000 and entry["seeds"] == 1 and entry["log"] == ["results/runs/drqv2_stopped"]
-    assert set(curves) == {"drqv2 (stopped)"} and curves["drqv2 (stopped)"][0][-1] == 400_000
+    assert entry["last10_returns"] == [2.0 * 155]  # the mean of 110k..200k steps' returns
+    # Each directory is its own entry and curve (their lengths differ), not seeds merged into one.
+    assert earlier["frames"] == 200_000 and earlier["seeds"] == 2 and earlier["last10_returns"] == [55.0, 55.0]
+    assert set(curves) == {"drqv2 (stopped at 400k)", "drqv2 (stopped at 200k)"}
+    assert curves["drqv2 (stopped at 400k)"][0][-1] == 400_000
 
 
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):

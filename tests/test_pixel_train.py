@@ -73,6 +73,23 @@ def test_seed_loop_rounds_equal_the_batched_rounds(run):
     close(metrics["critic_loss"], looped_metrics[-1]["critic_loss"])
 
 
+def test_a_column_is_the_one_seed_run_of_its_key(run):
+    """Seeds are independent columns: column 1 of the 2-seed program is the 1-seed program run from that
+    column's key (its envs, frames, updates and evaluations use nothing of column 0). One of two walker
+    seeds learned nothing in a GPU run (RESULTS.md, "Pixels"); this rules out a mix-up of columns."""
+    trainer, state, metrics, _ = run
+    alone = PixelTrainer(MICRO)
+    init, round_fn, _ = compiled(alone)
+    single = init(seed_keys(0, SEEDS)[1:])
+    for r in range(ROUNDS):
+        single, single_metrics = round_fn(single, jnp.int32(r))
+    close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)  # float rounding of a batch
+    jax.tree.map(lambda a, b: close(a[1], b[0]), (state.sac, state.buffer), (single.sac, single.buffer))
+    np.testing.assert_array_equal(state.buffer.frames[1], single.buffer.frames[0])  # every pixel
+    for key in ("critic_loss", "train_return", "eval_return"):
+        close(metrics[-1][key][1], single_metrics[key][0])
+
+
 def test_seeds_differ_and_the_buffer_holds_frames_once(run):
     trainer, state, _, evaluate = run
     leaves = jax.tree.leaves(state.sac.actor_params)

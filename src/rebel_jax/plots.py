@@ -75,12 +75,14 @@ def load_runs(run_dir: str | os.PathLike) -> Curve:
     return steps, returns
 
 
-def plot_curves(ax, runs: Mapping[str, Curve]) -> None:
+def plot_curves(ax, runs: Mapping[str, Curve], seeds: bool = False) -> None:
     """Mean +- std over seeds of the evaluation return of each run, one line and band per label.
 
     Args:
       ax: a matplotlib ``Axes``.
       runs: ``{label: (steps (evals,), returns (evals, seeds))}``, e.g. from ``load_runs``.
+      seeds: also draw each seed's curve, thin, in its label's colour (a band over few seeds hides a
+        seed that failed, as DrQ-v2's walker seeds sometimes do).
     """
     for label, (steps, returns) in runs.items():
         r = np.asarray(returns, dtype=float)
@@ -89,6 +91,10 @@ def plot_curves(ax, runs: Mapping[str, Curve]) -> None:
         n = r.shape[1]
         (line,) = ax.plot(steps, mean, label=f"{label} ({n} seed{'' if n == 1 else 's'})")
         ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.25, linewidth=0)
+        if seeds and n > 1:
+            kept = np.isfinite(r)
+            for j in range(n):
+                ax.plot(np.asarray(steps)[kept[:, j]], r[kept[:, j], j], color=line.get_color(), lw=0.7, alpha=0.6)
     ax.set_xlabel("environment steps")
     ax.set_ylabel("evaluation return (true reward)")
     ax.legend()
