@@ -275,7 +275,7 @@ class Trainer:
         random = jax.random.uniform(key_random, explore.shape, minval=-1.0, maxval=1.0)
         seeding = t * self.num_train < self.cfg.train.seed_steps
         train_action = jnp.where(seeding, random, explore)
-        eval_action = self.sac.act_deterministic(ts.eval_actor, obs[self.num_train :])
+        eval_action = self.mean_action(ts.eval_actor, obs[self.num_train :])
         return jnp.concatenate([train_action, eval_action])
 
     def _record(self, ts: TrainState, nxt: State, action: jax.Array) -> tuple[replay.Buffer, EpisodeStats]:
@@ -622,7 +622,7 @@ class Trainer:
         def body(carry, key):
             state, total = carry
             uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
-            action = jnp.where(random_actions, uniform, self.sac.act_deterministic(actor_params, state.obs))
+            action = jnp.where(random_actions, uniform, self.mean_action(actor_params, state.obs))
             state = self.eval_envs.step(state, action)
             return (state, total + state.reward), None
 
