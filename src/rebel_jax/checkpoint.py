@@ -6,6 +6,8 @@ that is on disk but cannot be read back (a file truncated or deleted afterwards)
 aside to ``<directory>_damaged/`` by :meth:`Checkpointer.restore`, which then falls back to
 the previous step. A step that reads but holds a state of other leaves or shapes than asked for
 (written by other code) is neither: :class:`CheckpointMismatch` says so, and nothing is moved.
+:meth:`Checkpointer.restore_leaves` reads only some leaves of a step (a policy's parameters, say,
+without the replay buffer saved beside them).
 
 With several processes (``--distributed``) every process calls :meth:`Checkpointer.save` and
 :meth:`Checkpointer.restore` with the same steps: each writes and reads its own devices' part of
@@ -35,12 +37,42 @@ class CheckpointMismatch(ValueError):
     """A checkpoint's saved leaves differ in number or shape from the state it is restored into."""
 
 
-def mismatch(stored: dict[str, tuple[int, ...]], like) -> list[str]:
-    """The differences between a step's :meth:`Checkpointer.stored_shapes` and the leaves of ``like``."""
+def mismatch(stored: dict[str, tuple[int, ...]], like, only: set[str] | None = None) -> list[str]:
+    """The differences between a step's :meth:`Checkpointer.stored_shapes` and the leaves of ``like``.
+
+    With ``only`` (flat indices), the shapes of only those leaves are compared (the number of leaves always).
+    """
     wanted = {k: tuple(x.shape) for k, x in _nonempty_leaves(like).items()}
     if stored.keys() != wanted.keys():
         return [f"{len(stored)} leaves saved, {len(wanted)} now"]
-    return [f"leaf {k}: saved {stored[k]}, now {wanted[k]}" for k in sorted(wanted, key=int) if stored[k] != wanted[k]]
+    compared = sorted(wanted if only is None else wanted.keys() & only, key=int)
+    return [f"leaf {k}: saved {stored[k]}, now {wanted[k]}" for k in compared if stored[k] != wanted[k]]
+
+
+def leaf_indices(like, select: Callable):
+    """``select(like)`` with each leaf replaced by its flat index in ``like`` (as :meth:`Checkpointer.save` keys it).
+
+    Raises:
+      ValueError: if ``select`` computes new leaves instead of picking parts of ``like``.
+    """
+    leaves, treedef = jax.tree.flatten(like)
+    indices = select(jax.tree.unflatten(treedef, range(len(leaves))))
+    picked = select(like)
+
+    def picks(i, x) -> bool:  # ``i`` is the index of the leaf ``x``
+        return isinstance(i, int) and 0 <= i < len(leaves) and leaves[i] is x
+
+    if jax.tree.structure(indices) != jax.tree.structure(picked) or not all(
+        picks(i, x) for i, x in zip(jax.tree.leaves(indices), jax.tree.leaves(picked), strict=True)
+    ):
+        raise ValueError("select must pick parts of the state (leaves as they are), not compute new ones")
+    return indices
+
+
+def _restore_target(x) -> jax.ShapeDtypeStruct:
+    """A leaf like ``x`` as orbax is to restore it: on ``x``'s sharding, else on this process's first device."""
+    sharding = getattr(x, "sharding", None) or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
 
 class Checkpointer:
@@ -89,11 +121,42 @@ class Checkpointer:
           CheckpointMismatch: if a step's saved leaves differ from ``like``'s (after ``adapt``) in
             number or shape; no step is moved aside then.
         """
+        return self._newest_readable(lambda s: self._restore(like, s, adapt), step)
+
+    def restore_leaves(self, like, select: Callable, step: int | None = None):
+        """Restores ``select(like)``'s leaves of ``step`` (default: the newest readable one); the others are not read.
+
+        ``select`` picks a part of the state, e.g. ``trainer.policy_params``: a policy's parameters are read
+        without the replay buffer saved beside them. The step must hold a state of ``like``'s leaves, and the
+        selected ones must have ``like``'s shapes (the others may differ: a run extended to a larger buffer,
+        say). Unreadable steps are moved aside as by :meth:`restore`, but a step whose other leaves are
+        damaged still reads.
+
+        Args:
+          like: the whole state the step was saved from (arrays or ``jax.ShapeDtypeStruct``).
+          select: ``select(state)`` gives a subtree of ``state`` (attribute and key access only).
+          step: the step; default the newest readable one.
+
+        Returns:
+          (step, ``select(state)``), as arrays shaped and typed as ``select(like)``'s leaves, on their sharding
+          (on this process's first device for leaves without one).
+
+        Raises:
+          FileNotFoundError: if there is no complete step, or none could be read.
+          CheckpointMismatch: if a step's saved leaves differ from ``like``'s in number, or the selected ones in
+            shape; no step is moved aside then.
+          ValueError: if ``select`` computes new leaves instead of picking parts of ``like``.
+        """
+        indices = leaf_indices(like, select)
+        return self._newest_readable(lambda s: self._restore_leaves(like, indices, s), step)
+
+    def _newest_readable(self, read: Callable, step: int | None):
+        """(step, ``read(step)``) of ``step``, or of the newest step that reads, moving the unreadable ones aside."""
         if step is not None:
-            return step, self._restore(like, step, adapt)
+            return step, read(step)
         for candidate in reversed(self.steps()):
             try:
-                return candidate, self._restore(like, candidate, adapt)
+                return candidate, read(candidate)
             except CheckpointMismatch:
                 raise
             except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
@@ -111,14 +174,35 @@ class Checkpointer:
         stored = self.stored_shapes(step)
         if adapt is not None and stored.keys() == _nonempty_leaves(like).keys():  # The same leaves: adapt shapes.
             like = adapt(like, stored)
-        differences = mismatch(stored, like)
-        if differences:
-            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
-            raise CheckpointMismatch(f"checkpoint {step} in {self.directory} holds another state ({shown})")
+        self._refuse_mismatch(step, mismatch(stored, like))
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _nonempty_leaves(like))
         saved = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
         leaves, treedef = jax.tree.flatten(like)
         return jax.tree.unflatten(treedef, [saved.get(str(i), x) for i, x in enumerate(leaves)])
+
+    def _restore_leaves(self, like, indices, step: int):
+        """The leaves at flat ``indices`` (a tree of ints) of ``step``, read with orbax's partial restore."""
+        leaves = jax.tree.leaves(like)
+        keys = {str(i) for i in jax.tree.leaves(indices) if leaves[i].size}
+        self._refuse_mismatch(step, mismatch(self.stored_shapes(step), like, only=keys))
+        target = {k: _restore_target(leaves[int(k)]) for k in keys}
+        args = ocp.args.PyTreeRestore(
+            item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True
+        )
+        # What StandardCheckpointHandler saved, PyTreeCheckpointHandler (which it wraps) reads, leaf by leaf.
+        handler = ocp.PyTreeCheckpointHandler()
+        try:
+            item = self.directory / str(step) / ocp.checkpoint_manager.DEFAULT_ITEM_NAME
+            saved = handler.restore(item, args=args) if target else {}
+        finally:
+            handler.close()
+        return jax.tree.map(lambda i: saved.get(str(i), leaves[i]), indices)
+
+    def _refuse_mismatch(self, step: int, differences: list[str]) -> None:
+        """Raises :class:`CheckpointMismatch` naming the first few of a step's ``differences``, if any."""
+        if differences:
+            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
+            raise CheckpointMismatch(f"checkpoint {step} in {self.directory} holds another state ({shown})")
 
     def _set_aside(self, step: int) -> pathlib.Path:
         """Moves a damaged step out of orbax's directory (so that a new save of that step is not skipped).

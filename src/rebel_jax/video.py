@@ -89,7 +89,10 @@ def _from_dict(cls, data: dict):
 
 def load_policy(run_dir: pathlib.Path, column: int = 0):
     """(trainer, checkpoint step, policy parameters) of one column of a run's latest checkpoint; the trainer
-    (``PixelTrainer`` for a pixel run) acts with them through ``trainer.mean_action(params, obs)``."""
+    (``PixelTrainer`` for a pixel run) acts with them through ``trainer.mean_action(params, obs)``.
+
+    Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run).
+    """
     from rebel_jax.checkpoint import Checkpointer
     from rebel_jax.config import Config
     from rebel_jax.pixel_train import PixelTrainer
@@ -105,10 +108,10 @@ def load_policy(run_dir: pathlib.Path, column: int = 0):
     like = jax.eval_shape(jax.vmap(trainer.init), keys)
     ckpt = Checkpointer(run_dir / "checkpoints")
     try:
-        step, state = ckpt.restore(like)
+        step, params = ckpt.restore_leaves(like, trainer.policy_params)
     finally:
         ckpt.close()
-    return trainer, step, jax.tree.map(lambda x: jnp.asarray(x[column]), trainer.policy_params(state))
+    return trainer, step, jax.tree.map(lambda x: jnp.asarray(x[column]), params)
 
 
 def main(argv: list[str] | None = None) -> pathlib.Path:
