@@ -92,7 +92,8 @@ def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The stopped runs' entries and curves, one per run directory (each stopped at its own length, often
     on other code): per method ``evaluations`` (each as ``[frames, seed-mean return]``), ``frames`` (those
     of its last evaluation) and ``last10_returns`` (per seed the mean of its last 10 evaluations, as
-    ``final_returns``, but of a run that did not reach its end). Curves are labelled "(stopped at <frames>)"."""
+    ``final_returns``, but of a run that did not reach its end). Curves are labelled
+    "(stopped; last evaluation at <frames>)"."""
     repeat = action_repeat(task)
     out, frames = [], {}
     for run_dir in run_dirs:
@@ -102,7 +103,7 @@ def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
             kept = np.isfinite(means)
             evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
             last = int(steps[-1]) * repeat
-            frames[f"{label} (stopped at {last // 1000}k)"] = (steps * repeat, returns)
+            frames[f"{label} (stopped; last evaluation at {last // 1000}k)"] = (steps * repeat, returns)
             out.append(
                 {
                     **_described(task, label, infos[label]),

@@ -622,8 +622,8 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     assert entry["last10_returns"] == [2.0 * 155]  # the mean of 110k..200k steps' returns
     # Each directory is its own entry and curve (their lengths differ), not seeds merged into one.
     assert earlier["frames"] == 200_000 and earlier["seeds"] == 2 and earlier["last10_returns"] == [55.0, 55.0]
-    assert set(curves) == {"drqv2 (stopped at 400k)", "drqv2 (stopped at 200k)"}
-    assert curves["drqv2 (stopped at 400k)"][0][-1] == 400_000
+    assert set(curves) == {"drqv2 (stopped; last evaluation at 400k)", "drqv2 (stopped; last evaluation at 200k)"}
+    assert curves["drqv2 (stopped; last evaluation at 400k)"][0][-1] == 400_000
 
 
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
