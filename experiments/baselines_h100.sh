@@ -31,7 +31,10 @@
 #       machine goes back after 30 minutes held only at the end of the call then in flight. Walker at 5 seeds is
 #       projected at about 13 s per round in bf16 (BENCHMARKS.md): about 55 min per 5-seed job, longer than one
 #       machine is held, and its replay checkpoint (2.1 GB per seed) cannot travel. One walker seed per job is
-#       about 21 min held (4.67 s rounds at 10 envs);
+#       about 21 min held (4.67 s rounds at 10 envs). Eighteenth session: TASK=walker SEED=1 SEEDS=2, 6.70 s
+#       rounds, four chained calls (LIMIT 480, 585, 604, 112), 1,775 s held, counted in full: the device time ran
+#       out at round 245 of 250. Two walker seeds fit a session only where held time counts at less than full;
+#       the seeds still owed are SEED=0 SEEDS=1 and SEED=3 SEEDS=2;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
