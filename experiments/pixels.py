@@ -7,7 +7,8 @@ One row per (task, method) of the run directories in ``RUNS``, split into method
 directories by ``compare.gather`` (the ``drqv2_seed`` set of ``experiments/baselines_h100.sh`` runs one
 seed per job, so a method's seeds come from several directories). ``frames`` are the agent steps of the
 log times the task's action repeat (``PixelEnv.action_repeat``, 2): DrQ-v2 and SURF's pixel branch count
-frames. Per row, as issue 12's schema: ``final_returns`` (per seed the mean of its last 10 evaluations,
+frames. Per row, as issue 12's schema: ``labels`` (those the seeds got, read from the logs' ``labels_used``; the
+budget asked is ``labels_asked``), ``final_returns`` (per seed the mean of its last 10 evaluations,
 ``analysis.final_returns``), ``mean``, ``std``, ``iqm`` with ``iqm_ci`` (95% percentile bootstrap over
 seeds), ``device``, ``date``, ``command`` and ``log``. Also writes ``results/pixels_<task>.png``: each
 method's mean +- std evaluation return against frames.
@@ -20,7 +21,7 @@ import pathlib
 
 import numpy as np
 from analysis import curve_figure, final_returns
-from compare import compare, gather
+from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
 
@@ -58,6 +59,21 @@ def _described(task: str, label: str, info: dict) -> dict:
     }
 
 
+def labels_used(run_dirs: list[pathlib.Path], label: str) -> list[int]:
+    """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round that
+    logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's walker schedule asks 170
+    of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3)."""
+    out = []
+    for run_dir in run_dirs:
+        found = methods(run_dir).get(label)
+        if found is None:
+            continue
+        rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+        last = next(r["labels_used"] for r in reversed(rows) if r.get("labels_used") is not None)
+        out += [int(last[c]) for c in found[1]["columns"]]
+    return out
+
+
 def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The task's rows and its curves against frames (``{label: (frames, returns)}``)."""
     curves, infos = gather(run_dirs)
@@ -66,10 +82,14 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     stats = compare(curves, None)["methods"]
     out = []
     for label, m in stats.items():
+        asked = infos[label]["labels"]
+        used = labels_used(infos[label]["run_dirs"], label) if asked is not None else []
         out.append(
             {
                 **_described(task, label, infos[label]),
-                "labels": infos[label]["labels"],
+                # The labels the seeds got (one number if they all got the same), and the budget they asked.
+                "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
+                "labels_asked": asked,
                 "seeds": m["seeds"],
                 "frames": m["env_steps"] * repeat,
                 "final_returns": [round(v, 2) for v in m["final_returns"]],

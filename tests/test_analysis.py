@@ -602,6 +602,28 @@ def test_pixel_rows_merge_one_seed_jobs_and_count_frames(tmp_path, monkeypatch):
     assert (tmp_path / "pixels_walker_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_pixel_rows_report_the_labels_each_seed_got(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    grid = tmp_path / "runs" / "rebel_grid"  # PEBBLE (lambda 0) and REBEL in one program, 2 seeds each
+    _fake_curve_run(grid, "rebel", 1.0, 4, lams=[0, 0.001, 0, 0.001], task="walker_walk_pixels")
+    alone = tmp_path / "runs" / "rebel_more"  # one more REBEL seed from another job
+    _fake_curve_run(alone, "rebel", 1.0, 1, lams=[0.001], task="walker_walk_pixels")
+    for run, used in ((grid, [170, 170, 160, 170]), (alone, [170])):
+        rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        rows[-3]["labels_used"] = [u - 10 for u in used]  # an earlier round's count
+        rows[-2]["labels_used"] = used  # the last count logged
+        rows[-1]["labels_used"] = None  # the last round logs none
+        (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = {r["method"]: r for r in pixels.rows("walker_walk_pixels", [grid, alone])[0]}
+    assert out["pebble (rebel lam=0)"]["labels"] == [170, 160] and out["rebel lam=0.001"]["labels"] == 170
+    assert out["rebel lam=0.001"]["seeds"] == 3 and out["rebel lam=0.001"]["labels_asked"] == 100
+    drqv2 = tmp_path / "runs" / "drqv2"
+    _fake_curve_run(drqv2, "drqv2", 1.0, 1, task="walker_walk_pixels")
+    (row,) = pixels.rows("walker_walk_pixels", [drqv2])[0]
+    assert row["labels"] is None and row["labels_asked"] is None
+
+
 def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monkeypatch):
     pixels = _experiment(monkeypatch, "pixels")
     monkeypatch.setattr(pixels, "RESULTS", tmp_path)
