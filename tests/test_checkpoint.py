@@ -6,20 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pixel_train import MICRO as PIXEL  # the tiny pixel run: 16x16 probe frames, 2 envs
 
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
-from rebel_jax.config import Config, EnvConfig, TrainConfig
-from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import seed_keys
-
-# The tiny pixel run of tests/test_pixel_train.py: 16x16 probe frames, 2 envs.
-PIXEL = Config(
-    algo="drqv2",
-    env=EnvConfig(task="probe_point_pixels", num_envs=2, episode_length=20),
-    drqv2=DrQV2Config(feature_dim=8, hidden=16, batch_size=16, nstep=3, std_steps=40),
-    train=TrainConfig(total_steps=60, seed_steps=20, steps_per_round=20, eval_every=20, eval_episodes=1),
-)
 
 
 def _state(buffer_rows: int = 256, policy_width: int = 3) -> dict:
