@@ -24,6 +24,7 @@ from analysis import curve_figure, final_returns
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
+from rebel_jax.plots import records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: dict[str, list[str]] = {
@@ -68,8 +69,7 @@ def labels_used(run_dirs: list[pathlib.Path], label: str) -> list[int]:
         found = methods(run_dir).get(label)
         if found is None:
             continue
-        rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
-        last = next(r["labels_used"] for r in reversed(rows) if r.get("labels_used") is not None)
+        last = next(r["labels_used"] for r in reversed(records(run_dir)) if r.get("labels_used") is not None)
         out += [int(last[c]) for c in found[1]["columns"]]
     return out
 
