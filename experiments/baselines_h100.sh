@@ -50,6 +50,9 @@
 #       The grid +-0.001, +-0.01, +-0.1 (|lambda| >= 0.1 saturates the reward) is three such programs;
 #       FORM=penalty (the un-relaxed penalty, in which a constant shift of the reward cancels) and
 #       NORMALIZE=1 (the scale-free form) are the variants, named in the run directory;
+#       On a machine of several GPUs, GPU=k puts a detached job on GPU k alone (CUDA_VISIBLE_DEVICES) and WATCH=0
+#       returns at once after starting it, so that one call starts a job per GPU: every script but the last takes
+#       WATCH=0, and the last one's watch waits for all of them and ships every log.
 #       Eighth session: DETACH=1 runs it as one process for the whole machine (setsid, so it outlives
 #       each call): no resumed compiles and no checkpoints (they cannot leave the machine, and the CLI's
 #       default of one per round cost 1-3 s per REBEL round and about 8 s per DrQ-v2 round of 4.7 s).
@@ -94,7 +97,9 @@
 #       10-column rounds take about 31 s).
 set -u
 limit=${1:-520} call_limit=${1:-520}
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1
+# Installed once per machine: a second script in the same call (GPU=, below) or a chained call skips it.
+[ -f /tmp/site/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+  --target /tmp/site .whl/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; }
 limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (its time on a fresh machine is not measured).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
@@ -111,7 +116,7 @@ detach() {  # name, then the training flags: one process for the machine's whole
   local name=$1; shift
   [ -f "runs/$name/final.json" ] && return
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
-  setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 --checkpoint-every 0 >"runs/$name.log" 2>&1 </dev/null &
+  ${GPU:+env CUDA_VISIBLE_DEVICES=$GPU} setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 --checkpoint-every 0 >"runs/$name.log" 2>&1 </dev/null &
 }
 watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
   while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
@@ -119,7 +124,7 @@ watch() {  # wait until no training process is left or the call's limit is near,
   finish
 }
 start() {  # name, then the training flags: detached under DETACH=1, else time-limited calls with resume
-  if [ -n "${DETACH:-}" ]; then detach "$@"; watch; else launch "$@"; wait; finish; fi
+  if [ -n "${DETACH:-}" ]; then detach "$@"; [ "${WATCH:-1}" = 0 ] || watch; else launch "$@"; wait; finish; fi
 }
 finish() {  # print the tails and ship the logs
   for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
