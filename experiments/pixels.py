@@ -20,7 +20,7 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure, final_returns
+from analysis import curve_figure
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
@@ -29,9 +29,11 @@ from rebel_jax.plots import records
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: dict[str, list[str]] = {
     "cheetah_run_pixels": ["pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16"],
+    "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16"],
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``."""
 STOPPED: dict[str, list[str]] = {
+    "cheetah_run_pixels": ["pixels/rebel_cheetah_pixels_150000steps_seed0_seeds2_lams_0_0.001_bf16_stopped82k"],
     "walker_walk_pixels": [
         "pixels/drqv2_walker_500kframes_seed0_bf16_stopped218k",
         "pixels/drqv2_walker_500kframes_seed1_seeds2_bf16_stopped245k",
@@ -74,31 +76,35 @@ def labels_used(run_dirs: list[pathlib.Path], label: str) -> list[int]:
     return out
 
 
+def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
+    """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got (one number if they all got the
+    same) and the budget they asked, seeds, frames, per-seed scores (under the key ``scores``) and their mean,
+    std and IQM with its 95% bootstrap interval."""
+    asked = info["labels"]
+    used = labels_used(info["run_dirs"], label) if asked is not None else []
+    return {
+        "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
+        "labels_asked": asked,
+        "seeds": m["seeds"],
+        "frames": m["env_steps"] * repeat,
+        scores: [round(v, 2) for v in m["final_returns"]],
+        "mean": round(m["mean"], 2),
+        "std": round(m["std"], 2),
+        "iqm": round(m["iqm"], 2),
+        "iqm_ci": [round(v, 2) for v in m["iqm_ci"]],
+    }
+
+
 def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The task's rows and its curves against frames (``{label: (frames, returns)}``)."""
     curves, infos = gather(run_dirs)
     repeat = action_repeat(task)
     frames = {label: (steps * repeat, returns) for label, (steps, returns) in curves.items()}
     stats = compare(curves, None)["methods"]
-    out = []
-    for label, m in stats.items():
-        asked = infos[label]["labels"]
-        used = labels_used(infos[label]["run_dirs"], label) if asked is not None else []
-        out.append(
-            {
-                **_described(task, label, infos[label]),
-                # The labels the seeds got (one number if they all got the same), and the budget they asked.
-                "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
-                "labels_asked": asked,
-                "seeds": m["seeds"],
-                "frames": m["env_steps"] * repeat,
-                "final_returns": [round(v, 2) for v in m["final_returns"]],
-                "mean": round(m["mean"], 2),
-                "std": round(m["std"], 2),
-                "iqm": round(m["iqm"], 2),
-                "iqm_ci": [round(v, 2) for v in m["iqm_ci"]],
-            }
-        )
+    out = [
+        {**_described(task, label, infos[label]), **_statistics(label, m, infos[label], repeat)}
+        for label, m in stats.items()
+    ]
     return out, frames
 
 
@@ -111,25 +117,27 @@ def figure(task: str, curves: dict, path: pathlib.Path) -> None:
 def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The stopped runs' entries and curves, one per run directory (each stopped at its own length, often
     on other code): per method ``evaluations`` (each as ``[frames, seed-mean return]``), ``frames`` (those
-    of its last evaluation) and ``last10_returns`` (per seed the mean of its last 10 evaluations, as
-    ``final_returns``, but of a run that did not reach its end). Curves are labelled
-    "(stopped; last evaluation at <frames>)"."""
+    of its last evaluation), ``last10_returns`` (per seed the mean of its last 10 evaluations, as
+    ``final_returns``, but of a run that did not reach its end) with their mean, std and IQM interval, and the
+    labels as the rows. The methods of one directory stopped together, so they compare at equal frames. Curves
+    are labelled "(stopped; last evaluation at <frames>)"."""
     repeat = action_repeat(task)
     out, frames = [], {}
     for run_dir in run_dirs:
         curves, infos = gather([run_dir])
+        stats = compare(curves, None)["methods"]
         for label, (steps, returns) in curves.items():
             means = np.nanmean(returns, axis=1)
             kept = np.isfinite(means)
             evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
-            last = int(steps[-1]) * repeat
-            frames[f"{label} (stopped; last evaluation at {last // 1000}k)"] = (steps * repeat, returns)
+            frames[f"{label} (stopped; last evaluation at {int(steps[-1]) * repeat // 1000}k)"] = (
+                steps * repeat,
+                returns,
+            )
             out.append(
                 {
                     **_described(task, label, infos[label]),
-                    "seeds": returns.shape[1],
-                    "frames": last,
-                    "last10_returns": [round(float(v), 2) for v in final_returns(returns)],
+                    **_statistics(label, stats[label], infos[label], repeat, scores="last10_returns"),
                     "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
                 }
             )
@@ -156,8 +164,10 @@ def main() -> None:
     for r in early:
         shown = ", ".join(f"{f // 1000}k: {v:.0f}" for f, v in r["evaluations"])
         last10 = ", ".join(f"{v:.1f}" for v in r["last10_returns"])
-        print(f"\n{r['task']} {r['method']} ({r['seeds']} seed(s), stopped at {r['frames']:,} frames): {shown}")
-        print(f"  per seed, the mean of its last 10 evaluations: {last10}")
+        got = f", {r['labels']} labels" if r["labels"] is not None else ""
+        print(f"\n{r['task']} {r['method']} ({r['seeds']} seed(s){got}, stopped at {r['frames']:,} frames): {shown}")
+        low, high = r["iqm_ci"]
+        print(f"  per seed, the mean of its last 10 evaluations: {last10}; IQM {r['iqm']:.1f} [{low}, {high}]")
 
 
 if __name__ == "__main__":
