@@ -646,6 +646,19 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     assert earlier["frames"] == 200_000 and earlier["seeds"] == 2 and earlier["last10_returns"] == [55.0, 55.0]
     assert set(curves) == {"drqv2 (stopped; last evaluation at 400k)", "drqv2 (stopped; last evaluation at 200k)"}
     assert curves["drqv2 (stopped; last evaluation at 400k)"][0][-1] == 400_000
+    assert (entry["mean"], entry["labels"], entry["labels_asked"]) == (310.0, None, None)
+    # A stopped PEBBLE-and-REBEL program: per method its labels got, and the statistics of its last-10 scores.
+    grid = tmp_path / "runs" / "rebel_grid_stopped"
+    _fake_curve_run(grid, "rebel", 1.0, 4, lams=[0, 0.001, 0, 0.001], task="cheetah_run_pixels")
+    rows = [json.loads(line) for line in (grid / "metrics.jsonl").read_text().splitlines()]
+    rows[-1]["labels_used"] = [200, 175, 200, 175]
+    (grid / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = {e["method"]: e for e in pixels.stopped("cheetah_run_pixels", [grid])[0]}
+    pebble, rebel = out["pebble (rebel lam=0)"], out["rebel lam=0.001"]
+    assert (pebble["labels"], rebel["labels"], rebel["labels_asked"]) == (200, 175, 100)
+    assert pebble["last10_returns"] == [155.0, 155.0] and pebble["mean"] == 155.0 and pebble["std"] == 0.0
+    low, high = rebel["iqm_ci"]
+    assert low <= rebel["iqm"] <= high and rebel["seeds"] == 2
 
 
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):

@@ -14,6 +14,7 @@ import re
 import shlex
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -23,6 +24,7 @@ SCRIPT = pathlib.Path(__file__).parents[1] / "experiments" / "baselines_h100.sh"
 STUB = """#!/usr/bin/env bash
 [ "$1" = -c ] && exec "$REAL_PYTHON" "$@"  # python3 -c: a set reading its flags from Python runs it for real
 [ "$1" = python3 ] && shift  # setsid python3 ...
+printf '%s\\n' "${CUDA_VISIBLE_DEVICES-all}" >>"$CALLS.gpu"  # the GPUs the command may see
 printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
 """
 SETS = [  # (SET, environment): the sets the script documents, with the variables each needs
@@ -77,6 +79,10 @@ def _commands(
     # LIMIT 20: the detached sets' watch loop (until the call's limit - 20 s) ends at once.
     done = subprocess.run(["bash", str(SCRIPT), "20", name], cwd=work, env=full_env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
+    for _ in range(100):  # WATCH=0 returns as soon as it starts its job: wait for the job's stub to record it
+        if env.get("WATCH") != "0" or (calls.exists() and program in calls.read_text()):
+            break
+        time.sleep(0.1)
     lines = calls.read_text().splitlines() if calls.exists() else []
     return [shlex.split(line) for line in lines if program in line]
 
@@ -126,6 +132,21 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert ("SEEDS" in env) == bool(re.search(r"_seeds\d", run_dir.name))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)
+
+
+def test_one_call_starts_a_detached_job_per_gpu_and_the_last_script_ships_every_log(tmp_path):
+    walker = {"TASK": "walker", "SEED": "0", "PRECISION": "bf16"}
+    cheetah = {"ALGO": "rebel", "TASK": "cheetah", "LAMS": "0 0.001", "SEED": "0", "SEEDS": "2", "STEPS": "150000"}
+    (first,) = _commands(tmp_path, "drqv2_seed", walker | {"GPU": "0", "WATCH": "0"}, detach=True)
+    assert (tmp_path / "calls.txt.gpu").read_text().split()[-1] == "0"
+    assert not (tmp_path / "runs.tar.gz").exists()  # WATCH=0 starts its job and returns: nothing shipped yet
+    (tmp_path / "calls.txt.gpu").unlink()
+    (second,) = _commands(tmp_path, "pixel_seed", cheetah | {"GPU": "1"}, detach=True)
+    assert (tmp_path / "calls.txt.gpu").read_text().split()[-1] == "1"
+    listed = subprocess.run(["tar", "tzf", tmp_path / "runs.tar.gz"], capture_output=True, text=True, check=True)
+    logs = {pathlib.Path(name).name for name in listed.stdout.split() if name.endswith(".log")}
+    names = {pathlib.Path(argv[argv.index("--run-dir") + 1]).name + ".log" for argv in (first, second)}
+    assert logs == names  # the last script's watch ships both jobs' logs
 
 
 def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, monkeypatch):
