@@ -91,7 +91,8 @@ def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "fin
         "mean": round(m["mean"], 2),
         "std": round(m["std"], 2),
         "iqm": round(m["iqm"], 2),
-        "iqm_ci": [round(v, 2) for v in m["iqm_ci"]],
+        # One seed has no interval: null, not NaN, which strict JSON readers refuse.
+        "iqm_ci": [round(v, 2) if np.isfinite(v) else None for v in m["iqm_ci"]],
     }
 
 

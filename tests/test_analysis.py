@@ -647,6 +647,8 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     assert set(curves) == {"drqv2 (stopped; last evaluation at 400k)", "drqv2 (stopped; last evaluation at 200k)"}
     assert curves["drqv2 (stopped; last evaluation at 400k)"][0][-1] == 400_000
     assert (entry["mean"], entry["labels"], entry["labels_asked"]) == (310.0, None, None)
+    assert entry["iqm_ci"] == [None, None]  # one seed has no interval
+    json.dumps(entries, allow_nan=False)  # strict JSON: no NaN
     # A stopped PEBBLE-and-REBEL program: per method its labels got, and the statistics of its last-10 scores.
     grid = tmp_path / "runs" / "rebel_grid_stopped"
     _fake_curve_run(grid, "rebel", 1.0, 4, lams=[0, 0.001, 0, 0.001], task="cheetah_run_pixels")
