@@ -33,8 +33,10 @@
 #       machine is held, and its replay checkpoint (2.1 GB per seed) cannot travel. One walker seed per job is
 #       about 21 min held (4.67 s rounds at 10 envs). Eighteenth session: TASK=walker SEED=1 SEEDS=2, 6.70 s
 #       rounds, four chained calls (LIMIT 480, 585, 604, 112), 1,775 s held, counted in full: the device time ran
-#       out at round 245 of 250. Two walker seeds fit a session only where held time counts at less than full;
-#       the seeds still owed are SEED=0 SEEDS=1 and SEED=3 SEEDS=2;
+#       out at round 245 of 250. Two walker seeds fit a session only where held time counts at less than full.
+#       Nineteenth session (two H200s, GPU=0 beside a pixel_seed job on GPU=1): SEED=0 to 500k, 3.79 s rounds,
+#       1,006 s of rounds (it failed: RESULTS.md). On two H200s, SEED=3 SEEDS=2 on GPU 0 and SEED=5 SEEDS=2 on GPU
+#       1 would take about 23 min of rounds each (estimated);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -77,8 +79,10 @@
 #       held its program: equal's first round (fourteenth session, code 83927f7; 3 calls, about 1,673 s held, counted
 #       at 67%) compiled it in 113.2 s, then 29.9 s rounds; myopic in the fifteenth (code 8cc84bc, 3 calls, 1,670 s
 #       held; the carried cache held the round program: 84.6 s first round, then 30.2 s): all five teachers have run;
-#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS (not run yet): SEEDS seeds (default 1) of a pixel preference
-#       run; ENVS and SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below);
+#   SET "pixel_seed" with ALGO, TASK, SEED and STEPS: SEEDS seeds (default 1) of a pixel preference run; ENVS and
+#       SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below). Nineteenth session: ALGO=rebel
+#       TASK=cheetah LAMS="0 0.001" SEED=0 SEEDS=2 STEPS=150000 PRECISION=bf16 on one H200 (GPU=1), 5.87 s plain
+#       rounds and 55-150 s session rounds; the device time stopped it at 82k steps (RESULTS.md);
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
