@@ -191,6 +191,16 @@ def test_the_pixel_smoke_set_passes_its_jobs_seeds_and_time_cap(tmp_path, monkey
     assert args.out == tmp_path / "pixel_smoke.json"
 
 
+def test_the_session_parts_set_times_both_precisions_of_its_jobs(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
+    env = {"JOBS": "rebel_walker surf_cheetah", "LABELS": "100"}
+    commands = _commands(tmp_path, "session_parts", env, detach=False, program="benchmarks/")
+    assert [argv[0] for argv in commands] == ["benchmarks/pixel_session_parts.py"]
+    args = importlib.import_module("pixel_session_parts").parser().parse_args(commands[0][1:])
+    assert (args.jobs, args.labels, args.precisions) == (["rebel_walker", "surf_cheetah"], 100, ["tf32", "bf16"])
+    assert args.out == tmp_path / "pixel_session_parts.json"
+
+
 def test_the_determinism_set_runs_one_walker_program_twice_without_and_with_deterministic_ops(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
     commands = _commands(tmp_path, "determinism", {}, detach=False, program="benchmarks/")

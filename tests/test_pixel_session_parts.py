@@ -1,0 +1,45 @@
+"""``benchmarks/pixel_session_parts.py``: the parts of a pixel preference session it times are the trainer's own,
+on a state whose replay and label store are full, and its rows say what ran (CPU, 16x16 probe)."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import pathlib
+
+import jax
+import pytest
+
+
+@pytest.fixture
+def parts_module(monkeypatch):
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    return importlib.import_module("pixel_session_parts")
+
+
+def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_full_state(tmp_path, parts_module):
+    out = tmp_path / "parts.json"
+    args = parts_module.parser().parse_args(["--tiny", "--jobs", "rebel_cheetah", "--labels", "8", "--precisions",
+                                             "bf16", "--repeats", "1", "--out", str(out)])  # fmt: skip
+    results = parts_module.Results(out, "test")
+    parts_module.run_job("rebel_cheetah", "bf16", args, results)
+    rows = json.loads(out.read_text())
+    assert [r["what"] for r in rows] == ["epoch_bt", "relabel", "epoch_bt_rebel"]
+    for row in rows:
+        assert (row["job"], row["precision"], row["labels"]) == ("rebel_cheetah", "bf16", 8)
+        assert "--pixel-reward.precision bf16" in row["command"] and "--algo rebel" in row["command"]
+    # The state the parts ran on: the label store holds --labels pairs and every replay row is written.
+    trainer = parts_module.PixelTrainer(
+        parts_module.parse(parts_module.job_flags("rebel_cheetah", 1000, 0, True)).config
+    )
+    ts = parts_module.filled(jax.jit(trainer.init)(jax.random.PRNGKey(0)), 8, None)
+    assert int(ts.reward.data.count) == 8 and int(ts.buffer.size) == ts.buffer.rows == rows[0]["rows"]
+    assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel", "epoch_bt_rebel"}
+    with pytest.raises(SystemExit, match="--labels 13"):
+        parts_module.filled(ts, 13, None)  # more pairs than the tiny store's 12
+
+
+def test_a_pebble_job_has_no_rebel_part(parts_module):
+    flags = parts_module.job_flags("pebble_walker", 1000, 0, True)
+    trainer = parts_module.PixelTrainer(parts_module.parse(flags).config)
+    assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel"}
