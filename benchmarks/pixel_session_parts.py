@@ -16,6 +16,12 @@ pairs. Their contents are the initial zeros, which cost the same arithmetic as r
     python benchmarks/pixel_session_parts.py --jobs rebel_cheetah pebble_walker --labels 200 --precisions tf32 bf16
     python benchmarks/pixel_session_parts.py --tiny --jobs rebel_cheetah --labels 8   # probe_point_pixels, CPU
 
+With ``--columns C`` (default 4, 0 for none) it also times whole sessions (``PixelTrainer.feedback_session``:
+select, teach, train, relabel) vmapped over C columns as the trainer runs them, with ``pixel_reward.session_loop``
+on and off (``--session-loops``): batched, the members' convolutions are grouped over the columns. Each session
+trains ``max_epochs`` epochs (``--pixel-reward.stop-accuracy 1``: it never stops early; the row's ``epochs``), an
+upper bound on a session, whose epochs vary (3-19 in the nineteenth session's run).
+
 Rows go to ``benchmarks/results/pixel_session_parts.json`` (``--out``): per part and precision the compile seconds,
 the median seconds of ``--repeats`` calls after it, and the device's peak memory.
 """
@@ -40,6 +46,7 @@ from timing import provenance  # noqa: E402
 from rebel_jax import frame_replay, pixel_reward  # noqa: E402
 from rebel_jax.cli import parse  # noqa: E402
 from rebel_jax.pixel_train import PixelTrainer, PixelTrainState  # noqa: E402
+from rebel_jax.train import seed_keys  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_session_parts.json"
 
@@ -96,6 +103,32 @@ def time_part(fn, ts, repeats: int) -> tuple[float, float]:
     return compile_s, statistics.median(seconds)
 
 
+def time_sessions(job: str, precision: str, loop: bool, args, results: Results) -> None:
+    """Compile seconds and the median seconds of whole sessions of ``--columns`` columns, vmapped as the trainer
+    runs them, with ``session_loop`` = ``loop``."""
+    switch = "--pixel-reward.session-loop" if loop else "--pixel-reward.no-session-loop"
+    flags = [*job_flags(job, 1000, 0, args.tiny), "--pixel-reward.precision", precision, switch]
+    flags += ["--pixel-reward.stop-accuracy", "1"]  # every epoch up to max_epochs: a session's upper bound
+    trainer = PixelTrainer(parse(flags).config)
+    ts = jax.jit(jax.vmap(trainer.init))(seed_keys(0, args.columns))
+    ts = jax.jit(jax.vmap(lambda t: filled(t, args.labels, args.rows)))(ts)
+    step = jnp.int32(trainer.cfg.train.total_steps // 2)
+    session = jax.vmap(lambda t: trainer.feedback_session(t, jnp.bool_(False), step, jnp.int32(1)))
+    start = time.time()
+    program = jax.jit(session).lower(ts).compile()
+    compile_s = time.time() - start
+    seconds = []
+    for _ in range(args.repeats):
+        start = time.time()
+        _, metrics = jax.block_until_ready(program(ts))
+        seconds.append(time.time() - start)
+    results.add({"job": job, "precision": precision, "labels": args.labels, "what": "session",
+                 "columns": args.columns, "session_loop": loop, "compile_s": round(compile_s, 2),
+                 "seconds": round(statistics.median(seconds), 4), "repeats": args.repeats,
+                 "epochs": float(jnp.mean(metrics["reward_epochs"])), "peak_gib": peak_gib(),
+                 "command": f"python -m rebel_jax.train --seeds {args.columns} {' '.join(flags)}"})  # fmt: skip
+
+
 def run_job(job: str, precision: str, args, results: Results) -> None:
     flags = [*job_flags(job, 1000, 0, args.tiny), "--pixel-reward.precision", precision]
     cfg = parse(flags).config
@@ -125,6 +158,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", type=int, default=None, help="written replay rows (default: all)")
     p.add_argument("--precisions", nargs="+", default=["tf32", "bf16"], choices=["tf32", "bf16", "highest"])
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--columns", type=int, default=4, help="columns of the whole-session timings (0: none)")
+    p.add_argument("--session-loops", nargs="+", default=["on", "off"], choices=["on", "off"])
     p.add_argument("--tiny", action="store_true", help="probe_point_pixels at 16x16 (a CPU check)")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     return p
@@ -138,6 +173,8 @@ def main() -> None:
         for precision in args.precisions:
             try:
                 run_job(job, precision, args, results)
+                for loop in args.session_loops if args.columns else ():
+                    time_sessions(job, precision, loop == "on", args, results)
             except Exception as error:  # noqa: BLE001 - e.g. out of memory: recorded, the next one still runs
                 error = f"{type(error).__name__}: {str(error)[:500]}"
                 results.add({"job": job, "precision": precision, "what": "error", "error": error})

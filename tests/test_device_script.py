@@ -197,11 +197,20 @@ def test_the_pixel_smoke_set_passes_its_jobs_seeds_and_time_cap(tmp_path, monkey
 
 def test_the_session_parts_set_times_both_precisions_of_its_jobs(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPT.parents[1] / "benchmarks"))
-    env = {"JOBS": "rebel_walker surf_cheetah", "LABELS": "100"}
+    parse = importlib.import_module("pixel_session_parts").parser().parse_args
+    default = parse(_commands(tmp_path, "session_parts", {}, detach=False, program="benchmarks/")[0][1:])
+    assert (default.jobs, default.labels, default.precisions) == (["rebel_cheetah"], 200, ["tf32", "bf16"])
+    assert (default.columns, default.session_loops, default.repeats) == (4, ["on", "off"], 1)
+    env = {"JOBS": "rebel_walker surf_cheetah", "LABELS": "100", "PRECISIONS": "bf16", "COLUMNS": "2"}
     commands = _commands(tmp_path, "session_parts", env, detach=False, program="benchmarks/")
     assert [argv[0] for argv in commands] == ["benchmarks/pixel_session_parts.py"]
-    args = importlib.import_module("pixel_session_parts").parser().parse_args(commands[0][1:])
-    assert (args.jobs, args.labels, args.precisions) == (["rebel_walker", "surf_cheetah"], 100, ["tf32", "bf16"])
+    args = parse(commands[0][1:])
+    assert (args.jobs, args.labels, args.precisions, args.columns) == (
+        ["rebel_walker", "surf_cheetah"],
+        100,
+        ["bf16"],
+        2,
+    )
     assert args.out == tmp_path / "pixel_session_parts.json"
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -586,6 +587,53 @@ def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentP
         )
         return (term,)
     return ()
+
+
+def _session_loop(config: Config, loop: bool) -> Config:
+    return dataclasses.replace(config, pixel_reward=dataclasses.replace(config.pixel_reward, session_loop=loop))
+
+
+def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
+    """``pixel_reward.session_loop``: the seed-vmapped session (select, teach, train the ensemble, relabel, reset
+    the critic), batched, groups the reward members' convolutions over the columns (``feature_group_count`` a
+    multiple of them; DrQ-v2's were 6.8x slower so on one H100); looped, no convolution is grouped over them (the
+    members' own ``vmap`` of a forward pass still groups by members). Lowered only: nothing runs."""
+    counts = {}
+    for loop in (False, True):
+        trainer = PixelTrainer(_session_loop(REBEL, loop))
+        state = jax.eval_shape(jax.vmap(trainer.init), seed_keys(0, SEEDS))
+        session = jax.vmap(trainer.feedback_session, in_axes=(0, None, None, None))
+        text = jax.jit(session).lower(state, jnp.bool_(True), jnp.int32(20), jnp.int32(0)).as_text()
+        counts[loop] = [int(n) for n in re.findall(r"(?:feature|batch)_group_count = (\d+)", text)]
+    assert len(counts[False]) == len(counts[True]) > 0
+    assert SEEDS in counts[False] and SEEDS * REWARD.ensemble_size in counts[False]
+    assert not [n for n in counts[True] if n % SEEDS == 0]
+
+
+def test_session_loop_is_a_validated_setting():
+    with pytest.raises(ConfigError, match="pixel_reward.session_loop"):
+        PixelRewardConfig(session_loop=1).validate()
+    assert PixelRewardConfig().session_loop and PixelRewardConfig().member_loop
+
+
+@pytest.mark.heavy  # a second compile of the micro run (make test-heavy); make test checks the looped program's HLO
+def test_session_loop_rounds_equal_the_batched_rounds(run):
+    """The looped sessions (on in ``run``) inside the seed-vmapped round (cond, scan, donation) give the batched
+    sessions' run up to float rounding: labels, ensemble, relabelled replay and policy."""
+    trainer, _, looped, looped_metrics = run
+    assert MICRO.pixel_reward.session_loop
+    batched = PixelTrainer(_session_loop(MICRO, False))
+    init, round_fn, _ = compiled(batched)
+    state = init(seed_keys(0, SEEDS))
+    for r in range(ROUNDS):
+        state, metrics = round_fn(state, jnp.int32(r))
+    assert batched.trace_count == 1
+    state = jax.device_get(state)
+    np.testing.assert_array_equal(state.reward.data.labels, looped.reward.data.labels)
+    close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
+    jax.tree.map(close, (state.reward.params, state.buffer.reward, state.sac.actor_params),
+                 (looped.reward.params, looped.buffer.reward, looped.sac.actor_params))  # fmt: skip
+    close(metrics["reward_correlation"], looped_metrics[-1]["reward_correlation"])
 
 
 @pytest.mark.heavy  # three more compiles of the pixel reward's epoch (~20 s each on 2 cores): make test-heavy

@@ -43,3 +43,20 @@ def test_a_pebble_job_has_no_rebel_part(parts_module):
     flags = parts_module.job_flags("pebble_walker", 1000, 0, True)
     trainer = parts_module.PixelTrainer(parts_module.parse(flags).config)
     assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel"}
+
+
+@pytest.mark.heavy  # two more compiles of a 2-column session (~20 s each on 2 cores): make test-heavy
+def test_whole_sessions_run_vmapped_over_the_columns_looped_and_batched(tmp_path, parts_module):
+    out = tmp_path / "parts.json"
+    args = parts_module.parser().parse_args(["--tiny", "--labels", "8", "--repeats", "1", "--columns", "2",
+                                             "--out", str(out)])  # fmt: skip
+    results = parts_module.Results(out, "test")
+    for loop in (True, False):
+        parts_module.time_sessions("pebble_walker", "tf32", loop, args, results)
+    rows = json.loads(out.read_text())
+    assert [(r["what"], r["session_loop"], r["columns"]) for r in rows] == [("session", True, 2), ("session", False, 2)]
+    max_epochs = parts_module.parse(
+        parts_module.job_flags("pebble_walker", 1000, 0, True)
+    ).config.pixel_reward.max_epochs
+    assert [r["epochs"] for r in rows] == [max_epochs] * 2  # tied labels never reach the stop accuracy
+    assert "--pixel-reward.no-session-loop" in rows[1]["command"] and "--seeds 2" in rows[1]["command"]

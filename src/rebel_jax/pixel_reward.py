@@ -81,6 +81,14 @@ class PixelRewardConfig:
     (``vmap``): the same minibatches, crops and numbers up to float rounding, with about one member's
     working memory in a reward-training step instead of ``ensemble_size`` members' (not a SURF setting;
     BENCHMARKS.md, "Pixel runs before any GPU time"). The Adam step of all members stays one."""
+    session_loop: bool = True
+    """Run a ``vmap`` of a feedback session (the trainer's over seeds and grid columns) as a loop over its columns
+    (``jax.custom_batching.sequential_vmap``: ``lax.map``), one column's session at a time: the same numbers up
+    to float rounding (not a SURF setting). Batched, every convolution of the reward members (training,
+    candidate scoring, relabelling) becomes one grouped convolution (``feature_group_count`` = columns), as
+    DrQ-v2's update did under the seed ``vmap`` (``drqv2.seed_loop``: 6.8x slower batched in tf32 on one H100,
+    BENCHMARKS.md); looped, each is a plain one, with one column's working memory. A session of the nineteenth
+    session's batched 4-column cheetah program took 55-150 s (BENCHMARKS.md); looped, it is not yet timed."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk"):
@@ -89,6 +97,8 @@ class PixelRewardConfig:
         _check(0 <= self.stop_accuracy <= 1, "pixel_reward.stop_accuracy", self.stop_accuracy, "[0, 1]")
         precisions = ("tf32", "highest", "bf16")
         _check(self.precision in precisions, "pixel_reward.precision", self.precision, ", ".join(precisions))
+        for name in ("member_loop", "session_loop"):
+            _check(isinstance(getattr(self, name), bool), f"pixel_reward.{name}", getattr(self, name), "True, False")
 
 
 class PixelRewardNet(nn.Module):

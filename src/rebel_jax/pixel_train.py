@@ -180,6 +180,7 @@ class PixelTrainer:
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
         self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, self.episode_length, True)
         self.trace_count = 0
+        self._looped_session = jax.custom_batching.sequential_vmap(self._feedback_session)
 
     def policy_params(self, ts: PixelTrainState) -> dict:
         """What :meth:`evaluate` takes: the encoder and the actor."""
@@ -520,7 +521,16 @@ class PixelTrainer:
         return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
 
     def feedback_session(self, ts: PixelTrainState, first: jax.Array, agent_step: jax.Array, index: jax.Array):
-        """select -> teach -> learn at session ``index``, with :data:`PIXEL_SESSION_METRICS`."""
+        """select -> teach -> learn at session ``index``, with :data:`PIXEL_SESSION_METRICS`.
+
+        With ``pixel_reward.session_loop`` a ``vmap`` of this method runs one column's session at a time
+        (``lax.map``); called unbatched it is the same session either way."""
+        if self.cfg.pixel_reward.session_loop:  # Positional arguments: custom_vmap takes no keywords.
+            return self._looped_session(ts, first, agent_step, index)
+        return self._feedback_session(ts, first, agent_step, index)
+
+    def _feedback_session(self, ts: PixelTrainState, first: jax.Array, agent_step: jax.Array, index: jax.Array):
+        """:meth:`feedback_session` as one batched computation under ``vmap``."""
         key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
         seg_a, seg_b = self.select(ts, key_select, first)
