@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import pathlib
 import statistics
 import sys
@@ -65,8 +66,10 @@ def filled(ts: PixelTrainState, labels: int, rows: int | None) -> PixelTrainStat
     )
 
 
-def parts(trainer: PixelTrainer) -> dict:
-    """``name -> function of (ts, key)`` for each part of a session that this job's algorithm runs."""
+def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
+    """``name -> function of (ts, key)`` for each part of a session that this job's algorithm runs, and the
+    relabelling at each of ``relabel_rows`` rows per ``lax.map`` step besides the trainer's ``pixel_reward.chunk``
+    (``relabel_<rows>``: a larger chunk means fewer, larger steps; the same rewards)."""
     rcfg = trainer.cfg.pixel_reward
     agent_step = jnp.int32(trainer.cfg.train.total_steps // 2)  # any step past the seed steps
 
@@ -78,12 +81,13 @@ def parts(trainer: PixelTrainer) -> dict:
         terms = trainer._value_terms(ts, jax.random.fold_in(key, 1), agent_step)
         return pixel_reward.train_epoch(rcfg, ts.reward, key, terms)[0].params
 
-    def relabel(ts, key):
+    def relabel(rows, ts, key):
         del key  # Deterministic.
         reward = lambda obs, action: pixel_reward.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
-        return frame_replay.relabel(ts.buffer, reward, rcfg.chunk).reward
+        return frame_replay.relabel(ts.buffer, reward, rows).reward
 
-    out = {"epoch_bt": epoch_bt, "relabel": relabel}
+    out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.chunk)}
+    out |= {f"relabel_{rows}": functools.partial(relabel, rows) for rows in relabel_rows if rows != rcfg.chunk}
     if trainer.cfg.algo == "rebel":
         out["epoch_bt_rebel"] = epoch_rebel
     return out
@@ -144,7 +148,7 @@ def run_job(job: str, precision: str, args, results: Results) -> None:
         "batch_size": cfg.pixel_reward.batch_size,
         "command": f"python -m rebel_jax.train {' '.join(flags)}",
     }
-    for name, fn in parts(trainer).items():
+    for name, fn in parts(trainer, tuple(args.relabel_rows)).items():
         compile_s, seconds = time_part(fn, ts, args.repeats)
         results.add({**base, "what": name, "compile_s": round(compile_s, 2), "seconds": round(seconds, 4),
                      "repeats": args.repeats, "peak_gib": peak_gib()})  # fmt: skip
@@ -158,6 +162,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", type=int, default=None, help="written replay rows (default: all)")
     p.add_argument("--precisions", nargs="+", default=["tf32", "bf16"], choices=["tf32", "bf16", "highest"])
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument(
+        "--relabel-rows", type=int, nargs="*", default=[256], help="relabel chunks to time besides the config's"
+    )
     p.add_argument("--columns", type=int, default=4, help="columns of the whole-session timings (0: none)")
     p.add_argument("--session-loops", nargs="+", default=["on", "off"], choices=["on", "off"])
     p.add_argument("--tiny", action="store_true", help="probe_point_pixels at 16x16 (a CPU check)")
