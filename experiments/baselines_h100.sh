@@ -89,9 +89,10 @@
 #   SET "pixel_smoke" with JOBS, SEEDS and MAX (issue 12): a few rounds of pixel jobs, their round seconds and peak
 #       memory (benchmarks/pixel_preference_smoke.py), rows in $OUT; fifteenth session: pebble_walker at 5 seeds
 #       (MAX=420, 237 s: 45.9 GiB, 22.3 s rounds) and 1 seed (MAX=200, 171 s: 10.3 s rounds);
-#   SET "session_parts" with JOBS, LABELS, PRECISIONS, COLUMNS, REPEATS and MAX (issue 12, after the nineteenth
-#       session's 55-150 s sessions): a pixel preference session's parts timed apart, tf32 against bf16, and whole
-#       4-column sessions with pixel_reward.session_loop on and off (benchmarks/pixel_session_parts.py); not run yet;
+#   SET "session_parts" with JOBS, LABELS, PRECISIONS, SESSION_COLUMNS, REPEATS and MAX (issue 12, after the
+#       nineteenth session's 55-150 s sessions): a pixel preference session's parts timed apart, tf32 against bf16,
+#       and whole 4-column sessions with pixel_reward.session_loop on and off (benchmarks/pixel_session_parts.py);
+#       not run yet;
 #   SET "command_buffers": walker's control step and the SAC update with CUDA graphs over while loops; ran in the
 #       fifteenth session (205 s: the graphs made the step 11-18% slower and left the update unchanged);
 #   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
@@ -244,13 +245,14 @@ case "${2:-shared}" in
     exit 0 ;;
   session_parts)  # issue 12: where a pixel preference session spends its time (benchmarks/pixel_session_parts.py):
     # one epoch of the pixel reward ensemble (BT alone, and with REBEL's term for a rebel job), the relabelling of the
-    # replay, and whole sessions of COLUMNS columns (default 4) looped and batched (pixel_reward.session_loop), at
-    # LABELS stored pairs (default 200) and PRECISIONS (default "tf32 bf16"); JOBS (default rebel_cheetah); REPEATS
-    # timed calls each (default 1); MAX seconds in all (default 540); rows in $OUT, written as they come
+    # replay, and whole sessions of SESSION_COLUMNS columns (default 4; not COLUMNS, the terminal's width) looped and
+    # batched (pixel_reward.session_loop), at LABELS stored pairs (default 200) and PRECISIONS (default "tf32 bf16");
+    # JOBS (default rebel_cheetah); REPEATS timed calls each (default 1); MAX seconds in all (default 540); rows in
+    # $OUT, written as they come
     export PYTHONPATH=/tmp/site:src:benchmarks
     cp benchmarks/results/pixel_session_parts.json "$OUT/" 2>/dev/null
     timeout "${MAX:-540}" python3 benchmarks/pixel_session_parts.py --jobs ${JOBS:-rebel_cheetah} \
-      --labels "${LABELS:-200}" --precisions ${PRECISIONS:-tf32 bf16} --columns "${COLUMNS:-4}" \
+      --labels "${LABELS:-200}" --precisions ${PRECISIONS:-tf32 bf16} --columns "${SESSION_COLUMNS:-4}" \
       --repeats "${REPEATS:-1}" --out "$OUT/pixel_session_parts.json"
     exit 0 ;;
   command_buffers)  # the two halves of a walker round, with the H100's command buffers (CUDA graphs) extended to

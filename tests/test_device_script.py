@@ -201,7 +201,7 @@ def test_the_session_parts_set_times_both_precisions_of_its_jobs(tmp_path, monke
     default = parse(_commands(tmp_path, "session_parts", {}, detach=False, program="benchmarks/")[0][1:])
     assert (default.jobs, default.labels, default.precisions) == (["rebel_cheetah"], 200, ["tf32", "bf16"])
     assert (default.columns, default.session_loops, default.repeats) == (4, ["on", "off"], 1)
-    env = {"JOBS": "rebel_walker surf_cheetah", "LABELS": "100", "PRECISIONS": "bf16", "COLUMNS": "2"}
+    env = {"JOBS": "rebel_walker surf_cheetah", "LABELS": "100", "PRECISIONS": "bf16", "SESSION_COLUMNS": "2"}
     commands = _commands(tmp_path, "session_parts", env, detach=False, program="benchmarks/")
     assert [argv[0] for argv in commands] == ["benchmarks/pixel_session_parts.py"]
     args = parse(commands[0][1:])

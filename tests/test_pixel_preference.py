@@ -597,7 +597,8 @@ def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
     """``pixel_reward.session_loop``: the seed-vmapped session (select, teach, train the ensemble, relabel, reset
     the critic), batched, groups the reward members' convolutions over the columns (``feature_group_count`` a
     multiple of them; DrQ-v2's were 6.8x slower so on one H100); looped, no convolution is grouped over them (the
-    members' own ``vmap`` of a forward pass still groups by members). Lowered only: nothing runs."""
+    members' forward passes loop too, ``pixel_reward.member_loop``, so none is grouped at all). Lowered only:
+    nothing runs."""
     counts = {}
     for loop in (False, True):
         trainer = PixelTrainer(_session_loop(REBEL, loop))
@@ -606,8 +607,24 @@ def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
         text = jax.jit(session).lower(state, jnp.bool_(True), jnp.int32(20), jnp.int32(0)).as_text()
         counts[loop] = [int(n) for n in re.findall(r"(?:feature|batch)_group_count = (\d+)", text)]
     assert len(counts[False]) == len(counts[True]) > 0
-    assert SEEDS in counts[False] and SEEDS * REWARD.ensemble_size in counts[False]
-    assert not [n for n in counts[True] if n % SEEDS == 0]
+    assert set(counts[False]) == {1, SEEDS} and set(counts[True]) == {1}
+
+
+def test_members_forward_one_at_a_time_is_the_member_vmap():
+    """``pixel_reward.over_members`` (``member_loop``): the looped members' rewards and segment returns are the
+    vmapped ones, and each row is that member's own network."""
+    rng = np.random.default_rng(21)
+    state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
+    obs = jnp.asarray(rng.integers(0, 256, (5, SIZE, SIZE, 3 * STACK)), jnp.uint8)
+    action = jnp.asarray(rng.uniform(-1, 1, (5, ACTIONS)), jnp.float32)
+    looped = pixel_reward.predict(REWARD, state.params, obs, action)
+    vmapped = pixel_reward.predict(dataclasses.replace(REWARD, member_loop=False), state.params, obs, action)
+    np.testing.assert_allclose(looped, vmapped, rtol=1e-5, atol=1e-6)
+    net = pixel_reward.network(REWARD)
+    for m in range(REWARD.ensemble_size):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        np.testing.assert_allclose(looped[m], net.apply(member, obs, action), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(looped[0], looped[1])
 
 
 def test_session_loop_is_a_validated_setting():

@@ -80,7 +80,10 @@ class PixelRewardConfig:
     """Compute the members' losses and gradients one member at a time (``lax.map``) instead of all at once
     (``vmap``): the same minibatches, crops and numbers up to float rounding, with about one member's
     working memory in a reward-training step instead of ``ensemble_size`` members' (not a SURF setting;
-    BENCHMARKS.md, "Pixel runs before any GPU time"). The Adam step of all members stays one."""
+    BENCHMARKS.md, "Pixel runs before any GPU time"). The Adam step of all members stays one. The members'
+    forward passes outside training (:func:`predict`: relabelling, scoring, a session's accuracy) go one
+    member at a time too (:func:`over_members`), so that none of their convolutions is grouped over the
+    members (since 2026-11-26; not timed on a GPU)."""
     session_loop: bool = True
     """Run a ``vmap`` of a feedback session (the trainer's over seeds and grid columns) as a loop over its columns
     (``jax.custom_batching.sequential_vmap``: ``lax.map``), one column's session at a time: the same numbers up
@@ -220,9 +223,16 @@ def store_bytes(capacity: int, length: int, height: int, width: int, action_size
     return capacity * (2 * per_segment + 4) + 8
 
 
+def over_members(cfg: PixelRewardConfig, fn: Callable, params: Any) -> jax.Array:
+    """``fn(member_params)`` of every member of ``params`` (leading member axis), stacked: one member at a time
+    (``lax.map``) with ``cfg.member_loop``, else all at once (``vmap``, whose convolutions are grouped over the
+    members)."""
+    return jax.lax.map(fn, params) if cfg.member_loop else jax.vmap(fn)(params)
+
+
 def predict(cfg: PixelRewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
     """(M, ...) per-member rewards of stacks ``obs`` (..., H, W, C) and actions (..., A)."""
-    return jax.vmap(network(cfg).apply, in_axes=(0, None, None))(params, obs, action)
+    return over_members(cfg, lambda member: network(cfg).apply(member, obs, action), params)
 
 
 def mean_reward(cfg: PixelRewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -260,7 +270,8 @@ def _chunked_returns(cfg: PixelRewardConfig, params: Any, n: int, segments: Call
     index = jnp.minimum(jnp.arange(chunks * cfg.chunk), n - 1).reshape(chunks, cfg.chunk)
 
     def one(part):
-        return jax.vmap(member_returns, in_axes=(None, 0, None))(cfg, params, segments(part))
+        seg = segments(part)
+        return over_members(cfg, lambda member: member_returns(cfg, member, seg), params)
 
     returns = jax.lax.map(one, index)  # (chunks, M, chunk)
     return jnp.moveaxis(returns, 1, 0).reshape(cfg.ensemble_size, -1)[:, :n]
