@@ -204,10 +204,11 @@ case "${2:-shared}" in
     # physics is about 13 ms a control step whatever the batch, so 20 envs halve it (2.56 s of a 4.67 s round at
     # 10); each is named in the run directory, as SEEDS above 1 (the seeds are fold_in(PRNGKey(SEED), i))
     # STEPS=<agent steps> (default 250000, 500k frames) shortens a job, e.g. the take-off test of notes/drqv2_audit.md:
-    # TASK=walker SEEDS=8 STEPS=60000 with PRECISION=bf16 on one GPU and PRECISION=tf32 on the other (GPU=, above)
+    # TASK=walker SEEDS=8 STEPS=60000 PRECISION=bf16 on one GPU, and the same with CRITIC_F32=1 (the critics' output
+    # layer in float32, --drqv2.critic-out-f32) or PRECISION=tf32 on the other (GPU=, above); each is named
     seeds=${SEEDS:-1} steps=${STEPS:-250000}
-    name=drqv2_${TASK}_$((2 * steps / 1000))kframes_seed${SEED:?set SEED}${SEEDS:+_seeds$seeds}${ENVS:+_envs$ENVS}${PRECISION:+_$PRECISION}
-    start "$name" --preset paper --algo drqv2 --seeds "$seeds" --seed "$SEED" --total-steps "$steps" --seed-steps 2000 --num-envs "${ENVS:-10}" --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} "${task[@]}"
+    name=drqv2_${TASK}_$((2 * steps / 1000))kframes_seed${SEED:?set SEED}${SEEDS:+_seeds$seeds}${ENVS:+_envs$ENVS}${PRECISION:+_$PRECISION}${CRITIC_F32:+_qf32}
+    start "$name" --preset paper --algo drqv2 --seeds "$seeds" --seed "$SEED" --total-steps "$steps" --seed-steps 2000 --num-envs "${ENVS:-10}" --steps-per-round 1000 --eval-every 10000 ${PRECISION:+--drqv2.precision $PRECISION} ${CRITIC_F32:+--drqv2.critic-out-f32} "${task[@]}"
     exit 0 ;;
   pixel_seed)  # issue 12's pixel preference runs, SEEDS seeds per job (default 1; 5 walker seeds fit no machine's
     # loan; cheetah's physics is cheap, so a few seeds may: measure with pixel_smoke JOBS=pebble_cheetah first):

@@ -38,6 +38,10 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
     ("drqv2_seed", {"TASK": "cheetah", "SEED": "1"}),
     ("drqv2_seed", {"TASK": "walker", "SEED": "3", "SEEDS": "2", "ENVS": "20", "PRECISION": "bf16"}),
     ("drqv2_seed", {"TASK": "walker", "SEED": "10", "SEEDS": "8", "STEPS": "60000", "PRECISION": "tf32"}),
+    (
+        "drqv2_seed",
+        {"TASK": "walker", "SEED": "10", "SEEDS": "8", "STEPS": "60000", "PRECISION": "bf16", "CRITIC_F32": "1"},
+    ),
     ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "STEPS": "500000", "CAPACITY": "500000"}),
     ("pixel_seed", {"ALGO": "rebel", "TASK": "walker", "SEED": "0", "STEPS": "250000", "PRECISION": "bf16"}),
     (
@@ -133,6 +137,7 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert (args.config.env.num_envs, args.config.train.total_steps) == (int(env.get("ENVS", 10)), steps)
             assert run_dir.name.startswith(f"drqv2_{env['TASK']}_{2 * steps // 1000}kframes_seed{env['SEED']}")
             assert args.config.drqv2.precision == env.get("PRECISION", "tf32")
+            assert args.config.drqv2.critic_out_f32 == ("CRITIC_F32" in env) == run_dir.name.endswith("_qf32")
             assert ("SEEDS" in env) == bool(re.search(r"_seeds\d", run_dir.name))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)

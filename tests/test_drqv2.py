@@ -372,3 +372,29 @@ def test_act_explores_around_the_deterministic_action():
     bound = 1 - CLAMP_EPS
     np.testing.assert_allclose(early, np.clip(np.asarray(mean) + eps, -bound, bound), atol=1e-5)
     np.testing.assert_allclose(late, np.clip(np.asarray(mean) + 0.1 * eps, -bound, bound), atol=1e-5)
+
+
+def test_critic_out_f32_keeps_q_off_the_bfloat16_grid():
+    """``drqv2.critic_out_f32``: a bf16 critic's Q of a few units (a lying walker's is about 5) comes out of the
+    output layer's bfloat16 matmul on the bfloat16 grid (steps of 1/128 to 1/32 between 1 and 8), so 4,096 inputs give a
+    couple of hundred values; with the output layer in float32 they stay distinct, within a grid step of the
+    rounded ones, from the same parameters."""
+    from rebel_jax.networks import PixelCritic
+
+    rng = np.random.default_rng(0)
+    h = jnp.asarray(rng.normal(size=(4096, 100)), jnp.float32)
+    action = jnp.asarray(rng.uniform(-1, 1, (4096, 6)), jnp.float32)
+    rounded, kept = PixelCritic(50, 64, 2, "bf16"), PixelCritic(50, 64, 2, "bf16", out_f32=True)
+    params = rounded.init(jax.random.PRNGKey(1), h[:1], action[:1])
+    assert jax.tree.structure(params) == jax.tree.structure(kept.init(jax.random.PRNGKey(1), h[:1], action[:1]))
+    head = params["params"]["DoubleCritic_0"]["VmapMLP_0"]["Dense_2"]
+    head["kernel"] = 0.1 * head["kernel"] + 0.2  # the matmul itself a few units, as a trained critic's
+    q16 = np.asarray(jax.jit(rounded.apply)(params, h, action)[0])
+    q32 = np.asarray(jax.jit(kept.apply)(params, h, action)[0])
+    assert q16.min() > 1.0 and q16.max() < 4.0  # where bfloat16's step is 1/128 to 1/64
+    np.testing.assert_array_equal(np.asarray(jnp.asarray(q16, jnp.bfloat16), np.float32), q16)  # on the grid
+    assert len(np.unique(q16)) < 256 and len(np.unique(q32)) > 4000
+    np.testing.assert_allclose(q32, q16, atol=1 / 64)
+    with pytest.raises(ConfigError, match="drqv2.critic_out_f32"):
+        DrQV2Config(critic_out_f32="yes").validate()
+    assert not DrQV2Config().critic_out_f32  # off by default: every run so far rounded Q

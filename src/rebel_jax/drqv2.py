@@ -93,6 +93,13 @@ class DrQV2Config:
     product of the input patches with the output gradient each (:func:`rebel_jax.networks.conv_patch_kernel_grad`).
     The same gradients up to float rounding; a speed setting, not a DrQ-v2 one. On one H100 (bf16, 5 seeds
     looped, 2026-11-25) ``patches`` was 28% slower (BENCHMARKS.md), so ``xla`` stays the default."""
+    critic_out_f32: bool = False
+    """With ``precision`` bf16, compute each critic's output layer (1024 -> 1) in float32, so that Q and the TD
+    target are not rounded to bfloat16 (not a DrQ-v2 setting: DrQ-v2 is float32 throughout). Rounded, Q near 5
+    moves in steps of 1/32, about the 0.05 per-step reward a lying walker gets, the only signal on the plateau
+    where failed walker seeds stay (notes/drqv2_audit.md, difference 1). Off by default, as every run so far;
+    a take-off test of several seeds decides (``experiments/baselines_h100.sh``, ``drqv2_seed`` with
+    ``CRITIC_F32=1``). The same parameters either way."""
     seed_loop: bool = True
     """Run a ``vmap`` of :meth:`DrQV2.update` (the trainer's over seeds) as a loop over its entries
     (``jax.custom_batching.sequential_vmap``: ``lax.map``), one seed's update at a time, instead of one
@@ -114,6 +121,7 @@ class DrQV2Config:
         _check(self.precision in ("tf32", "highest", "bf16"), "drqv2.precision", self.precision, "tf32, highest, bf16")
         _check(self.kernel_grad in ("xla", "patches"), "drqv2.kernel_grad", self.kernel_grad, "xla, patches")
         _check(isinstance(self.seed_loop, bool), "drqv2.seed_loop", self.seed_loop, "True, False")
+        _check(isinstance(self.critic_out_f32, bool), "drqv2.critic_out_f32", self.critic_out_f32, "True, False")
 
 
 def task_config(task: str, base: DrQV2Config = DrQV2Config()) -> DrQV2Config:
@@ -323,7 +331,7 @@ class DrQV2:
         self.cfg, self.obs_shape, self.action_size = cfg, tuple(obs_shape), action_size
         self.encoder = Encoder(precision=cfg.precision, kernel_grad=cfg.kernel_grad)
         self.actor = PixelActor(cfg.feature_dim, cfg.hidden, cfg.depth, action_size, cfg.precision)
-        self.critic = PixelCritic(cfg.feature_dim, cfg.hidden, cfg.depth, cfg.precision)
+        self.critic = PixelCritic(cfg.feature_dim, cfg.hidden, cfg.depth, cfg.precision, cfg.critic_out_f32)
         self.optimizer = optax.adam(cfg.lr)  # One learning rate for all three (drqv2.py:148-150).
         self.critic_loss = make_critic_loss(self.encoder, self.actor, self.critic, cfg.std_clip)
         self.actor_loss = make_actor_loss(self.actor, self.critic, cfg.std_clip)

@@ -83,12 +83,16 @@ class MLP(nn.Module):
         depth: number of hidden layers (0 gives a linear map).
         out: output size.
         precision: ``tf32``, ``highest`` or ``bf16``.
+        out_f32: compute the output layer in float32 (``tf32`` matmul, float32 result) whatever ``precision``:
+            with ``bf16`` the hidden layers stay bfloat16 but the output is not rounded to bfloat16. The same
+            parameters either way.
     """
 
     hidden: int
     depth: int
     out: int
     precision: str = "tf32"
+    out_f32: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -97,7 +101,8 @@ class MLP(nn.Module):
         init = dict(kernel_init=orthogonal(1.0), bias_init=nn.initializers.zeros)
         for _ in range(self.depth):
             x = nn.relu(nn.Dense(self.hidden, **init, **kw)(x))
-        return nn.Dense(self.out, **init, **kw)(x).astype(jnp.float32)
+        out_kw = dense_kwargs("tf32") if self.out_f32 and self.precision == "bf16" else kw
+        return nn.Dense(self.out, **init, **out_kw)(x).astype(jnp.float32)
 
 
 class Actor(nn.Module):
@@ -179,11 +184,13 @@ class DoubleCritic(nn.Module):
     Attributes:
         hidden, depth: MLP sizes of each critic.
         precision: ``tf32``, ``highest`` or ``bf16``.
+        out_f32: each critic's output layer in float32 (:class:`MLP`).
     """
 
     hidden: int
     depth: int
     precision: str = "tf32"
+    out_f32: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -201,7 +208,7 @@ class DoubleCritic(nn.Module):
         # first layers into one wide matmul whose (batch, member, hidden) output must be transposed
         # to the member-major layout of the batched matmuls after it (a copy of every hidden
         # activation, forward and backward).
-        q = twin(self.hidden, self.depth, 1, self.precision)(jnp.broadcast_to(x, (2, *x.shape)))
+        q = twin(self.hidden, self.depth, 1, self.precision, self.out_f32)(jnp.broadcast_to(x, (2, *x.shape)))
         return q[0, ..., 0], q[1, ..., 0]
 
 
@@ -401,15 +408,17 @@ class PixelCritic(nn.Module):
     Attributes:
         features: trunk size (50); hidden, depth: sizes of each Q MLP (1024, 2).
         precision: ``tf32``, ``highest`` or ``bf16``.
+        out_f32: the Q outputs in float32 (:class:`MLP`; ``drqv2.critic_out_f32``).
     """
 
     features: int
     hidden: int
     depth: int
     precision: str = "tf32"
+    out_f32: bool = False
 
     @nn.compact
     def __call__(self, h: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Args: h (..., encoder features), action (..., action_size). Returns: q1, q2 each (...)."""
         z = Trunk(self.features, self.precision)(h)
-        return DoubleCritic(self.hidden, self.depth, self.precision)(z, action)
+        return DoubleCritic(self.hidden, self.depth, self.precision, self.out_f32)(z, action)
