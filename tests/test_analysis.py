@@ -768,3 +768,45 @@ def test_rebel_lambda_figure_draws_the_papers_v_at_500k_by_lambda(tmp_path, monk
     path = tmp_path / "lambda.png"
     assert rebel.lambda_figure(rows, path, "t") == ([-0.01, 0.01], [200.0, 300.0])
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _takeoff_run(run: pathlib.Path, precision: str, out_f32: bool, finals: list[float]) -> None:
+    """A DrQ-v2 walker run of one column per entry of ``finals``: each seed's return ramps from 25 at 10k agent
+    steps to its final at 60k (120k frames)."""
+    run.mkdir(parents=True)
+    cfg = {
+        "algo": "drqv2",
+        "env": {"task": "walker_walk_pixels"},
+        "drqv2": {"precision": precision, "critic_out_f32": out_f32},
+    }
+    (run / "config.json").write_text(json.dumps(cfg))
+    steps = np.arange(10_000, 60_001, 10_000)
+    returns = 25.0 + np.outer((steps - 10_000) / 50_000, np.asarray(finals) - 25.0)
+    lines = [json.dumps({"env_steps": int(s), "eval_return": r.tolist()}) for s, r in zip(steps, returns, strict=True)]
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path, monkeypatch):
+    takeoff = _experiment(monkeypatch, "takeoff")
+    plain = [25.0, 400.0, 30.0, 500.0, 600.0, 350.0, 450.0, 300.0]  # two stay on the plateau
+    _takeoff_run(tmp_path / "a", "bf16", False, plain[:5])  # one arm's seeds over two directories
+    _takeoff_run(tmp_path / "b", "bf16", False, plain[5:])
+    _takeoff_run(tmp_path / "looks_like_bf16_but_is_f32", "bf16", True, [400.0] * 8)
+    out = takeoff.summary([tmp_path / "a", tmp_path / "b", tmp_path / "looks_like_bf16_but_is_f32"])
+    a, b = out["arms"]["bf16"], out["arms"]["bf16 + float32 critic output"]
+    # Late means: evaluations at 50k and 60k agent steps (100k and 120k frames): 25 + 0.9 (final - 25).
+    np.testing.assert_allclose(a["late_means"], [round(25 + 0.9 * (f - 25), 1) for f in plain])
+    assert (a["seeds"], a["took_off"], b["took_off"], a["frames"]) == (8, 6, 8, 120_000)
+    # Clopper-Pearson from the beta quantiles, and Fisher's two-sided p from the hypergeometric tables.
+    low, high = scipy.stats.beta.ppf(0.025, 6, 3), scipy.stats.beta.ppf(0.975, 7, 2)
+    np.testing.assert_allclose(a["rate_ci"], [round(low, 3), round(high, 3)])
+    (test,) = out["fisher"]
+    assert test["table"] == [[6, 2], [8, 0]]
+    prob = [math.comb(14, k) * math.comb(2, 8 - k) / math.comb(16, 8) for k in range(6, 9)]
+    np.testing.assert_allclose(test["fisher_p"], sum(p for p in prob if p <= prob[0] * (1 + 1e-9)))
+    sac = tmp_path / "sac"
+    _takeoff_run(sac, "bf16", False, [25.0])
+    cfg = json.loads((sac / "config.json").read_text()) | {"algo": "sac"}
+    (sac / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="DrQ-v2 on walker_walk"):
+        takeoff.summary([sac])

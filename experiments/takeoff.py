@@ -1,0 +1,103 @@
+"""``results/drqv2_takeoff.json``: how many DrQ-v2 walker seeds leave the lying plateau, per arm of the take-off
+test of ``notes/drqv2_audit.md`` (bf16, bf16 with the critics' output in float32, tf32).
+
+Usage:
+  python experiments/takeoff.py
+
+Two of our three walker seeds never learned (RESULTS.md, "Pixels"), against 2 of 10 in DrQ-v2's own curves. A
+failed seed stays at a lying policy's return (16-40, DrQ-v2's and ours) for the whole run; a seed that learns
+has left it by 120k frames (ours: 165-675 at 80k-120k frames). The criterion is fixed before the runs:
+
+- a seed **takes off** if the mean of its evaluations from ``FROM_FRAMES`` (100k) to the run's end exceeds
+  ``THRESHOLD`` (100);
+- per arm: seeds, seeds that took off, the rate with its 95% Clopper-Pearson interval (``scipy.stats.binomtest``);
+- between two arms: Fisher's exact test, two-sided (``scipy.stats.fisher_exact``) on the 2x2 table.
+
+An arm is named from each run's ``config.json`` (``drqv2.precision`` and ``drqv2.critic_out_f32``), never from
+its directory, and run directories of one arm merge (``analysis.merge_runs``). Frames are agent steps x 2.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import pathlib
+
+import numpy as np
+import scipy.stats
+from analysis import load_runs, merge_runs
+
+RESULTS = pathlib.Path(__file__).parents[1] / "results"
+RUNS: list[str] = []
+"""The take-off runs' directories under ``results/runs`` (none yet: ``drqv2_seed`` with ``STEPS=60000``)."""
+THRESHOLD = 100.0
+"""Return above which a seed has left the plateau (a lying walker gets 16-40 per 1,000-frame episode)."""
+FROM_FRAMES = 100_000
+"""Frames from which a seed's evaluations are averaged."""
+ACTION_REPEAT = 2
+
+
+def arm(run_dir: pathlib.Path) -> str:
+    """The arm a run belongs to, from its ``config.json``."""
+    cfg = json.loads((run_dir / "config.json").read_text())
+    if cfg["algo"] != "drqv2" or not cfg["env"]["task"].startswith("walker_walk"):
+        raise ValueError(
+            f"{run_dir}: the take-off test is DrQ-v2 on walker_walk pixels, not {cfg['algo']} on {cfg['env']['task']}"
+        )
+    drqv2 = cfg["drqv2"]
+    return drqv2["precision"] + (" + float32 critic output" if drqv2.get("critic_out_f32", False) else "")
+
+
+def took_off(steps: np.ndarray, returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed, its mean evaluation from ``FROM_FRAMES`` on and whether it exceeds ``THRESHOLD``."""
+    late = steps * ACTION_REPEAT >= FROM_FRAMES
+    if not late.any():
+        raise ValueError(f"no evaluation at or after {FROM_FRAMES} frames (the last is {steps[-1] * ACTION_REPEAT})")
+    means = np.nanmean(returns[late], axis=0)
+    return means, means > THRESHOLD
+
+
+def summary(run_dirs: list[pathlib.Path]) -> dict:
+    """Per arm its seeds' late means, take-offs, rate and interval; Fisher's test for every pair of arms."""
+    parts: dict[str, list] = {}
+    logs: dict[str, list[str]] = {}
+    for run_dir in run_dirs:
+        parts.setdefault(arm(run_dir), []).append(load_runs(run_dir))
+        logs.setdefault(arm(run_dir), []).append(str(run_dir))
+    arms = {}
+    for name, runs in parts.items():
+        steps, returns = merge_runs(*runs)
+        means, up = took_off(steps, returns)
+        ci = scipy.stats.binomtest(int(up.sum()), len(up)).proportion_ci(0.95, method="exact")
+        arms[name] = {
+            "seeds": len(up),
+            "took_off": int(up.sum()),
+            "rate": float(up.mean()),
+            "rate_ci": [round(float(ci.low), 3), round(float(ci.high), 3)],
+            "late_means": [round(float(m), 1) for m in means],
+            "frames": int(steps[-1]) * ACTION_REPEAT,
+            "log": logs[name],
+        }
+    tests = []
+    for a, b in itertools.combinations(arms, 2):
+        table = [[arms[x]["took_off"], arms[x]["seeds"] - arms[x]["took_off"]] for x in (a, b)]
+        tests.append({"arms": [a, b], "table": table, "fisher_p": float(scipy.stats.fisher_exact(table)[1])})
+    return {"threshold": THRESHOLD, "from_frames": FROM_FRAMES, "arms": arms, "fisher": tests}
+
+
+def main() -> None:
+    if not RUNS:
+        print("no take-off runs listed in RUNS yet (experiments/baselines_h100.sh, drqv2_seed with STEPS=60000)")
+        return
+    out = summary([RESULTS / "runs" / d for d in RUNS])
+    (RESULTS / "drqv2_takeoff.json").write_text(json.dumps(out, indent=1) + "\n")
+    print("| arm | seeds | took off | rate [95% CI] | late means |")
+    print("|---|---:|---:|---:|---|")
+    for name, a in out["arms"].items():
+        print(f"| {name} | {a['seeds']} | {a['took_off']} | {a['rate']:.2f} {a['rate_ci']} | {a['late_means']} |")
+    for t in out["fisher"]:
+        print(f"Fisher's exact test, {t['arms'][0]} against {t['arms'][1]}: p = {t['fisher_p']:.3f}")
+
+
+if __name__ == "__main__":
+    main()
