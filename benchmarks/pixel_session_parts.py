@@ -93,18 +93,19 @@ def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
     return out
 
 
-def time_part(fn, ts, repeats: int) -> tuple[float, float]:
-    """Compile seconds and the median seconds of ``repeats`` calls of ``jit(fn)`` (the state is not donated)."""
-    key = jax.random.PRNGKey(0)
+def time_part(fn, *args, repeats: int, vary_key: bool = True):
+    """Compile seconds, the median seconds of ``repeats`` calls of ``jit(fn)(*args)`` (nothing donated) and the
+    last call's output. With ``vary_key`` the last argument is a key, folded with each call's index."""
     start = time.time()
-    program = jax.jit(fn).lower(ts, key).compile()
+    program = jax.jit(fn).lower(*args).compile()
     compile_s = time.time() - start
     seconds = []
     for r in range(repeats):
+        call = (*args[:-1], jax.random.fold_in(args[-1], r)) if vary_key else args
         start = time.time()
-        jax.block_until_ready(program(ts, jax.random.fold_in(key, r)))
+        out = jax.block_until_ready(program(*call))
         seconds.append(time.time() - start)
-    return compile_s, statistics.median(seconds)
+    return compile_s, statistics.median(seconds), out
 
 
 def time_sessions(job: str, precision: str, loop: bool, args, results: Results) -> None:
@@ -118,17 +119,10 @@ def time_sessions(job: str, precision: str, loop: bool, args, results: Results) 
     ts = jax.jit(jax.vmap(lambda t: filled(t, args.labels, args.rows)))(ts)
     step = jnp.int32(trainer.cfg.train.total_steps // 2)
     session = jax.vmap(lambda t: trainer.feedback_session(t, jnp.bool_(False), step, jnp.int32(1)))
-    start = time.time()
-    program = jax.jit(session).lower(ts).compile()
-    compile_s = time.time() - start
-    seconds = []
-    for _ in range(args.repeats):
-        start = time.time()
-        _, metrics = jax.block_until_ready(program(ts))
-        seconds.append(time.time() - start)
+    compile_s, seconds, (_, metrics) = time_part(session, ts, repeats=args.repeats, vary_key=False)
     results.add({"job": job, "precision": precision, "labels": args.labels, "what": "session",
                  "columns": args.columns, "session_loop": loop, "compile_s": round(compile_s, 2),
-                 "seconds": round(statistics.median(seconds), 4), "repeats": args.repeats,
+                 "seconds": round(seconds, 4), "repeats": args.repeats,
                  "epochs": float(jnp.mean(metrics["reward_epochs"])), "peak_gib": peak_gib(),
                  "command": f"python -m rebel_jax.train --seeds {args.columns} {' '.join(flags)}"})  # fmt: skip
 
@@ -149,7 +143,7 @@ def run_job(job: str, precision: str, args, results: Results) -> None:
         "command": f"python -m rebel_jax.train {' '.join(flags)}",
     }
     for name, fn in parts(trainer, tuple(args.relabel_rows)).items():
-        compile_s, seconds = time_part(fn, ts, args.repeats)
+        compile_s, seconds, _ = time_part(fn, ts, jax.random.PRNGKey(0), repeats=args.repeats)
         results.add({**base, "what": name, "compile_s": round(compile_s, 2), "seconds": round(seconds, 4),
                      "repeats": args.repeats, "peak_gib": peak_gib()})  # fmt: skip
 
