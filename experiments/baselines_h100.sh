@@ -4,6 +4,12 @@
 # checkpoints) go to $OUT/runs.tar.gz. A persistent compilation cache under runs/ spares the resumed
 # calls the ~90 s compile.
 # Usage (device tool, carrying .whl): REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT SET
+# The device image has no mujoco, mujoco-mjx or brax; fetch the wheels once here (.whl/ is git-ignored), from the
+# repo root with the .venv active (the versions the device ran since the first pixel sessions):
+#   pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 -d .whl mujoco==3.17.0 mujoco-mjx==3.17.0 brax==0.14.2 tyro==1.0.17 \
+#     tensorboardX==2.6.5 jaxopt==0.8.5 ml-collections flask flask-cors trimesh glfw pyopengl websockets \
+#     docstring-parser typeguard blinker itsdangerous
 #   SET "shared" (2026-11-24, first session): PEBBLE and SURF at utd 0.3 and SAC cheetah side by side
 #       (sharing the GPU slowed each walker run about 2.5x, so they did not finish);
 #   SET "utd1" (2026-11-24, first session): PEBBLE at B-Pref's utd 1 alone (stopped at 270k);
