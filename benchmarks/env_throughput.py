@@ -26,6 +26,7 @@ import numpy as np
 from timing import add_xla_flags_argument, provenance, random_steps_seconds, use_xla_flags
 
 from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
+from rebel_jax.logging import write_json
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "env_throughput.json"
 STEPS_PER_CALL = 20
@@ -194,10 +195,10 @@ def main():
             parts = ("rows", "solver_sweep") if main_table else ("solver_sweep",)
             for part in parts:
                 results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]
-            args.out.write_text(json.dumps(results, indent=1))
+            write_json(args.out, results)  # strict JSON: a diverged solver's NaN as null
     else:
         results["fidelity"] = {**provenance(), "tasks": fidelity(args)}
-        args.out.write_text(json.dumps(results, indent=1))
+        write_json(args.out, results)
 
 
 if __name__ == "__main__":
