@@ -14,7 +14,8 @@ has left it by 120k frames (ours: 165-675 at 80k-120k frames). The criterion is 
 - between two arms: Fisher's exact test, two-sided (``scipy.stats.fisher_exact``) on the 2x2 table.
 
 An arm is named from each run's ``config.json`` (``drqv2.precision`` and ``drqv2.critic_out_f32``), never from
-its directory, and run directories of one arm merge (``analysis.merge_runs``). Frames are agent steps x 2.
+its directory, and run directories of one arm merge (``analysis.merge_runs``). Frames are agent steps x the
+task's action repeat (``pixels.action_repeat``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import pathlib
 import numpy as np
 import scipy.stats
 from analysis import load_runs, merge_runs
+from pixels import action_repeat
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: list[str] = []
@@ -34,25 +36,29 @@ THRESHOLD = 100.0
 """Return above which a seed has left the plateau (a lying walker gets 16-40 per 1,000-frame episode)."""
 FROM_FRAMES = 100_000
 """Frames from which a seed's evaluations are averaged."""
-ACTION_REPEAT = 2
 
 
-def arm(run_dir: pathlib.Path) -> str:
-    """The arm a run belongs to, from its ``config.json``."""
+def run_config(run_dir: pathlib.Path) -> dict:
+    """A take-off run's ``config.json``: DrQ-v2 on walker_walk pixels, else a ``ValueError``."""
     cfg = json.loads((run_dir / "config.json").read_text())
     if cfg["algo"] != "drqv2" or not cfg["env"]["task"].startswith("walker_walk"):
         raise ValueError(
             f"{run_dir}: the take-off test is DrQ-v2 on walker_walk pixels, not {cfg['algo']} on {cfg['env']['task']}"
         )
+    return cfg
+
+
+def arm(cfg: dict) -> str:
+    """The arm a run belongs to, from its config."""
     drqv2 = cfg["drqv2"]
     return drqv2["precision"] + (" + float32 critic output" if drqv2.get("critic_out_f32", False) else "")
 
 
-def took_off(steps: np.ndarray, returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def took_off(frames: np.ndarray, returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per seed, its mean evaluation from ``FROM_FRAMES`` on and whether it exceeds ``THRESHOLD``."""
-    late = steps * ACTION_REPEAT >= FROM_FRAMES
+    late = frames >= FROM_FRAMES
     if not late.any():
-        raise ValueError(f"no evaluation at or after {FROM_FRAMES} frames (the last is {steps[-1] * ACTION_REPEAT})")
+        raise ValueError(f"no evaluation at or after {FROM_FRAMES} frames (the last is {frames[-1]})")
     means = np.nanmean(returns[late], axis=0)
     return means, means > THRESHOLD
 
@@ -62,12 +68,14 @@ def summary(run_dirs: list[pathlib.Path]) -> dict:
     parts: dict[str, list] = {}
     logs: dict[str, list[str]] = {}
     for run_dir in run_dirs:
-        parts.setdefault(arm(run_dir), []).append(load_runs(run_dir))
-        logs.setdefault(arm(run_dir), []).append(str(run_dir))
+        cfg = run_config(run_dir)
+        steps, returns = load_runs(run_dir)
+        parts.setdefault(arm(cfg), []).append((steps * action_repeat(cfg["env"]["task"]), returns))
+        logs.setdefault(arm(cfg), []).append(str(run_dir))
     arms = {}
     for name, runs in parts.items():
-        steps, returns = merge_runs(*runs)
-        means, up = took_off(steps, returns)
+        frames, returns = merge_runs(*runs)
+        means, up = took_off(frames, returns)
         ci = scipy.stats.binomtest(int(up.sum()), len(up)).proportion_ci(0.95, method="exact")
         arms[name] = {
             "seeds": len(up),
@@ -75,7 +83,7 @@ def summary(run_dirs: list[pathlib.Path]) -> dict:
             "rate": float(up.mean()),
             "rate_ci": [round(float(ci.low), 3), round(float(ci.high), 3)],
             "late_means": [round(float(m), 1) for m in means],
-            "frames": int(steps[-1]) * ACTION_REPEAT,
+            "frames": int(frames[-1]),
             "log": logs[name],
         }
     tests = []
