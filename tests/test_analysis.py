@@ -804,6 +804,12 @@ def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path
     assert test["table"] == [[6, 2], [8, 0]]
     prob = [math.comb(14, k) * math.comb(2, 8 - k) / math.comb(16, 8) for k in range(6, 9)]
     np.testing.assert_allclose(test["fisher_p"], sum(p for p in prob if p <= prob[0] * (1 + 1e-9)))
+    # A reference arm (DrQ-v2's own curves in main) is judged by the same criterion, from its own frames on.
+    reference = (np.array([80_000, 100_000, 120_000]), np.array([[500.0, 20.0], [90.0, 20.0], [120.0, 500.0]]))
+    out = takeoff.summary([tmp_path / "a"], {"ref": (reference, "somewhere.csv")})
+    assert out["arms"]["ref"]["late_means"] == [105.0, 260.0]
+    assert (out["arms"]["ref"]["took_off"], out["arms"]["ref"]["log"]) == (2, ["somewhere.csv"])
+    assert [t["arms"] for t in out["fisher"]] == [["bf16", "ref"]]
     sac = tmp_path / "sac"
     _takeoff_run(sac, "bf16", False, [25.0])
     cfg = json.loads((sac / "config.json").read_text()) | {"algo": "sac"}
