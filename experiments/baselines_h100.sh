@@ -42,7 +42,9 @@
 #       out at round 245 of 250. Two walker seeds fit a session only where held time counts at less than full.
 #       Nineteenth session (two H200s, GPU=0 beside a pixel_seed job on GPU=1): SEED=0 to 500k, 3.79 s rounds,
 #       1,006 s of rounds (it failed: RESULTS.md). On two H200s, SEED=3 SEEDS=2 on GPU 0 and SEED=5 SEEDS=2 on GPU
-#       1 would take about 23 min of rounds each (estimated);
+#       1 would take about 23 min of rounds each (estimated). Twentieth session, the take-off test (two H200s):
+#       SEED=10 SEEDS=8 STEPS=60000 PRECISION=bf16 on GPU 0 and the same with CRITIC_F32=1 on GPU 1, 17.0 s rounds,
+#       about 1,040 s of rounds each, three chained calls (LIMIT 470, 585, 150), 1,566 s held;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -98,7 +100,8 @@
 #   SET "session_parts" with JOBS, LABELS, PRECISIONS, SESSION_COLUMNS, REPEATS and MAX (issue 12, after the
 #       nineteenth session's 55-150 s sessions): a pixel preference session's parts timed apart, tf32 against bf16,
 #       and whole 4-column sessions with pixel_reward.session_loop on and off (benchmarks/pixel_session_parts.py);
-#       not run yet;
+#       twentieth session: MAX=380 after the take-off jobs (tf32 parts and the looped session; bf16 and the batched
+#       session not reached: give it MAX=540 and its own call);
 #   SET "command_buffers": walker's control step and the SAC update with CUDA graphs over while loops; ran in the
 #       fifteenth session (205 s: the graphs made the step 11-18% slower and left the update unchanged);
 #   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
