@@ -68,7 +68,8 @@ def filled(ts: PixelTrainState, labels: int, rows: int | None) -> PixelTrainStat
 
 def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
     """``name -> function of (ts, key)`` for each part of a session that this job's algorithm runs, and the
-    relabelling at each of ``relabel_rows`` rows per ``lax.map`` step besides the trainer's ``pixel_reward.chunk``
+    relabelling at each of ``relabel_rows`` rows per ``lax.map`` step besides the trainer's
+    ``pixel_reward.relabel_rows``
     (``relabel_<rows>``: a larger chunk means fewer, larger steps; the same rewards)."""
     rcfg = trainer.cfg.pixel_reward
     agent_step = jnp.int32(trainer.cfg.train.total_steps // 2)  # any step past the seed steps
@@ -86,8 +87,9 @@ def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
         reward = lambda obs, action: pixel_reward.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
         return frame_replay.relabel(ts.buffer, reward, rows).reward
 
-    out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.chunk)}
-    out |= {f"relabel_{rows}": functools.partial(relabel, rows) for rows in relabel_rows if rows != rcfg.chunk}
+    out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.relabel_rows)}
+    others = [rows for rows in relabel_rows if rows != rcfg.relabel_rows]
+    out |= {f"relabel_{rows}": functools.partial(relabel, rows) for rows in others}
     if trainer.cfg.algo == "rebel":
         out["epoch_bt_rebel"] = epoch_rebel
     return out
@@ -157,7 +159,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--precisions", nargs="+", default=["tf32", "bf16"], choices=["tf32", "bf16", "highest"])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument(
-        "--relabel-rows", type=int, nargs="*", default=[256], help="relabel chunks to time besides the config's"
+        "--relabel-rows", type=int, nargs="*", default=[8], help="relabel chunks to time besides the config's"
     )
     p.add_argument("--columns", type=int, default=4, help="columns of the whole-session timings (0: none)")
     p.add_argument("--session-loops", nargs="+", default=["on", "off"], choices=["on", "off"])

@@ -67,6 +67,10 @@ BAD = {
         ["--obs", "pixels", "--task", "walker_fly"],
         ["env.task='walker_fly_pixels'"],
     ),
+    "relabel-rows-zero": (
+        ["--task", "probe_point_pixels", "--algo", "pebble", "--pixel-reward.relabel-rows", "0"],
+        ["pixel_reward.relabel_rows=0 is invalid", ">= 1"],
+    ),
     "precision-on-pixels": (
         ["--task", "probe_point_pixels", "--algo", "drqv2", "--precision", "bf16", "--surf.crop", "2"],
         ["sac, surf settings", "'probe_point_pixels'", "sac only with a state task; surf only with --algo surf"],

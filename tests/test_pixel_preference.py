@@ -141,11 +141,12 @@ def test_relabel_and_row_stacks_match_naive_stacks():
         frame_replay.row_stacks(buffer, jnp.arange(2 * LENGTH)[:, None], jnp.arange(ENVS)[None]), stacks
     )
     state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
-    relabelled = frame_replay.relabel(
-        buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=5
-    )
     expected = pixel_reward.mean_reward(REWARD, state.params, jnp.asarray(stacks), jnp.asarray(actions))
-    np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
+    for chunk_rows in (5, 10 * LENGTH):  # a ragged last chunk; a chunk larger than the replay
+        relabelled = frame_replay.relabel(
+            buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=chunk_rows
+        )
+        np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
 
 
 # Episodes of 20 frames = 10 agent steps, rounds of one episode; sessions at the starts of rounds 1, 2, 3.

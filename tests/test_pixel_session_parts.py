@@ -25,7 +25,7 @@ def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_ful
     results = parts_module.Results(out, "test")
     parts_module.run_job("rebel_cheetah", "bf16", args, results)
     rows = json.loads(out.read_text())
-    assert [r["what"] for r in rows] == ["epoch_bt", "relabel", "relabel_256", "epoch_bt_rebel"]
+    assert [r["what"] for r in rows] == ["epoch_bt", "relabel", "relabel_8", "epoch_bt_rebel"]
     for row in rows:
         assert (row["job"], row["precision"], row["labels"]) == ("rebel_cheetah", "bf16", 8)
         assert "--pixel-reward.precision bf16" in row["command"] and "--algo rebel" in row["command"]
@@ -37,7 +37,7 @@ def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_ful
     assert int(ts.reward.data.count) == 8 and int(ts.buffer.size) == ts.buffer.rows == rows[0]["rows"]
     assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel", "epoch_bt_rebel"}
     # The relabelling at another chunk is the same rewards in fewer steps.
-    every = parts_module.parts(trainer, (5, trainer.cfg.pixel_reward.chunk))
+    every = parts_module.parts(trainer, (5, trainer.cfg.pixel_reward.relabel_rows))
     assert set(every) == {"epoch_bt", "relabel", "relabel_5", "epoch_bt_rebel"}
     key = jax.random.PRNGKey(0)
     np.testing.assert_allclose(every["relabel_5"](ts, key), every["relabel"](ts, key), rtol=1e-4)  # batch-size rounding

@@ -358,6 +358,7 @@ def relabel(buffer: FrameBuffer, reward_fn, chunk_rows: int = 64) -> FrameBuffer
     Unwritten rows are relabelled too; nothing samples them.
     """
     rows = buffer.rows
+    chunk_rows = min(chunk_rows, rows)  # a replay smaller than one chunk is one step, not a padded one
     chunks = -(-rows // chunk_rows)
     envs = jnp.arange(buffer.num_envs)
 

@@ -72,8 +72,13 @@ class PixelRewardConfig:
     stop_accuracy: float = 0.97
     """Stop once the members' mean epoch accuracy exceeds this (pixel_train_PEBBLE.py:277)."""
     chunk: int = 8
-    """Segment pairs scored at once when ranking disagreement candidates, and rows relabelled at once per
-    env: bounds the frame stacks in memory (not a SURF setting)."""
+    """Segment pairs scored at once when ranking disagreement candidates: bounds their frame stacks in memory
+    (not a SURF setting)."""
+    relabel_rows: int = 256
+    """Replay rows relabelled at once (each row holds one transition per env), after every session: bounds the
+    frame stacks in memory (SURF relabels 100 steps at a time, replay_buffer_drqv2.py:80-117). 256 rows took
+    0.43 s for a cheetah replay of 25,000 rows x 4 envs, against 1.48 s at 8 rows (one H200, tf32,
+    BENCHMARKS.md, "a pixel preference session by parts")."""
     precision: str = "tf32"
     """Matmul and convolution precision: ``tf32``, ``highest`` or ``bf16``."""
     member_loop: bool = True
@@ -91,10 +96,11 @@ class PixelRewardConfig:
     candidate scoring, relabelling) becomes one grouped convolution (``feature_group_count`` = columns), as
     DrQ-v2's update did under the seed ``vmap`` (``drqv2.seed_loop``: 6.8x slower batched in tf32 on one H100,
     BENCHMARKS.md); looped, each is a plain one, with one column's working memory. A session of the nineteenth
-    session's batched 4-column cheetah program took 55-150 s (BENCHMARKS.md); looped, it is not yet timed."""
+    session's batched 4-column cheetah program took 55-150 s (BENCHMARKS.md); looped, a 4-column REBEL session
+    of 20 epochs at 200 labels took 53.1 s (twentieth session; batched at those settings: not yet timed)."""
 
     def validate(self) -> None:
-        for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk"):
+        for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk", "relabel_rows"):
             _check(getattr(self, name) >= 1, f"pixel_reward.{name}", getattr(self, name), ">= 1")
         _check(self.lr > 0, "pixel_reward.lr", self.lr, "> 0")
         _check(0 <= self.stop_accuracy <= 1, "pixel_reward.stop_accuracy", self.stop_accuracy, "[0, 1]")

@@ -397,7 +397,7 @@ class PixelTrainer:
         # once the budget is spent), so its members and Adam state come back as they were: no select needed.
         reward = trained
         buffer = frame_replay.relabel(
-            ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.chunk
+            ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.relabel_rows
         )
         agent = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic, agent_step), lambda: ts.sac)
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
