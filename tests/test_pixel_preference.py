@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from rebel_jax import agent_preference, frame_replay, pixel_reward, surf, teachers
 from rebel_jax.agent_preference import AgentPreferenceConfig
@@ -626,6 +627,30 @@ def test_members_forward_one_at_a_time_is_the_member_vmap():
         member = jax.tree.map(lambda x, m=m: x[m], state.params)
         np.testing.assert_allclose(looped[m], net.apply(member, obs, action), rtol=1e-5, atol=1e-6)
     assert not np.allclose(looped[0], looped[1])
+
+
+def test_bf16_members_are_the_float32_members_up_to_bfloat16_rounding():
+    """``--pixel-reward.precision bf16`` (a speed setting) runs the members' convolutions and matmuls in bfloat16
+    on the same float32 parameters: their rewards and their gradients are the float32 ones up to bf16's 8
+    mantissa bits, and the parameters and Adam state stay float32."""
+    rng = np.random.default_rng(22)
+    exact, half = (dataclasses.replace(REWARD, precision=p) for p in ("highest", "bf16"))
+    state = pixel_reward.init(half, jax.random.PRNGKey(4), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
+    assert {x.dtype for x in jax.tree.leaves((state.params, state.opt_state)) if x.ndim} == {jnp.dtype("float32")}
+    obs = jnp.asarray(rng.integers(0, 256, (64, SIZE, SIZE, 3 * STACK)), jnp.uint8)
+    action = jnp.asarray(rng.uniform(-1, 1, (64, ACTIONS)), jnp.float32)
+    weights = jnp.asarray(rng.normal(size=64), jnp.float32)
+
+    def objective(cfg, params):
+        return jnp.sum(pixel_reward.predict(cfg, params, obs, action) * weights)
+
+    rewards = {cfg.precision: pixel_reward.predict(cfg, state.params, obs, action) for cfg in (exact, half)}
+    assert rewards["bf16"].dtype == jnp.float32 and float(jnp.std(rewards["highest"])) > 1e-3
+    np.testing.assert_allclose(rewards["bf16"], rewards["highest"], atol=2e-2)
+    assert not np.array_equal(rewards["bf16"], rewards["highest"])  # bf16 did round
+    grads = [ravel_pytree(jax.grad(objective, 1)(cfg, state.params))[0] for cfg in (exact, half)]
+    cosine = jnp.dot(grads[0], grads[1]) / (jnp.linalg.norm(grads[0]) * jnp.linalg.norm(grads[1]))
+    assert float(cosine) > 0.99, float(cosine)
 
 
 def test_session_loop_is_a_validated_setting():
