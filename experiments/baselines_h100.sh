@@ -90,7 +90,13 @@
 #   SET "pixel_seed" with ALGO, TASK, SEED and STEPS: SEEDS seeds (default 1) of a pixel preference run; ENVS and
 #       SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below). Nineteenth session: ALGO=rebel
 #       TASK=cheetah LAMS="0 0.001" SEED=0 SEEDS=2 STEPS=150000 PRECISION=bf16 on one H200 (GPU=1), 5.87 s plain
-#       rounds and 55-150 s session rounds; the device time stopped it at 82k steps (RESULTS.md);
+#       rounds and 55-150 s session rounds; the device time stopped it at 82k steps (RESULTS.md).
+#       Planned (after the twentieth session, estimated, not run): on two GPUs, PEBBLE and REBEL apart, 2 seeds each,
+#       `GPU=0 WATCH=0 DETACH=1 ALGO=pebble TASK=cheetah SEED=1 SEEDS=2 STEPS=250000 PRECISION=bf16` and `GPU=1 DETACH=1
+#       ALGO=rebel ...` the same: a plain round of 2 columns about 3 s (half the 4-column 5.87 s), and 25 sessions
+#       whose epochs grow with the labels (35 ms per minibatch of 16 pairs, tf32, session_parts): 25 x 2 columns x
+#       up to 20 epochs x (25..625 labels)/16 minibatches is at most about 12 min, so 500k frames in 20-25 min of
+#       rounds. Run session_parts with PRECISIONS=bf16 first if bf16 reward training is to be used;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
