@@ -101,14 +101,9 @@ def arm_curves(run_dirs: list[pathlib.Path]) -> tuple[dict[str, Curve], dict[str
     return {name: merge_runs(*runs) for name, runs in parts.items()}, logs
 
 
-def summary(run_dirs: list[pathlib.Path], reference: dict[str, tuple[Curve, str]] | None = None) -> dict:
-    """Per arm its seeds' late means, take-offs, rate and interval; Fisher's test for every pair of arms.
-
-    ``reference`` adds arms that are not run directories, ``{name: ((frames, returns), source)}``, judged by the
-    same criterion (``main``: DrQ-v2's own curves)."""
-    curves, logs = arm_curves(run_dirs)
-    for name, (curve, source) in (reference or {}).items():
-        curves[name], logs[name] = curve, [source]
+def summary(curves: dict[str, Curve], logs: dict[str, list[str]]) -> dict:
+    """Per arm of ``curves`` (:func:`arm_curves`' and any reference's, e.g. DrQ-v2's own curves in ``main``) its
+    seeds' late means, take-offs, rate and interval, and its ``logs``; Fisher's test for every pair of arms."""
     arms = {}
     for name, (frames, returns) in curves.items():
         means, up = took_off(frames, returns)
@@ -133,10 +128,10 @@ def main() -> None:
     if not RUNS:
         print("no take-off runs listed in RUNS yet (experiments/baselines_h100.sh, drqv2_seed with STEPS=60000)")
         return
-    source = "facebookresearch/drqv2 curves/dmc_walker_walk.csv (d6dbadc)"
-    out = summary([RESULTS / "runs" / d for d in RUNS], {DRQV2: ((DRQV2_FRAMES, DRQV2_RETURNS), source)})
+    curves, logs = arm_curves([RESULTS / "runs" / d for d in RUNS])
+    reference = {DRQV2: (DRQV2_FRAMES, DRQV2_RETURNS)}
+    out = summary(curves | reference, logs | {DRQV2: ["facebookresearch/drqv2 curves/dmc_walker_walk.csv (d6dbadc)"]})
     (RESULTS / "drqv2_takeoff.json").write_text(json.dumps(out, indent=1) + "\n")
-    curves, _ = arm_curves([RESULTS / "runs" / d for d in RUNS])
     title = f"DrQ-v2 walker_walk pixels: take-off (mean from {FROM_FRAMES // 1000}k frames > {THRESHOLD:g})"
     xlabel = "frames (agent steps x action repeat)"
     curve_figure(curves, RESULTS / "drqv2_takeoff.png", title, xlabel=xlabel, seeds=True)

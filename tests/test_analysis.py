@@ -792,7 +792,7 @@ def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path
     _takeoff_run(tmp_path / "a", "bf16", False, plain[:5])  # one arm's seeds over two directories
     _takeoff_run(tmp_path / "b", "bf16", False, plain[5:])
     _takeoff_run(tmp_path / "looks_like_bf16_but_is_f32", "bf16", True, [400.0] * 8)
-    out = takeoff.summary([tmp_path / "a", tmp_path / "b", tmp_path / "looks_like_bf16_but_is_f32"])
+    out = takeoff.summary(*takeoff.arm_curves([tmp_path / d for d in ("a", "b", "looks_like_bf16_but_is_f32")]))
     a, b = out["arms"]["bf16"], out["arms"]["bf16 + float32 critic output"]
     # Late means: evaluations at 50k and 60k agent steps (100k and 120k frames): 25 + 0.9 (final - 25).
     np.testing.assert_allclose(a["late_means"], [round(25 + 0.9 * (f - 25), 1) for f in plain])
@@ -806,7 +806,8 @@ def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path
     np.testing.assert_allclose(test["fisher_p"], sum(p for p in prob if p <= prob[0] * (1 + 1e-9)))
     # A reference arm (DrQ-v2's own curves in main) is judged by the same criterion, from its own frames on.
     reference = (np.array([80_000, 100_000, 120_000]), np.array([[500.0, 20.0], [90.0, 20.0], [120.0, 500.0]]))
-    out = takeoff.summary([tmp_path / "a"], {"ref": (reference, "somewhere.csv")})
+    curves, logs = takeoff.arm_curves([tmp_path / "a"])
+    out = takeoff.summary(curves | {"ref": reference}, logs | {"ref": ["somewhere.csv"]})
     assert out["arms"]["ref"]["late_means"] == [105.0, 260.0]
     assert (out["arms"]["ref"]["took_off"], out["arms"]["ref"]["log"]) == (2, ["somewhere.csv"])
     assert [t["arms"] for t in out["fisher"]] == [["bf16", "ref"]]
@@ -815,4 +816,4 @@ def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path
     cfg = json.loads((sac / "config.json").read_text()) | {"algo": "sac"}
     (sac / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="DrQ-v2 on walker_walk"):
-        takeoff.summary([sac])
+        takeoff.arm_curves([sac])
