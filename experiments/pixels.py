@@ -20,7 +20,7 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure
+from analysis import curve_figure, log_name
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
@@ -58,7 +58,7 @@ def _described(task: str, label: str, info: dict) -> dict:
         "device": info["device"],
         "date": info["date"],
         "command": info["command"],
-        "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
+        "log": [log_name(d) for d in info["run_dirs"]],
     }
 
 

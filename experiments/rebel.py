@@ -60,6 +60,7 @@ from analysis import (
     distinct_evaluations,
     final_returns,
     iqm,
+    log_name,
     mean_curve,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
@@ -205,7 +206,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "device": info["device"],
                 "date": info["date"],
                 "command": info["command"],
-                "log": [f"results/runs/{d.relative_to(RESULTS / 'runs')}" for d in info["run_dirs"]],
+                "log": [log_name(d) for d in info["run_dirs"]],
             }
         )
     return out
@@ -486,7 +487,7 @@ def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
                 "rounds": len(records),
                 "steps": [records[0]["env_steps"], records[-1]["env_steps"]],
                 **{name: round(v, 3) for name, v in means.items()},
-                "log": f"results/runs/{run_dir.relative_to(RESULTS / 'runs')}",
+                "log": log_name(run_dir),
             }
         )
     return out

@@ -28,7 +28,7 @@ import pathlib
 
 import numpy as np
 import scipy.stats
-from analysis import Curve, curve_figure, load_runs, merge_runs
+from analysis import Curve, curve_figure, load_runs, log_name, merge_runs
 from pixels import action_repeat
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
@@ -71,13 +71,6 @@ def arm(cfg: dict) -> str:
     """The arm a run belongs to, from its config."""
     drqv2 = cfg["drqv2"]
     return drqv2["precision"] + (" + float32 critic output" if drqv2.get("critic_out_f32", False) else "")
-
-
-def log_name(run_dir: pathlib.Path) -> str:
-    """A run directory as the repository names it (``results/runs/...``), else as given."""
-    root = RESULTS.parent.resolve()
-    path = run_dir.resolve()
-    return str(path.relative_to(root)) if path.is_relative_to(root) else str(run_dir)
 
 
 def took_off(frames: np.ndarray, returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
