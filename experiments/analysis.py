@@ -334,12 +334,11 @@ def sample_efficiency_ratio_ci(
 
 
 # -- run directories -----------------------------------------------------------------------
-def log_name(run_dir: str | os.PathLike) -> str:
-    """A run directory as the results tables name it: relative to the repository (``results/runs/...``), else as
-    given (a directory outside it, e.g. a test's)."""
-    root = pathlib.Path(__file__).parents[1].resolve()
-    path = pathlib.Path(run_dir).resolve()
-    return str(path.relative_to(root)) if path.is_relative_to(root) else str(run_dir)
+def log_name(run_dir: str | os.PathLike, results: pathlib.Path) -> str:
+    """A run directory as the results tables name it: ``results/<its path under results>``, else as given (a
+    directory outside ``results``, e.g. a test's)."""
+    path, results = pathlib.Path(run_dir).resolve(), results.resolve()
+    return f"results/{path.relative_to(results)}" if path.is_relative_to(results) else str(run_dir)
 
 
 def distinct_evaluations(curve: Curve) -> Curve:

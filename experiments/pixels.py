@@ -58,7 +58,7 @@ def _described(task: str, label: str, info: dict) -> dict:
         "device": info["device"],
         "date": info["date"],
         "command": info["command"],
-        "log": [log_name(d) for d in info["run_dirs"]],
+        "log": [log_name(d, RESULTS) for d in info["run_dirs"]],
     }
 
 

@@ -206,7 +206,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
                 "device": info["device"],
                 "date": info["date"],
                 "command": info["command"],
-                "log": [log_name(d) for d in info["run_dirs"]],
+                "log": [log_name(d, RESULTS) for d in info["run_dirs"]],
             }
         )
     return out
@@ -487,7 +487,7 @@ def on_policy_reward(task: str, run_dir: pathlib.Path) -> list[dict]:
                 "rounds": len(records),
                 "steps": [records[0]["env_steps"], records[-1]["env_steps"]],
                 **{name: round(v, 3) for name, v in means.items()},
-                "log": log_name(run_dir),
+                "log": log_name(run_dir, RESULTS),
             }
         )
     return out

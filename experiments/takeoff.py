@@ -90,7 +90,7 @@ def arm_curves(run_dirs: list[pathlib.Path]) -> tuple[dict[str, Curve], dict[str
         cfg = run_config(run_dir)
         steps, returns = load_runs(run_dir)
         parts.setdefault(arm(cfg), []).append((steps * action_repeat(cfg["env"]["task"]), returns))
-        logs.setdefault(arm(cfg), []).append(log_name(run_dir))
+        logs.setdefault(arm(cfg), []).append(log_name(run_dir, RESULTS))
     return {name: merge_runs(*runs) for name, runs in parts.items()}, logs
 
 
