@@ -11,7 +11,9 @@ frames. Per row, as issue 12's schema: ``labels`` (those the seeds got, read fro
 budget asked is ``labels_asked``), ``final_returns`` (per seed the mean of its last 10 evaluations,
 ``analysis.final_returns``), ``mean``, ``std``, ``iqm`` with ``iqm_ci`` (95% percentile bootstrap over
 seeds), ``device``, ``date``, ``command`` and ``log``. Also writes ``results/pixels_<task>.png``: each
-method's mean +- std evaluation return against frames.
+method's mean +- std evaluation return against frames. ``stopped`` lists the runs the device budget stopped,
+``matched`` the preference methods at the agent steps all of their runs reached (``MATCHED``), drawn in
+``results/pixels_<task>_matched.png``.
 """
 
 from __future__ import annotations
@@ -28,7 +30,11 @@ from rebel_jax.plots import records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: dict[str, list[str]] = {
-    "cheetah_run_pixels": ["pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16"],
+    "cheetah_run_pixels": [
+        "pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16",
+        "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
+        "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
+    ],
     "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16"],
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``."""
@@ -41,6 +47,19 @@ STOPPED: dict[str, list[str]] = {
 }
 """Pixel runs that the device budget stopped early: drawn in the task's figure and listed with every
 evaluation under ``pixels.json``'s ``stopped``, but not rows (their last 10 evaluations are not a final score)."""
+MATCHED: dict[str, tuple[int, list[str]]] = {
+    "cheetah_run_pixels": (
+        80_000,
+        [
+            "pixels/rebel_cheetah_pixels_150000steps_seed0_seeds2_lams_0_0.001_bf16_stopped82k",
+            "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
+            "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
+        ],
+    ),
+}
+"""Pixel task -> (agent steps, run directories): the preference methods compared where all of the runs have
+evaluated, each method's seeds pooled over the directories (:func:`matched`); ``pixels.json``'s ``matched`` and
+``results/pixels_<task>_matched.png``."""
 
 
 def action_repeat(task: str) -> int:
@@ -65,14 +84,16 @@ def _described(task: str, label: str, info: dict) -> dict:
 def labels_used(run_dirs: list[pathlib.Path], label: str) -> list[int]:
     """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round that
     logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's walker schedule asks 170
-    of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3)."""
+    of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3). A run that stopped before its first session
+    logged none: its seeds are left out."""
     out = []
     for run_dir in run_dirs:
         found = methods(run_dir).get(label)
         if found is None:
             continue
-        last = next(r["labels_used"] for r in reversed(records(run_dir)) if r.get("labels_used") is not None)
-        out += [int(last[c]) for c in found[1]["columns"]]
+        last = next((r["labels_used"] for r in reversed(records(run_dir)) if r.get("labels_used") is not None), None)
+        if last is not None:  # None: stopped before its first session
+            out += [int(last[c]) for c in found[1]["columns"]]
     return out
 
 
@@ -115,6 +136,29 @@ def figure(task: str, curves: dict, path: pathlib.Path) -> None:
     curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)", seeds=True)
 
 
+def _entries(task: str, curves: dict, infos: dict, scores: str) -> list[dict]:
+    """Per method of ``gather``'s ``curves`` its pixels.json entry: described as a row, its statistics with the
+    per-seed scores under the key ``scores`` (per seed the mean of its last 10 evaluations, all of them in a run of
+    fewer), ``evaluations`` (each as ``[frames, seed-mean return]``) and ``last_evaluation`` (per seed its return
+    at the last of them)."""
+    repeat = action_repeat(task)
+    stats = compare(curves, None)["methods"]
+    out = []
+    for label, (steps, returns) in curves.items():
+        means = np.nanmean(returns, axis=1)
+        kept = np.isfinite(means)
+        evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
+        out.append(
+            {
+                **_described(task, label, infos[label]),
+                **_statistics(label, stats[label], infos[label], repeat, scores=scores),
+                "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
+                "last_evaluation": [round(float(r), 2) for r in returns[-1]],
+            }
+        )
+    return out
+
+
 def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     """The stopped runs' entries and curves, one per run directory (each stopped at its own length, often
     on other code): per method ``evaluations`` (each as ``[frames, seed-mean return]``), ``frames`` (those
@@ -126,34 +170,47 @@ def stopped(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     out, frames = [], {}
     for run_dir in run_dirs:
         curves, infos = gather([run_dir])
-        stats = compare(curves, None)["methods"]
         for label, (steps, returns) in curves.items():
-            means = np.nanmean(returns, axis=1)
-            kept = np.isfinite(means)
-            evaluations = zip(steps[kept] * repeat, means[kept], strict=True)
             frames[f"{label} (stopped; last evaluation at {int(steps[-1]) * repeat // 1000}k)"] = (
                 steps * repeat,
                 returns,
             )
-            out.append(
-                {
-                    **_described(task, label, infos[label]),
-                    **_statistics(label, stats[label], infos[label], repeat, scores="last10_returns"),
-                    "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
-                }
-            )
+        out += _entries(task, curves, infos, "last10_returns")
     return out, frames
 
 
+def matched(task: str, agent_steps: int, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
+    """The methods of ``run_dirs`` compared at ``agent_steps``, a length every one of the runs reached, finished or
+    stopped: each method's seeds pooled over the directories and its evaluations cut there (``gather``'s
+    ``max_steps``). Per method ``matched_returns`` (per seed the mean of its evaluations to there, its last 10 if
+    it has more) and ``last_evaluation`` (per seed the evaluation at ``agent_steps``), with the entries' other keys
+    as :func:`stopped`'s, and the curves against frames."""
+    curves, infos = gather(run_dirs, agent_steps)
+    if any(int(steps[-1]) != agent_steps for steps, _ in curves.values()):
+        raise ValueError(f"not every run of {task} has an evaluation at {agent_steps} agent steps")
+    repeat = action_repeat(task)
+    return _entries(task, curves, infos, "matched_returns"), {
+        label: (steps * repeat, returns) for label, (steps, returns) in curves.items()
+    }
+
+
 def main() -> None:
-    table, early = [], []
+    table, early, same = [], [], []
     for task in sorted(set(RUNS) | set(STOPPED)):
         task_rows, curves = rows(task, [RESULTS / "runs" / log for log in RUNS[task]]) if task in RUNS else ([], {})
         task_stopped, stopped_curves = stopped(task, [RESULTS / "runs" / log for log in STOPPED.get(task, [])])
-        figure(task, curves | stopped_curves, RESULTS / f"pixels_{task.removesuffix('_pixels')}.png")
+        short = task.removesuffix("_pixels")
+        figure(task, curves | stopped_curves, RESULTS / f"pixels_{short}.png")
         table += task_rows
         early += task_stopped
-    (RESULTS / "pixels.json").write_text(json.dumps({"rows": table, "stopped": early}, indent=1) + "\n")
+        if task in MATCHED:
+            agent_steps, logs = MATCHED[task]
+            task_matched, matched_curves = matched(task, agent_steps, [RESULTS / "runs" / log for log in logs])
+            figure(task, matched_curves, RESULTS / f"pixels_{short}_matched.png")
+            same += task_matched
+    (RESULTS / "pixels.json").write_text(
+        json.dumps({"rows": table, "stopped": early, "matched": same}, indent=1) + "\n"
+    )
     print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
     print("|---|---|---:|---:|---:|---:|")
     for r in table:
@@ -169,6 +226,18 @@ def main() -> None:
         print(f"\n{r['task']} {r['method']} ({r['seeds']} seed(s){got}, stopped at {r['frames']:,} frames): {shown}")
         low, high = r["iqm_ci"]
         print(f"  per seed, the mean of its last 10 evaluations: {last10}; IQM {r['iqm']:.1f} [{low}, {high}]")
+    if same:
+        print("\n| task | method | seeds | frames | per seed: mean evaluation | mean +- std | IQM [95% CI] |", end="")
+        print(" per seed: last |")
+        print("|---|---|---:|---:|---|---:|---:|---|")
+    for r in same:
+        low, high = r["iqm_ci"]
+        scores = ", ".join(f"{v:.1f}" for v in r["matched_returns"])
+        last = ", ".join(f"{v:.1f}" for v in r["last_evaluation"])
+        print(
+            f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {scores} | {r['mean']:.1f} +- "
+            f"{r['std']:.1f} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
+        )
 
 
 if __name__ == "__main__":

@@ -663,6 +663,38 @@ def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monke
     assert low <= rebel["iqm"] <= high and rebel["seeds"] == 2
 
 
+def test_pixel_matched_pools_each_methods_seeds_at_the_steps_every_run_reached(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    runs = tmp_path / "runs"
+    task = "cheetah_run_pixels"
+    # A stopped PEBBLE-and-REBEL program (to 80k agent steps), a finished one on other seeds, and a SURF run.
+    _fake_curve_run(runs / "grid_stopped", "rebel", [1.0, 2.0, 3.0, 4.0], 4, lams=[0, 0, 0.001, 0.001], task=task)
+    rows = [json.loads(line) for line in (runs / "grid_stopped" / "metrics.jsonl").read_text().splitlines()]
+    (runs / "grid_stopped" / "metrics.jsonl").write_text(
+        "\n".join(json.dumps(r) for r in rows if r["env_steps"] <= 80_000) + "\n"
+    )
+    _fake_curve_run(runs / "grid", "rebel", [5.0, 6.0, 7.0, 8.0], 4, lams=[0, 0, 0.001, 0.001], task=task)
+    _fake_curve_run(runs / "surf", "surf", 0.5, 3, task=task)
+    dirs = [runs / n for n in ("grid_stopped", "grid", "surf")]
+    entries, curves = pixels.matched(task, 80_000, dirs)
+    out = {e["method"]: e for e in entries}
+    assert set(out) == {"pebble (rebel lam=0)", "rebel lam=0.001", "surf"}
+    # Per seed the mean of its 8 evaluations (10k..80k agent steps: 45 times the slope) and the one at 80k.
+    pebble = out["pebble (rebel lam=0)"]
+    assert pebble["matched_returns"] == [45.0, 90.0, 225.0, 270.0] and pebble["seeds"] == 4
+    assert pebble["last_evaluation"] == [80.0, 160.0, 400.0, 480.0] and pebble["frames"] == 160_000
+    assert out["rebel lam=0.001"]["matched_returns"] == [135.0, 180.0, 315.0, 360.0]
+    assert out["surf"]["matched_returns"] == [22.5] * 3 and out["surf"]["log"] == ["results/runs/surf"]
+    assert pebble["log"] == ["results/runs/grid_stopped", "results/runs/grid"]
+    assert pebble["evaluations"][-1] == [160_000, (80 + 160 + 400 + 480) / 4]
+    frames, returns = curves["surf"]
+    assert frames[-1] == 160_000 and returns.shape == (8, 3)
+    json.dumps(entries, allow_nan=False)
+    with pytest.raises(ValueError, match="90000 agent steps"):  # the stopped program has no evaluation there
+        pixels.matched(task, 90_000, dirs)
+
+
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "task": "walker_walk"}
