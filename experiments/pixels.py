@@ -81,28 +81,29 @@ def _described(task: str, label: str, info: dict) -> dict:
     }
 
 
-def labels_used(run_dirs: list[pathlib.Path], label: str) -> list[int]:
-    """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round that
-    logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's walker schedule asks 170
-    of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3). A run that stopped before its first session
-    logged none: its seeds are left out."""
+def labels_used(run_dirs: list[pathlib.Path], label: str, max_steps: int) -> list[int]:
+    """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round up to
+    ``max_steps`` agent steps that logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's
+    walker schedule asks 170 of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3). A run that stopped
+    before its first session logged none: its seeds are left out."""
     out = []
     for run_dir in run_dirs:
         found = methods(run_dir).get(label)
         if found is None:
             continue
-        last = next((r["labels_used"] for r in reversed(records(run_dir)) if r.get("labels_used") is not None), None)
+        logged = [r for r in records(run_dir) if r.get("labels_used") is not None and r["env_steps"] <= max_steps]
+        last = logged[-1]["labels_used"] if logged else None
         if last is not None:  # None: stopped before its first session
             out += [int(last[c]) for c in found[1]["columns"]]
     return out
 
 
 def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
-    """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got (one number if they all got the
-    same) and the budget they asked, seeds, frames, per-seed scores (under the key ``scores``) and their mean,
-    std and IQM with its 95% bootstrap interval."""
+    """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got by its last evaluation (one
+    number if they all got the same) and the budget they asked, seeds, frames, per-seed scores (under the key
+    ``scores``) and their mean, std and IQM with its 95% bootstrap interval."""
     asked = info["labels"]
-    used = labels_used(info["run_dirs"], label) if asked is not None else []
+    used = labels_used(info["run_dirs"], label, m["env_steps"]) if asked is not None else []
     return {
         "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
         "labels_asked": asked,

@@ -676,6 +676,12 @@ def test_pixel_matched_pools_each_methods_seeds_at_the_steps_every_run_reached(t
     )
     _fake_curve_run(runs / "grid", "rebel", [5.0, 6.0, 7.0, 8.0], 4, lams=[0, 0, 0.001, 0.001], task=task)
     _fake_curve_run(runs / "surf", "surf", 0.5, 3, task=task)
+    for name in ("grid_stopped", "grid", "surf"):  # 25 labels per column every 10k agent steps
+        rows = [json.loads(line) for line in (runs / name / "metrics.jsonl").read_text().splitlines()]
+        columns = len(rows[0]["eval_return"])
+        for r in rows:
+            r["labels_used"] = [25 * (r["env_steps"] // 10_000)] * columns
+        (runs / name / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     dirs = [runs / n for n in ("grid_stopped", "grid", "surf")]
     entries, curves = pixels.matched(task, 80_000, dirs)
     out = {e["method"]: e for e in entries}
@@ -686,6 +692,8 @@ def test_pixel_matched_pools_each_methods_seeds_at_the_steps_every_run_reached(t
     assert pebble["last_evaluation"] == [80.0, 160.0, 400.0, 480.0] and pebble["frames"] == 160_000
     assert out["rebel lam=0.001"]["matched_returns"] == [135.0, 180.0, 315.0, 360.0]
     assert out["surf"]["matched_returns"] == [22.5] * 3 and out["surf"]["log"] == ["results/runs/surf"]
+    # The labels every seed had by 80k agent steps, not by its run's end (200k for two of the three runs).
+    assert [out[m]["labels"] for m in sorted(out)] == [200, 200, 200] and pebble["labels_asked"] == 100
     assert pebble["log"] == ["results/runs/grid_stopped", "results/runs/grid"]
     assert pebble["evaluations"][-1] == [160_000, (80 + 160 + 400 + 480) / 4]
     frames, returns = curves["surf"]
