@@ -91,12 +91,13 @@
 #       SEED_STEPS change the preset's 4 envs and 2,000 seed steps (below). Nineteenth session: ALGO=rebel
 #       TASK=cheetah LAMS="0 0.001" SEED=0 SEEDS=2 STEPS=150000 PRECISION=bf16 on one H200 (GPU=1), 5.87 s plain
 #       rounds and 55-150 s session rounds; the device time stopped it at 82k steps (RESULTS.md).
-#       Planned (after the twentieth session, estimated, not run): on two GPUs, PEBBLE and REBEL apart, 2 seeds each,
-#       `GPU=0 WATCH=0 DETACH=1 ALGO=pebble TASK=cheetah SEED=1 SEEDS=2 STEPS=250000 PRECISION=bf16` and `GPU=1 DETACH=1
-#       ALGO=rebel ...` the same: a plain round of 2 columns about 3 s (half the 4-column 5.87 s), and 25 sessions
-#       whose epochs grow with the labels (35 ms per minibatch of 16 pairs, tf32, session_parts): 25 x 2 columns x
-#       up to 20 epochs x (25..625 labels)/16 minibatches is at most about 12 min, so 500k frames in 20-25 min of
-#       rounds. Run session_parts with PRECISIONS=bf16 first if bf16 reward training is to be used;
+#       Twenty-first session (two H200s, code 8c73ac6, three chained calls, 1,604 s held): GPU=1 ALGO=rebel LAMS="0
+#       0.001" SEED=2 SEEDS=2 STEPS=150000 (looped sessions: 5.90 s plain rounds, 10.3-24.4 s session rounds, done in
+#       1,134 s) and GPU=0 ALGO=surf SEED=0 SEEDS=3 STEPS=80000 with XLA_PYTHON_CLIENT_MEM_FRACTION=0.95 (done in
+#       747 s; at JAX's default 75% its round asked for 72.56 GiB more and failed: SURF's pool is 13.1 GB per seed).
+#       Next (estimated from those rows, not run): 500k frames of the 4-column PEBBLE + REBEL program about 31 min,
+#       of 3 SURF seeds about 63 min in tf32 (its sessions train all 20 passes); bf16 reward training
+#       (--pixel-reward.precision bf16, session_parts: 2x faster sessions) is untried in a run;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
@@ -106,8 +107,9 @@
 #   SET "session_parts" with JOBS, LABELS, PRECISIONS, SESSION_COLUMNS, REPEATS and MAX (issue 12, after the
 #       nineteenth session's 55-150 s sessions): a pixel preference session's parts timed apart, tf32 against bf16,
 #       and whole 4-column sessions with pixel_reward.session_loop on and off (benchmarks/pixel_session_parts.py);
-#       twentieth session: MAX=380 after the take-off jobs (tf32 parts and the looped session; bf16 and the batched
-#       session not reached: give it MAX=540 and its own call);
+#       twentieth session: MAX=380 after the take-off jobs (tf32 parts and the looped session); twenty-first:
+#       PRECISIONS=bf16 MAX=255 after the pixel jobs (bf16 parts and the looped session); the batched session is
+#       still not reached: give it MAX=540 and its own call;
 #   SET "command_buffers": walker's control step and the SAC update with CUDA graphs over while loops; ran in the
 #       fifteenth session (205 s: the graphs made the step 11-18% slower and left the update unchanged);
 #   SET "drqv2_bench" (issue 12): DrQ-v2's update timed by parts and with the patch-product kernel gradient; its
