@@ -105,7 +105,7 @@ def _programs(trainer: PixelTrainer):
         return trainer._record(ts, nxt, action, t)
 
     def session(ts):
-        return trainer.feedback_session(ts, jnp.bool_(True), step)
+        return trainer.feedback_session(ts, jnp.bool_(True), step, jnp.int32(0))
 
     out = {"update": update, "env_step": env_step}
     if trainer.preference:

@@ -51,6 +51,7 @@ branch ``pixel``):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -180,7 +181,7 @@ class PixelTrainer:
         self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
         self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, self.episode_length, True)
         self.trace_count = 0
-        self._looped_session = jax.custom_batching.sequential_vmap(self._feedback_session)
+        self._looped_session = loop_in_place(self._feedback_session)
 
     def policy_params(self, ts: PixelTrainState) -> dict:
         """What :meth:`evaluate` takes: the encoder and the actor."""
@@ -524,7 +525,7 @@ class PixelTrainer:
         """select -> teach -> learn at session ``index``, with :data:`PIXEL_SESSION_METRICS`.
 
         With ``pixel_reward.session_loop`` a ``vmap`` of this method runs one column's session at a time
-        (``lax.map``); called unbatched it is the same session either way."""
+        (:func:`loop_in_place`); called unbatched it is the same session either way."""
         if self.cfg.pixel_reward.session_loop:  # Positional arguments: custom_vmap takes no keywords.
             return self._looped_session(ts, first, agent_step, index)
         return self._feedback_session(ts, first, agent_step, index)
@@ -599,6 +600,47 @@ class PixelTrainer:
         keys = jax.random.split(key_actions, self.episode_length)
         (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
         return total.mean()
+
+
+def loop_in_place(fn: Callable) -> Callable:
+    """``fn(state, *args) -> (state, aux)`` whose ``vmap`` runs one column at a time, as
+    ``jax.custom_batching.sequential_vmap(fn)``, with the batched ``state`` carried through the loop (a
+    ``fori_loop``) and each column's new state written back into it (``.at[i].set``).
+
+    ``sequential_vmap`` runs ``lax.map``, whose stacked outputs are a fresh buffer beside its inputs: a second
+    copy of the whole batched state (replay, label store, SURF's pool) in the round's working memory, on top of
+    the column being computed. ``memory_analysis()`` of the round (``benchmarks/pixel_memory.py``, surf_cheetah,
+    3 seeds, bf16, CPU): temp 73.3 GiB beside a state of 51.3 GiB (the pool 36.7 GiB), where the GPU run died
+    allocating 72.6 GiB; carried, 27.9 GiB (batched sessions: 15.2 GiB). What remains is about one column's copy
+    of its state (17.1 GiB there): each column's session reads and writes a slice of the carry.
+    Same numbers as ``sequential_vmap``: one column at a time, each reading its own column only.
+    """
+    fn = jax.custom_batching.custom_vmap(fn)
+
+    @fn.def_vmap
+    def rule(axis_size: int, in_batched: list, state, *args):
+        def batch(x, batched):
+            return x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
+
+        def columns(i, state):
+            """Column ``i`` of the batched state and of the batched arguments (unbatched ones as they are)."""
+            pairs = zip(args, in_batched[1:], strict=True)
+            args_i = [jax.tree.map(lambda x, b: x[i] if b else x, arg, batched) for arg, batched in pairs]
+            return jax.tree.map(lambda x: x[i], state), *args_i
+
+        state = jax.tree.map(batch, state, in_batched[0])
+        aux = jax.eval_shape(lambda: fn(*columns(0, state))[1])
+        aux = jax.tree.map(lambda s: jnp.zeros((axis_size, *s.shape), s.dtype), aux)
+
+        def body(i, carry):
+            # Column i of the carried state, not of ``state``: reading the input would keep it alive beside the carry.
+            new = fn(*columns(i, carry[0]))
+            return jax.tree.map(lambda out, x: out.at[i].set(x), carry, new)
+
+        out = jax.lax.fori_loop(0, axis_size, body, (state, aux))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return fn
 
 
 def weighted_pearson(x: jax.Array, y: jax.Array, weight: jax.Array) -> jax.Array:
