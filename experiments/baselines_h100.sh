@@ -94,7 +94,8 @@
 #       Twenty-first session (two H200s, code 8c73ac6, three chained calls, 1,604 s held): GPU=1 ALGO=rebel LAMS="0
 #       0.001" SEED=2 SEEDS=2 STEPS=150000 (looped sessions: 5.90 s plain rounds, 10.3-24.4 s session rounds, done in
 #       1,134 s) and GPU=0 ALGO=surf SEED=0 SEEDS=3 STEPS=80000 with XLA_PYTHON_CLIENT_MEM_FRACTION=0.95 (done in
-#       747 s; at JAX's default 75% its round asked for 72.56 GiB more and failed: SURF's pool is 13.1 GB per seed).
+#       747 s; at JAX's default 75% its round asked for 72.56 GiB more and failed: SURF's pool is 13.1 GB per seed,
+#       and the looped session copied every column's state; since loop_in_place one column's, BENCHMARKS.md).
 #       Next (estimated from those rows, not run): 500k frames of the 4-column PEBBLE + REBEL program about 31 min,
 #       of 3 SURF seeds about 63 min in tf32 (its sessions train all 20 passes); bf16 reward training
 #       (--pixel-reward.precision bf16, session_parts: 2x faster sessions) is untried in a run;
