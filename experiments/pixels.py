@@ -131,10 +131,12 @@ def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
     return out, frames
 
 
-def figure(task: str, curves: dict, path: pathlib.Path) -> None:
+def figure(task: str, curves: dict, path: pathlib.Path, note: str = "") -> None:
     """Each method's mean +- std evaluation return against frames, as DrQ-v2 and SURF draw them, and each
-    seed's curve (thin): DrQ-v2 fails on some walker seeds, its own curves included (RESULTS.md)."""
-    curve_figure(curves, path, f"{task}, pixels", xlabel="frames (agent steps x action repeat)", seeds=True)
+    seed's curve (thin): DrQ-v2 fails on some walker seeds, its own curves included (RESULTS.md). ``note`` ends
+    the title."""
+    title = f"{task.removesuffix('_pixels')}, pixels{note}"
+    curve_figure(curves, path, title, xlabel="frames (agent steps x action repeat)", seeds=True)
 
 
 def _entries(task: str, curves: dict, infos: dict, scores: str) -> list[dict]:
@@ -207,7 +209,8 @@ def main() -> None:
         if task in MATCHED:
             agent_steps, logs = MATCHED[task]
             task_matched, matched_curves = matched(task, agent_steps, [RESULTS / "runs" / log for log in logs])
-            figure(task, matched_curves, RESULTS / f"pixels_{short}_matched.png")
+            note = f", equal frames (runs pooled to {action_repeat(task) * agent_steps // 1000}k)"
+            figure(task, matched_curves, RESULTS / f"pixels_{short}_matched.png", note)
             same += task_matched
     (RESULTS / "pixels.json").write_text(
         json.dumps({"rows": table, "stopped": early, "matched": same}, indent=1) + "\n"
