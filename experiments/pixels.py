@@ -92,9 +92,8 @@ def labels_used(run_dirs: list[pathlib.Path], label: str, max_steps: int) -> lis
         if found is None:
             continue
         logged = [r for r in records(run_dir) if r.get("labels_used") is not None and r["env_steps"] <= max_steps]
-        last = logged[-1]["labels_used"] if logged else None
-        if last is not None:  # None: stopped before its first session
-            out += [int(last[c]) for c in found[1]["columns"]]
+        if logged:  # none: stopped before its first session
+            out += [int(logged[-1]["labels_used"][c]) for c in found[1]["columns"]]
     return out
 
 
@@ -156,7 +155,8 @@ def _entries(task: str, curves: dict, infos: dict, scores: str) -> list[dict]:
                 **_described(task, label, infos[label]),
                 **_statistics(label, stats[label], infos[label], repeat, scores=scores),
                 "evaluations": [[int(f), round(float(r), 2)] for f, r in evaluations],
-                "last_evaluation": [round(float(r), 2) for r in returns[-1]],
+                # A seed without that evaluation: null, not NaN, which strict JSON readers refuse.
+                "last_evaluation": [round(float(r), 2) if np.isfinite(r) else None for r in returns[-1]],
             }
         )
     return out
@@ -237,7 +237,7 @@ def main() -> None:
     for r in same:
         low, high = r["iqm_ci"]
         scores = ", ".join(f"{v:.1f}" for v in r["matched_returns"])
-        last = ", ".join(f"{v:.1f}" for v in r["last_evaluation"])
+        last = ", ".join("-" if v is None else f"{v:.1f}" for v in r["last_evaluation"])
         print(
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {scores} | {r['mean']:.1f} +- "
             f"{r['std']:.1f} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
