@@ -98,7 +98,7 @@
 #       and the looped session copied every column's state; since loop_in_place one column's, BENCHMARKS.md).
 #       Next (estimated from those rows, not run): 500k frames of the 4-column PEBBLE + REBEL program about 31 min,
 #       of 3 SURF seeds about 63 min in tf32 (its sessions train all 20 passes); bf16 reward training
-#       (--pixel-reward.precision bf16, session_parts: 2x faster sessions) is untried in a run. Planned for the next
+#       (--pixel-reward.precision bf16, session_parts: epochs 1.9x faster) is untried in a run. Planned for the next
 #       two-GPU machine (estimated, not run): GPU=0 ALGO=surf SEED=2 SEEDS=2 STEPS=150000 (SURF on the keys of
 #       PEBBLE/REBEL's seeds 2-3, to 300k frames: about 150 x 4 s + 15 sessions of 2 columns growing 0.21 s per
 #       label, about 21 min) and GPU=1 ALGO=rebel LAMS="0 0.001" SEED=4 SEEDS=2 STEPS=150000 (the measured 19-min
