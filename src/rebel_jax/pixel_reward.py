@@ -95,11 +95,10 @@ class PixelRewardConfig:
     session at a time: the same numbers up to float rounding (not a SURF setting). Batched, every convolution of
     the reward members (training, candidate scoring, relabelling) becomes one grouped convolution
     (``feature_group_count`` = columns), as DrQ-v2's update did under the seed ``vmap`` (``drqv2.seed_loop``: 6.8x
-    slower batched in tf32 on one H100, BENCHMARKS.md); looped, each is a plain one, with one column's working
-    memory and a copy of that column's state (``sequential_vmap``'s stacked outputs, used before, copied every
-    column's: ``loop_in_place``). A session of the nineteenth session's batched 4-column cheetah program took
-    55-150 s (BENCHMARKS.md); looped, a 4-column REBEL session of 20 epochs at 200 labels took 53.1 s (twentieth
-    session; batched at those settings: not yet timed)."""
+    slower batched in tf32 on one H100, BENCHMARKS.md); looped, each is a plain one, and the working memory holds
+    one column's copy of its state (``sequential_vmap``, used before, held every column's). Rounds with a session
+    of the 4-column PEBBLE + REBEL cheetah program took 55-150 s batched (nineteenth session) and 10-24 s looped
+    (twenty-first, BENCHMARKS.md)."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk", "relabel_rows"):
