@@ -10,6 +10,7 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from jax.flatten_util import ravel_pytree
 
@@ -382,6 +383,8 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     assert cfg.preference and cfg.pixels and cfg.pixel_reward.lr == 1e-4
     assert cfg.pixel_reward.member_loop  # the default on pixels; the flag restores the members' vmap
     assert not parse(["--preset", "tiny", *flags, "--pixel-reward.no-member-loop"]).config.pixel_reward.member_loop
+    assert not cfg.pixel_reward.per_member_adam  # the summed step of every pixel run so far; the flag is SURF's
+    assert parse(["--preset", "tiny", *flags, "--pixel-reward.per-member-adam"]).config.pixel_reward.per_member_adam
     assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
     for algo in ("sac",):
         with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
@@ -676,6 +679,8 @@ def test_bf16_members_are_the_float32_members_up_to_bfloat16_rounding():
 def test_session_loop_is_a_validated_setting():
     with pytest.raises(ConfigError, match="pixel_reward.session_loop"):
         PixelRewardConfig(session_loop=1).validate()
+    with pytest.raises(ConfigError, match="pixel_reward.per_member_adam"):
+        PixelRewardConfig(per_member_adam="yes").validate()
     assert PixelRewardConfig().session_loop and PixelRewardConfig().member_loop
 
 
@@ -723,6 +728,82 @@ def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
         np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5 * np.max(np.abs(theirs)))
     moved = zip(jax.tree.leaves(state.params), jax.tree.leaves(looped.params), strict=True)
     assert all(not np.allclose(before, after) for before, after in moved)
+
+
+def _torch_adam_after_each_backward(params, calls, lr, b1=0.9, b2=0.999, eps=1e-8):
+    """NumPy reference of SURF's reward training steps under torch 1.9.0: one ``torch.optim.Adam`` over all
+    members' parameters (``params``: (M, D)), and per call ``(member, gradient)``: ``opt.zero_grad()`` (zeros,
+    not None, in torch 1.9), that member's backward, ``opt.step()`` (torch/optim/_functional.py ``adam``, which
+    skips parameters whose gradient is None: members without a backward yet)."""
+    p = np.array(params, np.float64)
+    grad = [None] * len(p)
+    step, m, v = np.zeros(len(p)), np.zeros_like(p), np.zeros_like(p)
+    for member, g in calls:
+        grad = [None if x is None else np.zeros_like(x) for x in grad]
+        grad[member] = np.asarray(g, np.float64)
+        for j, gj in enumerate(grad):
+            if gj is None:
+                continue
+            step[j] += 1
+            m[j] = b1 * m[j] + (1 - b1) * gj
+            v[j] = b2 * v[j] + (1 - b2) * gj * gj
+            denom = np.sqrt(v[j]) / np.sqrt(1 - b2 ** step[j]) + eps
+            p[j] = p[j] - lr / (1 - b1 ** step[j]) * m[j] / denom
+    return p, step
+
+
+def _per_member(tree) -> np.ndarray:
+    """(M, D): each member's leaves of ``tree`` (leading member axis) flattened side by side."""
+    return np.concatenate([np.reshape(x, (np.shape(x)[0], -1)) for x in jax.tree.leaves(tree)], axis=1)
+
+
+def test_member_adam_steps_as_torch_1_9_adam_after_each_members_backward():
+    rng = np.random.default_rng(21)
+    members, lr = 3, 1e-2
+    params = {"w": jnp.asarray(rng.normal(size=(members, 3, 2)), jnp.float32), "b": jnp.zeros((members, 2))}
+    calls = [
+        (m, {"w": jnp.asarray(rng.normal(size=(3, 2)), jnp.float32), "b": jnp.asarray(rng.normal(size=2), jnp.float32)})
+        for _ in range(4)
+        for m in range(members)
+    ]
+    state, ours = pixel_reward.member_adam_init(params), params
+    for m, g in calls:
+        ours, state = pixel_reward.member_adam_step(lr, state, ours, g, jnp.int32(m))
+    reference = [(m, _per_member(jax.tree.map(lambda x: x[None], g))[0]) for m, g in calls]
+    expected, steps = _torch_adam_after_each_backward(_per_member(params), reference, lr)
+    np.testing.assert_allclose(_per_member(ours), expected, rtol=1e-5, atol=1e-6)
+    # 4 rounds of 3 members: 12, 11 and 10 steps (a member's first step is its own backward's).
+    np.testing.assert_array_equal(state.count, steps)
+    np.testing.assert_array_equal(state.count, [12, 11, 10])
+    # One member alone is plain Adam (optax's).
+    one = jax.tree.map(lambda x: x[:1], params)
+    adam = optax.adam(lr)
+    opt, mine, mine_state = adam.init(one), one, pixel_reward.member_adam_init(one)
+    for _, g in calls[:3]:
+        updates, opt = adam.update(jax.tree.map(lambda x: x[None], g), opt, one)
+        one = optax.apply_updates(one, updates)
+        mine, mine_state = pixel_reward.member_adam_step(lr, mine_state, mine, g, jnp.int32(0))
+    jax.tree.map(functools.partial(np.testing.assert_allclose, rtol=1e-6, atol=1e-7), mine, one)
+
+
+@pytest.mark.heavy  # two compiles of the pixel reward's epoch (~20 s each on 2 cores): make test-heavy
+def test_per_member_adam_epoch_steps_each_member_after_its_own_backward():
+    """``per_member_adam`` in ``train_epoch``, one minibatch of a fresh ensemble: member m's gradient is taken
+    before any step has moved it (the members after m are not yet seen), so it is the summed-loss epoch's
+    gradient, which that epoch's first Adam moment holds (``mu = (1 - b1) g``); from those the NumPy reference
+    of torch's Adam gives every member's parameters (member 0 three steps, member 2 one)."""
+    state, _, _ = _stored_labels(np.random.default_rng(22), REWARD.batch_size, REWARD.batch_size, 4)
+    per_member = dataclasses.replace(REWARD, per_member_adam=True)
+    fresh = state.replace(opt_state=pixel_reward.member_adam_init(state.params))
+    key = jax.random.PRNGKey(23)
+    summed, _ = jax.jit(lambda st: pixel_reward.train_epoch(REWARD, st, key))(state)
+    ours, metrics = jax.jit(lambda st: pixel_reward.train_epoch(per_member, st, key))(fresh)
+    np.testing.assert_array_equal(ours.opt_state.count, [3, 2, 1])
+    grads = _per_member(summed.opt_state[0].mu) / 0.1
+    calls = [(m, grads[m]) for m in range(REWARD.ensemble_size)]
+    expected, _ = _torch_adam_after_each_backward(_per_member(state.params), calls, REWARD.lr)
+    np.testing.assert_allclose(_per_member(ours.params), expected, rtol=1e-4, atol=1e-6)
+    assert np.isfinite(metrics["loss"]) and 0.0 <= float(metrics["accuracy"]) <= 1.0
 
 
 @pytest.mark.heavy  # with the member-loop test above; make test trains through the vmapped ensemble

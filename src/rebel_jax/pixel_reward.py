@@ -31,9 +31,10 @@ Read from alinlab/SURF 214bc1d, branch ``pixel`` (``pixel_reward_model.py``, ``p
 - The BT loss is PyTorch's ``CrossEntropyLoss`` on ``[G(a), G(b)]`` with hard labels (:908-911), the
   Bradley-Terry cross-entropy of :func:`rebel_jax.reward_model.bt_cross_entropy`.
 
-Deviations (documented where they are made): one Adam step on the *sum* of the members' losses where
+Deviations (documented where they are made): by default one Adam step on the *sum* of the members' losses where
 SURF steps its one Adam once per member (:851-913: zero gradients for the other members, whose Adam
-moments still move them); the candidates of disagreement sampling are scored a chunk of pairs at a time.
+moments still move them; ``per_member_adam`` does SURF's); the candidates of disagreement sampling are scored a
+chunk of pairs at a time.
 """
 
 from __future__ import annotations
@@ -81,6 +82,14 @@ class PixelRewardConfig:
     BENCHMARKS.md, "a pixel preference session by parts")."""
     precision: str = "tf32"
     """Matmul and convolution precision: ``tf32``, ``highest`` or ``bf16``."""
+    per_member_adam: bool = False
+    """SURF's Adam stepping (pixel_reward_model_semi.py:182-304, pixel_reward_model.py:851-913, torch 1.9.0 per
+    its README): one Adam over all members, and per minibatch, member after member, ``zero_grad``, that member's
+    backward and a step. ``zero_grad`` leaves zeros (not None) in torch 1.9, so every step also moves the other
+    members by their moments alone and advances their step counts (:class:`MemberAdamState`). Off (default):
+    one standard Adam step of all members on the sum of their losses, as B-Pref's state reward model
+    (reward_model.py) and every pixel run so far. The member steps run one after another, so this implies
+    ``member_loop``'s memory."""
     member_loop: bool = True
     """Compute the members' losses and gradients one member at a time (``lax.map``) instead of all at once
     (``vmap``): the same minibatches, crops and numbers up to float rounding, with about one member's
@@ -107,7 +116,7 @@ class PixelRewardConfig:
         _check(0 <= self.stop_accuracy <= 1, "pixel_reward.stop_accuracy", self.stop_accuracy, "[0, 1]")
         precisions = ("tf32", "highest", "bf16")
         _check(self.precision in precisions, "pixel_reward.precision", self.precision, ", ".join(precisions))
-        for name in ("member_loop", "session_loop"):
+        for name in ("member_loop", "session_loop", "per_member_adam"):
             _check(isinstance(getattr(self, name), bool), f"pixel_reward.{name}", getattr(self, name), "True, False")
 
 
@@ -211,7 +220,52 @@ def init(
     obs, action = jnp.zeros((1, *obs_shape), jnp.uint8), jnp.zeros((1, action_size))
     params = jax.vmap(network(cfg).init, in_axes=(0, None, None))(keys, obs, action)
     data = empty_store(capacity, length, obs_shape, action_size)
-    return PixelRewardState(params=params, opt_state=optax.adam(cfg.lr).init(params), data=data)
+    opt_state = member_adam_init(params) if cfg.per_member_adam else optax.adam(cfg.lr).init(params)
+    return PixelRewardState(params=params, opt_state=opt_state, data=data)
+
+
+@flax.struct.dataclass
+class MemberAdamState:
+    """One torch Adam over the members' parameters (leading member axis), each member's its own step count."""
+
+    mu: Any
+    nu: Any
+    count: jax.Array
+    """(M,) int32 steps each member has taken (torch's per-parameter ``state["step"]``)."""
+    seen: jax.Array
+    """(M,) bool: the member has had a backward, so its gradient is a tensor (zeros after ``zero_grad``), not
+    None, and ``step`` moves it (torch's Adam skips parameters whose gradient is None)."""
+
+
+def member_adam_init(params: Any) -> MemberAdamState:
+    members = jax.tree.leaves(params)[0].shape[0]
+    zeros = jax.tree.map(jnp.zeros_like, params)
+    return MemberAdamState(zeros, zeros, jnp.zeros(members, jnp.int32), jnp.zeros(members, bool))
+
+
+def member_adam_step(
+    lr: float, state: MemberAdamState, params: Any, grad: Any, member: jax.Array, b1=0.9, b2=0.999, eps=1e-8
+) -> tuple[Any, MemberAdamState]:
+    """``opt.step()`` of torch 1.9's Adam (torch/optim/_functional.py ``adam``) over all members after
+    ``zero_grad`` and member ``member``'s backward: ``grad`` is that member's gradient (no member axis), the
+    others' are zeros; every member with a gradient (``seen``) takes a step, the others none."""
+    seen = state.seen.at[member].set(True)
+    count = state.count + seen
+    t = count.astype(jnp.float32)
+
+    def leaf(p, g_m, mu, nu):
+        shape = (-1,) + (1,) * (p.ndim - 1)
+        g = jnp.zeros_like(p).at[member].set(g_m)
+        on = seen.reshape(shape)
+        mu_new = jnp.where(on, b1 * mu + (1 - b1) * g, mu)
+        nu_new = jnp.where(on, b2 * nu + (1 - b2) * g * g, nu)
+        bias1, bias2 = (1 - b1**t).reshape(shape), (1 - b2**t).reshape(shape)
+        step = lr / bias1 * mu_new / (jnp.sqrt(nu_new) / jnp.sqrt(bias2) + eps)
+        return jnp.where(on, p - step, p), mu_new, nu_new  # a member never seen: t = 0, its NaN step unused
+
+    out = jax.tree.map(leaf, params, grad, state.mu, state.nu)
+    new_params, mu, nu = jax.tree.transpose(jax.tree.structure(params), jax.tree.structure((0, 0, 0)), out)
+    return new_params, MemberAdamState(mu, nu, count, seen)
 
 
 def empty_store(capacity: int, length: int, obs_shape: tuple[int, int, int], action_size: int) -> PixelLabels:
@@ -579,6 +633,21 @@ def train_epoch(
         grads, logits, losses = jax.lax.map(one, jnp.arange(cfg.ensemble_size))
         return grads, logits, jnp.sum(losses)
 
+    def member_steps(params, opt_state, seg_a, seg_b, labels, weight, step_key):
+        """``per_member_adam``: member after member (pixel_reward_model_semi.py:182-304), its gradient at the
+        parameters the steps before it left, then one Adam step of all members; the (M, B) logits each right
+        before its member's step, and the loss summed over the members."""
+
+        def one(m, carry):
+            params, opt_state, logits, loss = carry
+            mine = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, m, 1), (params, seg_a, seg_b, labels, weight))
+            grads, metrics = grad_fn(*mine, step_key, m[None])
+            params, opt_state = member_adam_step(cfg.lr, opt_state, params, jax.tree.map(lambda g: g[0], grads), m)
+            return params, opt_state, logits.at[m].set(metrics["logits"][0]), loss + metrics["loss"]
+
+        start = (params, opt_state, jnp.zeros(labels.shape, jnp.float32), jnp.zeros(()))
+        return jax.lax.fori_loop(0, cfg.ensemble_size, one, start)
+
     def body(carry: _Carry) -> _Carry:
         start = carry.step * b
         slots = jax.lax.dynamic_slice(order, (0, start), (cfg.ensemble_size, b))
@@ -587,11 +656,17 @@ def train_epoch(
         seg_b = SegmentFrames(data.frames_b[slots], data.action_b[slots])
         labels = data.labels[slots]
         step_key = jax.random.fold_in(key_terms, carry.step)
-        grads, logits, loss = ensemble_grads(carry.params, seg_a, seg_b, labels, weight, step_key)
+        if cfg.per_member_adam:
+            params, opt_state, logits, loss = member_steps(
+                carry.params, carry.opt_state, seg_a, seg_b, labels, weight, step_key
+            )
+        else:
+            grads, logits, loss = ensemble_grads(carry.params, seg_a, seg_b, labels, weight, step_key)
+            updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
+            params = optax.apply_updates(carry.params, updates)
         correct = ((logits > 0) == (labels > 0.5)) & (labels != 0.5)
-        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
         return _Carry(
-            params=optax.apply_updates(carry.params, updates),
+            params=params,
             opt_state=opt_state,
             step=carry.step + 1,
             correct=carry.correct + jnp.sum(correct * weight, axis=1),
