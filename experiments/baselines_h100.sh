@@ -102,7 +102,8 @@
 #       two-GPU machine (estimated, not run): GPU=0 ALGO=surf SEED=2 SEEDS=2 STEPS=150000 (SURF on the keys of
 #       PEBBLE/REBEL's seeds 2-3, to 300k frames: about 150 x 4 s + 15 sessions of 2 columns growing 0.21 s per
 #       label, about 21 min) and GPU=1 ALGO=rebel LAMS="0 0.001" SEED=4 SEEDS=2 STEPS=150000 (the measured 19-min
-#       program on new keys): at 300k frames 4, 4 and 2 seeds, at 160k frames 6, 6 and 5;
+#       program on new keys): at 300k frames 4, 4 and 2 seeds, at 160k frames 6, 6 and 5. Then SURF_ADAM=1 (SURF's
+#       reward Adam stepping, notes/surf_pixel_audit.md item 3) against the same keys without it, one job per GPU;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
@@ -247,8 +248,9 @@ case "${2:-shared}" in
     # ENVS=<envs per seed> with SEED_STEPS=<agent steps> (e.g. 20 and 10000: every env ends an episode before the
     # first session, which queries complete episodes): the physics of the preset's 4 envs is about 7.5 s of a 10 s
     # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
-    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}
-    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS}
+    # SURF_ADAM=1: the reward ensemble's Adam stepped as SURF's torch code does (--pixel-reward.per-member-adam)
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}${SURF_ADAM:+_surfadam}
+    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS} ${SURF_ADAM:+--pixel-reward.per-member-adam}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

@@ -49,6 +49,7 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
         {"ALGO": "pebble", "TASK": "walker", "SEED": "1", "STEPS": "250000", "ENVS": "20", "SEED_STEPS": "10000"},
     ),
     ("pixel_seed", {"ALGO": "pebble", "TASK": "cheetah", "SEED": "0", "SEEDS": "3", "STEPS": "250000"}),
+    ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "SEEDS": "2", "STEPS": "150000", "SURF_ADAM": "1"}),
     (
         "pixel_seed",
         {"ALGO": "rebel", "TASK": "cheetah", "SEED": "0", "SEEDS": "2", "STEPS": "250000", "LAMS": "0 0.001"},
@@ -126,6 +127,7 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.env.num_envs == int(env.get("ENVS", 4))  # the preset's unless ENVS
             assert args.config.train.seed_steps == int(env.get("SEED_STEPS", 2_000))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
+            assert args.config.pixel_reward.per_member_adam == ("SURF_ADAM" in env) == ("_surfadam" in run_dir.name)
             assert args.config.query.sampling == "uniform"
         if name == "drqv2_seed":  # SEEDS seeds (default 1) from SEED, ENVS envs each (default 10), 500k frames
             assert (args.config.algo, args.seeds, args.config.train.seed) == (
@@ -140,6 +142,7 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.drqv2.critic_out_f32 == ("CRITIC_F32" in env) == run_dir.name.endswith("_qf32")
             assert ("SEEDS" in env) == bool(re.search(r"_seeds\d", run_dir.name))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
+            assert args.config.pixel_reward.per_member_adam == ("SURF_ADAM" in env) == ("_surfadam" in run_dir.name)
             assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)
 
 
