@@ -87,6 +87,23 @@ def test_surf_labels_name_a_reward_update_other_than_its_walker_value(tmp_path):
     ]
 
 
+def test_a_pixel_reward_stepped_as_surfs_is_named_and_never_merges(tmp_path):
+    for name, per_member in (("summed", False), ("surf_adam", True), ("before_the_setting", None)):
+        write_grid_run(tmp_path / name, algo="surf")
+        cfg = json.loads((tmp_path / name / "config.json").read_text())
+        if per_member is not None:  # runs before the setting existed have no such key: the summed step
+            cfg["pixel_reward"] = {"per_member_adam": per_member}
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+    curves, _ = compare.gather([tmp_path / n for n in ("summed", "surf_adam", "before_the_setting")])
+    assert list(curves) == [
+        "surf, noisy",
+        "surf, skip",
+        "surf (SURF's reward Adam), noisy",
+        "surf (SURF's reward Adam), skip",
+    ]
+    assert curves["surf, noisy"][1].shape[1] == 2 * curves["surf (SURF's reward Adam), noisy"][1].shape[1]
+
+
 def test_a_single_teacher_other_than_the_oracle_names_the_method_and_never_merges_with_the_oracle(tmp_path):
     for name, teacher in (("oracle", {}), ("mistake", {"eps_mistake": 0.1})):
         write_grid_run(tmp_path / name, algo="pebble")
