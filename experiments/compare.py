@@ -9,7 +9,8 @@ REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lam
 labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
 its teachers (``..., noisy``; a single ``--teacher`` other than the oracle is named the same way); other
 runs are labelled by their algo, and budgets other than 100 labels are named (``pebble 1000 labels``), as are
-a SURF ``reward_update`` other than 1000 and a pixel reward stepped as SURF's (``pixel_reward.per_member_adam``).
+a SURF ``reward_update`` other than 1000, a pixel reward stepped as SURF's (``pixel_reward.per_member_adam``) and
+one trained in another precision than tf32.
 A REBEL term other than the paper's (on-policy V, lower bound, raw) and a reward output other than tanh are named
 in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that variants never merge.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
@@ -127,8 +128,11 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
             label += f" {cfg['feedback']['labels']} labels"
         if cfg["algo"] == "surf" and cfg.get("surf", {}).get("reward_update", 1000) != 1000:  # SURF's walker value
             label += f" (reward_update {cfg['surf']['reward_update']})"
-        if cfg.get("pixel_reward", {}).get("per_member_adam"):  # the default (False) of every earlier pixel run
+        pixel_reward = cfg.get("pixel_reward", {})  # absent: an earlier run, the defaults below
+        if pixel_reward.get("per_member_adam"):
             label += " (SURF's reward Adam)"
+        if pixel_reward.get("precision", "tf32") != "tf32":
+            label += f" ({pixel_reward['precision']} reward)"
         label += f", {teacher}" if teacher else ""
         out.setdefault(label, ([], _info(run_dir, lam, teacher)))[0].append(i)
     return {label: ((steps, returns[:, idx]), info | {"columns": idx}) for label, (idx, info) in out.items()}

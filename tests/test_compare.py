@@ -87,19 +87,27 @@ def test_surf_labels_name_a_reward_update_other_than_its_walker_value(tmp_path):
     ]
 
 
-def test_a_pixel_reward_stepped_as_surfs_is_named_and_never_merges(tmp_path):
-    for name, per_member in (("summed", False), ("surf_adam", True), ("before_the_setting", None)):
+def test_a_pixel_reward_stepped_as_surfs_or_in_bf16_is_named_and_never_merges(tmp_path):
+    runs = {
+        "summed": {"per_member_adam": False, "precision": "tf32"},
+        "surf_adam": {"per_member_adam": True, "precision": "tf32"},
+        "bf16": {"per_member_adam": False, "precision": "bf16"},
+        "before_the_settings": None,  # runs before the settings existed have no such key: the summed step, tf32
+    }
+    for name, pixel_reward in runs.items():
         write_grid_run(tmp_path / name, algo="surf")
         cfg = json.loads((tmp_path / name / "config.json").read_text())
-        if per_member is not None:  # runs before the setting existed have no such key: the summed step
-            cfg["pixel_reward"] = {"per_member_adam": per_member}
+        if pixel_reward is not None:
+            cfg["pixel_reward"] = pixel_reward
         (tmp_path / name / "config.json").write_text(json.dumps(cfg))
-    curves, _ = compare.gather([tmp_path / n for n in ("summed", "surf_adam", "before_the_setting")])
+    curves, _ = compare.gather([tmp_path / n for n in runs])
     assert list(curves) == [
         "surf, noisy",
         "surf, skip",
         "surf (SURF's reward Adam), noisy",
         "surf (SURF's reward Adam), skip",
+        "surf (bf16 reward), noisy",
+        "surf (bf16 reward), skip",
     ]
     assert curves["surf, noisy"][1].shape[1] == 2 * curves["surf (SURF's reward Adam), noisy"][1].shape[1]
 
