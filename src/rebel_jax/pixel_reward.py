@@ -619,18 +619,19 @@ def train_epoch(
 
     grad_fn = jax.grad(loss_fn, has_aux=True)
 
+    def member_grad(m, params, seg_a, seg_b, labels, weight, step_key):
+        """Member ``m``'s gradient (no member axis), its (B,) logits and its loss, computed from its rows alone."""
+        mine = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, m, 1), (params, seg_a, seg_b, labels, weight))
+        grads, metrics = grad_fn(*mine, step_key, m[None])
+        return jax.tree.map(lambda g: g[0], grads), metrics["logits"][0], metrics["loss"]
+
     def ensemble_grads(params, seg_a, seg_b, labels, weight, step_key):
         """Every member's gradient, the (M, B) logits and the loss summed over the members."""
         if not cfg.member_loop:
             grads, metrics = grad_fn(params, seg_a, seg_b, labels, weight, step_key, None)
             return grads, metrics["logits"], metrics["loss"]
-
-        def one(m):
-            mine = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, m, 1), (params, seg_a, seg_b, labels, weight))
-            grads, metrics = grad_fn(*mine, step_key, m[None])
-            return jax.tree.map(lambda g: g[0], grads), metrics["logits"][0], metrics["loss"]
-
-        grads, logits, losses = jax.lax.map(one, jnp.arange(cfg.ensemble_size))
+        batch = (params, seg_a, seg_b, labels, weight, step_key)
+        grads, logits, losses = jax.lax.map(lambda m: member_grad(m, *batch), jnp.arange(cfg.ensemble_size))
         return grads, logits, jnp.sum(losses)
 
     def member_steps(params, opt_state, seg_a, seg_b, labels, weight, step_key):
@@ -640,10 +641,9 @@ def train_epoch(
 
         def one(m, carry):
             params, opt_state, logits, loss = carry
-            mine = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, m, 1), (params, seg_a, seg_b, labels, weight))
-            grads, metrics = grad_fn(*mine, step_key, m[None])
-            params, opt_state = member_adam_step(cfg.lr, opt_state, params, jax.tree.map(lambda g: g[0], grads), m)
-            return params, opt_state, logits.at[m].set(metrics["logits"][0]), loss + metrics["loss"]
+            grad, member_logits, member_loss = member_grad(m, params, seg_a, seg_b, labels, weight, step_key)
+            params, opt_state = member_adam_step(cfg.lr, opt_state, params, grad, m)
+            return params, opt_state, logits.at[m].set(member_logits), loss + member_loss
 
         start = (params, opt_state, jnp.zeros(labels.shape, jnp.float32), jnp.zeros(()))
         return jax.lax.fori_loop(0, cfg.ensemble_size, one, start)
