@@ -3,7 +3,7 @@
 Usage:
   python experiments/pixels.py
 
-One row per (task, method) of the run directories in ``RUNS``, split into methods and merged over
+One row per (task, method, run length) of the run directories in ``RUNS``, split into methods and merged over
 directories by ``compare.gather`` (the ``drqv2_seed`` set of ``experiments/baselines_h100.sh`` runs one
 seed per job, so a method's seeds come from several directories). ``frames`` are the agent steps of the
 log times the task's action repeat (``PixelEnv.action_repeat``, 2): DrQ-v2 and SURF's pixel branch count
@@ -20,24 +20,29 @@ from __future__ import annotations
 
 import json
 import pathlib
+import warnings
 
 import numpy as np
-from analysis import curve_figure, log_name
+from analysis import curve_figure, load_runs, log_name
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
-from rebel_jax.plots import records
+from rebel_jax.plots import per_seed, records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS: dict[str, list[str]] = {
     "cheetah_run_pixels": [
         "pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16",
         "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
+        "pixels/rebel_cheetah_pixels_150000steps_seed4_seeds2_lams_0_0.001_bf16",
         "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
+        "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
+        "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
     ],
     "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16"],
 }
-"""Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``."""
+"""Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``; runs of one method that
+ended at different lengths are rows apart (:func:`by_length`)."""
 STOPPED: dict[str, list[str]] = {
     "cheetah_run_pixels": ["pixels/rebel_cheetah_pixels_150000steps_seed0_seeds2_lams_0_0.001_bf16_stopped82k"],
     "walker_walk_pixels": [
@@ -53,7 +58,10 @@ MATCHED: dict[str, tuple[int, list[str]]] = {
         [
             "pixels/rebel_cheetah_pixels_150000steps_seed0_seeds2_lams_0_0.001_bf16_stopped82k",
             "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
+            "pixels/rebel_cheetah_pixels_150000steps_seed4_seeds2_lams_0_0.001_bf16",
             "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
+            "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
+            "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
         ],
     ),
 }
@@ -97,12 +105,39 @@ def labels_used(run_dirs: list[pathlib.Path], label: str, max_steps: int) -> lis
     return out
 
 
+REWARD_METRICS = ("reward_accuracy_new", "reward_correlation")
+"""The pixel sessions' measures of the learned reward, averaged per seed over its sessions (:func:`session_means`):
+the ensemble's accuracy on each session's new (not equal) pairs before it trains on them, its generalisation
+(0.5 is chance), and the Pearson correlation of the relabelled and the true reward over the replay
+(:data:`rebel_jax.pixel_train.PIXEL_SESSION_METRICS`)."""
+
+
+def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name: str) -> list[float]:
+    """Per seed of method ``label`` (in ``gather``'s order) the mean of the per-round metric ``name`` over its
+    sessions up to ``max_steps`` agent steps (the rounds that log it; NaN in the others). A run that logs none,
+    a DrQ-v2 run or one from before the metric, adds no seeds."""
+    out = []
+    for run_dir in run_dirs:
+        found = methods(run_dir).get(label)
+        if found is None:
+            continue
+        rounds = [r for r in records(run_dir) if r["env_steps"] <= max_steps]
+        logged = [per_seed(r[name]) for r in rounds if r.get(name) is not None]
+        if logged:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a session: NaN, said below
+                means = np.nanmean(np.asarray(logged, dtype=float), axis=0)
+            out += [round(float(means[c]), 3) if np.isfinite(means[c]) else None for c in found[1]["columns"]]
+    return out
+
+
 def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
     """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got by its last evaluation (one
     number if they all got the same) and the budget they asked, seeds, frames, per-seed scores (under the key
     ``scores``) and their mean, std and IQM with its 95% bootstrap interval."""
     asked = info["labels"]
     used = labels_used(info["run_dirs"], label, m["env_steps"]) if asked is not None else []
+    quality = {name: session_means(info["run_dirs"], label, m["env_steps"], name) for name in REWARD_METRICS}
     return {
         "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
         "labels_asked": asked,
@@ -114,19 +149,36 @@ def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "fin
         "iqm": round(m["iqm"], 2),
         # One seed has no interval: null, not NaN, which strict JSON readers refuse.
         "iqm_ci": [round(v, 2) if np.isfinite(v) else None for v in m["iqm_ci"]],
+        **(quality if asked is not None else {}),
     }
 
 
+def by_length(run_dirs: list[pathlib.Path]) -> dict[int, list[pathlib.Path]]:
+    """The run directories grouped by the agent steps of their last evaluation, in the given order within each
+    group: ``merge_runs`` keeps only the evaluations all of its runs share, so seeds of a 160k-frame and a
+    300k-frame run of one method would silently merge at 160k."""
+    out: dict[int, list[pathlib.Path]] = {}
+    for run_dir in run_dirs:
+        out.setdefault(int(load_runs(run_dir)[0][-1]), []).append(run_dir)
+    return dict(sorted(out.items()))
+
+
 def rows(task: str, run_dirs: list[pathlib.Path]) -> tuple[list[dict], dict]:
-    """The task's rows and its curves against frames (``{label: (frames, returns)}``)."""
-    curves, infos = gather(run_dirs)
+    """The task's rows, one per method and run length (:func:`by_length`), and its curves against frames
+    (``{label: (frames, returns)}``; a method of several lengths is labelled "<method> (to <frames>k)")."""
     repeat = action_repeat(task)
-    frames = {label: (steps * repeat, returns) for label, (steps, returns) in curves.items()}
-    stats = compare(curves, None)["methods"]
-    out = [
-        {**_described(task, label, infos[label]), **_statistics(label, m, infos[label], repeat)}
-        for label, m in stats.items()
-    ]
+    groups = [gather(dirs) for dirs in by_length(run_dirs).values()]
+    repeated = {label for label in set().union(*(c for c, _ in groups)) if sum(label in c for c, _ in groups) > 1}
+    out, frames = [], {}
+    for curves, infos in groups:
+        stats = compare(curves, None)["methods"]
+        out += [
+            {**_described(task, label, infos[label]), **_statistics(label, m, infos[label], repeat)}
+            for label, m in stats.items()
+        ]
+        for label, (steps, returns) in curves.items():
+            name = f"{label} (to {int(steps[-1]) * repeat // 1000}k)" if label in repeated else label
+            frames[name] = (steps * repeat, returns)
     return out, frames
 
 
@@ -242,6 +294,17 @@ def main() -> None:
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {scores} | {r['mean']:.1f} +- "
             f"{r['std']:.1f} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
         )
+    _quality_table(table + same)
+
+
+def _quality_table(entries: list[dict]) -> None:
+    """Per preference method its learned reward's session measures (:data:`REWARD_METRICS`), seed means."""
+    print("\n| task | method | seeds | frames | accuracy on new pairs | correlation with the true reward |")
+    print("|---|---|---:|---:|---:|---:|")
+    for r in entries:
+        if "reward_accuracy_new" in r:
+            cells = [np.mean([v for v in r[name] if v is not None]) for name in REWARD_METRICS]
+            print(f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {cells[0]:.3f} | {cells[1]:.3f} |")
 
 
 if __name__ == "__main__":

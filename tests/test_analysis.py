@@ -624,6 +624,47 @@ def test_pixel_rows_report_the_labels_each_seed_got(tmp_path, monkeypatch):
     assert row["labels"] is None and row["labels_asked"] is None
 
 
+def test_pixel_rows_keep_runs_of_different_lengths_apart_and_average_the_sessions_reward_measures(
+    tmp_path, monkeypatch
+):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    task = "cheetah_run_pixels"
+    long, short = tmp_path / "runs" / "surf_long", tmp_path / "runs" / "surf_short"
+    _fake_curve_run(long, "surf", 1.0, 2, task=task)  # to 200k agent steps
+    _fake_curve_run(short, "surf", 2.0, 3, task=task)
+    rng = np.random.default_rng(0)
+    logged = {}
+    for run, seeds, end in ((long, 2, 200_000), (short, 3, 100_000)):
+        rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        rows = [r for r in rows if r["env_steps"] <= end]
+        for i, r in enumerate(rows):  # a session every other round; NaN in the others, as the pixel round logs
+            for name in pixels.REWARD_METRICS:
+                r[name] = rng.uniform(size=seeds).tolist() if i % 2 == 0 else [float("nan")] * seeds
+        (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+        logged[run.name] = rows
+    out, curves = pixels.rows(task, [long, short])
+    # Two rows of one method, not its 5 seeds merged at the shorter run's 100k steps.
+    assert [(r["method"], r["seeds"], r["frames"]) for r in out] == [("surf", 3, 200_000), ("surf", 2, 400_000)]
+    assert out[0]["final_returns"] == [2.0 * 55] * 3 and out[1]["final_returns"] == [155.0] * 2
+    assert set(curves) == {"surf (to 200k)", "surf (to 400k)"} and curves["surf (to 400k)"][0][-1] == 400_000
+    for row, run in zip(out, ("surf_short", "surf_long"), strict=True):
+        for name in pixels.REWARD_METRICS:
+            sessions = [r[name] for i, r in enumerate(logged[run]) if i % 2 == 0]
+            expected = [sum(s[c] for s in sessions) / len(sessions) for c in range(row["seeds"])]
+            assert row[name] == pytest.approx(expected, abs=1e-3)
+    # Up to a step: the matched entries average only the sessions before it.
+    (entry,) = [e for e in pixels.matched(task, 60_000, [long])[0]]
+    early = [
+        r["reward_accuracy_new"] for i, r in enumerate(logged["surf_long"]) if i % 2 == 0 and r["env_steps"] <= 60_000
+    ]
+    assert entry["reward_accuracy_new"] == pytest.approx([sum(s[c] for s in early) / 3 for c in range(2)], abs=1e-3)
+    drqv2 = tmp_path / "runs" / "drqv2"
+    _fake_curve_run(drqv2, "drqv2", 1.0, 1, task=task)
+    (row,) = pixels.rows(task, [drqv2])[0]
+    assert "reward_accuracy_new" not in row  # no learned reward
+
+
 def test_pixel_stopped_runs_list_every_evaluation_against_frames(tmp_path, monkeypatch):
     pixels = _experiment(monkeypatch, "pixels")
     monkeypatch.setattr(pixels, "RESULTS", tmp_path)
