@@ -103,7 +103,15 @@
 #       PEBBLE/REBEL's seeds 2-3, to 300k frames: about 150 x 4 s + 15 sessions of 2 columns growing 0.21 s per
 #       label, about 21 min) and GPU=1 ALGO=rebel LAMS="0 0.001" SEED=4 SEEDS=2 STEPS=150000 (the measured 19-min
 #       program on new keys): at 300k frames 4, 4 and 2 seeds, at 160k frames 6, 6 and 5. Then SURF_ADAM=1 (SURF's
-#       reward Adam stepping, notes/surf_pixel_audit.md item 3) against the same keys without it, one job per GPU;
+#       reward Adam stepping, notes/surf_pixel_audit.md item 3) against the same keys without it, one job per GPU.
+#       Twenty-second session (code 8023f01; two one-H200 machines in turn, counted at half): ALGO=surf SEED=2 SEEDS=2
+#       STEPS=150000 (3.55 s plain rounds, 1,279 s of rounds; three chained calls, LIMIT 470, 585, 585, 1,416 s
+#       held), then ALGO=rebel LAMS="0 0.001" SEED=4 SEEDS=2 STEPS=150000 (5.95 s plain rounds, 1,146 s of rounds)
+#       and, started in the same call once it ended, SURF_ADAM=1 ALGO=surf SEED=0 SEEDS=2 STEPS=80000 (3.42 s plain
+#       rounds, 561 s; LIMIT 470, 585, 585 chained with the SURF_ADAM start, 480; about 1,930 s held). Next
+#       (estimated, not run): ALGO=surf SEED=4 SEEDS=2 STEPS=150000 on one machine (about 22 min) and, on another,
+#       ALGO=surf SEED=6 SEEDS=1 with ALGO=rebel LAMS="0 0.001" SEED=6 SEEDS=1, one per GPU of a two-GPU machine or
+#       one after another: 5 seeds of each method at 300k frames;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
