@@ -10,10 +10,11 @@ log times the task's action repeat (``PixelEnv.action_repeat``, 2): DrQ-v2 and S
 frames. Per row, as issue 12's schema: ``labels`` (those the seeds got, read from the logs' ``labels_used``; the
 budget asked is ``labels_asked``), ``final_returns`` (per seed the mean of its last 10 evaluations,
 ``analysis.final_returns``), ``mean``, ``std``, ``iqm`` with ``iqm_ci`` (95% percentile bootstrap over
-seeds), ``device``, ``date``, ``command`` and ``log``. Also writes ``results/pixels_<task>.png``: each
-method's mean +- std evaluation return against frames. ``stopped`` lists the runs the device budget stopped,
-``matched`` the preference methods at the agent steps all of their runs reached (``MATCHED``), drawn in
-``results/pixels_<task>_matched.png``.
+seeds), ``device``, ``date``, ``command`` and ``log``; for a preference method also ``reward_accuracy_new`` and
+``reward_correlation``, per seed the mean over its sessions (``REWARD_METRICS``). Also writes
+``results/pixels_<task>.png``: each method's mean +- std evaluation return against frames. ``stopped`` lists the
+runs the device budget stopped, ``matched`` the preference methods at the agent steps all of their runs reached
+(``MATCHED``), drawn in ``results/pixels_<task>_matched.png``.
 """
 
 from __future__ import annotations
@@ -125,7 +126,7 @@ def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name
         logged = [per_seed(r[name]) for r in rounds if r.get(name) is not None]
         if logged:
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a session: NaN, said below
+                warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a session: NaN, None in the JSON
                 means = np.nanmean(np.asarray(logged, dtype=float), axis=0)
             out += [round(float(means[c]), 3) if np.isfinite(means[c]) else None for c in found[1]["columns"]]
     return out
@@ -134,10 +135,12 @@ def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name
 def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
     """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got by its last evaluation (one
     number if they all got the same) and the budget they asked, seeds, frames, per-seed scores (under the key
-    ``scores``) and their mean, std and IQM with its 95% bootstrap interval."""
+    ``scores``) and their mean, std and IQM with its 95% bootstrap interval; a preference method's learned reward
+    measures per seed (:data:`REWARD_METRICS`, :func:`session_means`)."""
     asked = info["labels"]
     used = labels_used(info["run_dirs"], label, m["env_steps"]) if asked is not None else []
-    quality = {name: session_means(info["run_dirs"], label, m["env_steps"], name) for name in REWARD_METRICS}
+    steps = m["env_steps"]
+    quality = {name: session_means(info["run_dirs"], label, steps, name) for name in REWARD_METRICS} if asked else {}
     return {
         "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
         "labels_asked": asked,
@@ -149,7 +152,7 @@ def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "fin
         "iqm": round(m["iqm"], 2),
         # One seed has no interval: null, not NaN, which strict JSON readers refuse.
         "iqm_ci": [round(v, 2) if np.isfinite(v) else None for v in m["iqm_ci"]],
-        **(quality if asked is not None else {}),
+        **quality,
     }
 
 
