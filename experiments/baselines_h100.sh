@@ -111,7 +111,12 @@
 #       rounds, 561 s; LIMIT 470, 585, 585 chained with the SURF_ADAM start, 480; about 1,930 s held). Next
 #       (estimated, not run): ALGO=surf SEED=4 SEEDS=2 STEPS=150000 on one machine (about 22 min) and, on another,
 #       ALGO=surf SEED=6 SEEDS=1 with ALGO=rebel LAMS="0 0.001" SEED=6 SEEDS=1, one per GPU of a two-GPU machine or
-#       one after another: 5 seeds of each method at 300k frames;
+#       one after another: 5 seeds of each method at 300k frames. A machine goes back only at the end of the call in
+#       flight at 30 minutes held (1,930 s held twice), so a job of up to about 35 min fits one machine if its last
+#       call starts before then. By that (estimated, not run): the 4-column PEBBLE + REBEL program to 500k frames
+#       (about 90 + 224 x 5.95 + 25 session rounds growing from 12 to about 38 s = 34 min) fits one machine; SURF to
+#       500k at 2 seeds (about 45 min) does not, at 1 seed (about 27 min) it does: 5 seeds of the three methods at
+#       500k frames are about 8 machines (3 + 5);
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
