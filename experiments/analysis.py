@@ -189,6 +189,13 @@ def mean_curve(curve: Curve) -> Curve:
     return steps, (_nanmean_std(values, axis=1)[0] if values.ndim == 2 else values)
 
 
+def sign_test_p(positive: int, pairs: int) -> float:
+    """Two-sided sign-test p-value of ``positive`` of ``pairs`` non-zero differences (either sign with
+    probability 1/2): twice the binomial tail of the rarer sign, at most 1."""
+    rare = min(positive, pairs - positive)
+    return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
+
+
 def final_returns(returns: ArrayLike, last: int = 10) -> np.ndarray:
     """Per seed, the mean of its last ``last`` finite evaluations.
 

@@ -20,11 +20,12 @@ runs the device budget stopped, ``matched`` the preference methods at the agent 
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import warnings
 
 import numpy as np
-from analysis import curve_figure, load_runs, log_name
+from analysis import bootstrap_ci, curve_figure, load_runs, log_name, sign_test_p
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
@@ -69,6 +70,15 @@ MATCHED: dict[str, tuple[int, list[str]]] = {
 """Pixel task -> (agent steps, run directories): the preference methods compared where all of the runs have
 evaluated, each method's seeds pooled over the directories (:func:`matched`); ``pixels.json``'s ``matched`` and
 ``results/pixels_<task>_matched.png``."""
+
+
+PEBBLE, REBEL = "pebble (rebel lam=0) 1000 labels", "rebel lam=0.001 1000 labels"
+SURF = "surf 1000 labels (reward_update 20)"
+PAIRED: dict[str, list[tuple[str, str]]] = {
+    "cheetah_run_pixels": [(PEBBLE, REBEL), (PEBBLE, SURF), (SURF, f"{SURF} (SURF's reward Adam)")],
+}
+"""Pixel task -> (method a, method b): b against a key by key (:func:`paired`), in the rows and the matched
+entries wherever both methods have seeds of the same keys at the same frames; ``pixels.json``'s ``paired``."""
 
 
 def action_repeat(task: str) -> int:
@@ -132,6 +142,57 @@ def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name
     return out
 
 
+def seed_keys(run_dirs: list[pathlib.Path], label: str) -> list[list[int]]:
+    """Per seed of method ``label`` (in ``gather``'s order) its key as ``[train.seed, i]``: every program gives
+    its column c the key ``fold_in(PRNGKey(train.seed), c % seeds)`` (``cli.column_keys``), so a grid's lambdas,
+    and runs of other methods started from the same ``--seed``, share their seeds' keys."""
+    out = []
+    for run_dir in run_dirs:
+        found = methods(run_dir).get(label)
+        if found is not None:
+            seeds = json.loads((run_dir / "meta.json").read_text())["seeds"]
+            out += [[found[1]["train_seed"], c % seeds] for c in found[1]["columns"]]
+    return out
+
+
+def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
+    """Method ``b`` against ``a`` key by key: for each frames at which ``entries`` (rows or matched entries) hold
+    both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's, their mean,
+    standard error, 95% percentile bootstrap interval of the mean, and how many are positive with the two-sided
+    sign test's p-value. None where the two share no key."""
+    out = []
+    for x in (e for e in entries if e["method"] == a):
+        for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):
+            mine = {tuple(k): v for k, v in zip(x["keys"], x[scores], strict=True)}
+            theirs = {tuple(k): v for k, v in zip(y["keys"], y[scores], strict=True)}
+            keys = [k for k in mine if k in theirs]
+            if not keys:
+                continue
+            diffs = np.array([theirs[k] - mine[k] for k in keys])
+            nonzero = diffs[diffs != 0]
+            positive = int(np.sum(nonzero > 0))
+            low, high = bootstrap_ci(diffs, np.mean)
+            sem = float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else math.nan
+            out.append(
+                {
+                    "task": x["task"],
+                    "frames": x["frames"],
+                    "scores": scores,
+                    "a": a,
+                    "b": b,
+                    "keys": [list(k) for k in keys],
+                    "differences": [round(float(d), 2) for d in diffs],
+                    "mean": round(float(diffs.mean()), 2),
+                    "sem": round(sem, 2) if math.isfinite(sem) else None,
+                    "mean_ci": [round(v, 2) if math.isfinite(v) else None for v in (low, high)],
+                    "positive": positive,
+                    "pairs": len(nonzero),
+                    "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
+                }
+            )
+    return out
+
+
 def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
     """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got by its last evaluation (one
     number if they all got the same) and the budget they asked, seeds, frames, per-seed scores (under the key
@@ -145,6 +206,7 @@ def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "fin
         "labels": (used[0] if len(set(used)) == 1 else used) if used else None,
         "labels_asked": asked,
         "seeds": m["seeds"],
+        "keys": seed_keys(info["run_dirs"], label),
         "frames": m["env_steps"] * repeat,
         scores: [round(v, 2) for v in m["final_returns"]],
         "mean": round(m["mean"], 2),
@@ -253,7 +315,7 @@ def matched(task: str, agent_steps: int, run_dirs: list[pathlib.Path]) -> tuple[
 
 
 def main() -> None:
-    table, early, same = [], [], []
+    table, early, same, pairs = [], [], [], []
     for task in sorted(set(RUNS) | set(STOPPED)):
         task_rows, curves = rows(task, [RESULTS / "runs" / log for log in RUNS[task]]) if task in RUNS else ([], {})
         task_stopped, stopped_curves = stopped(task, [RESULTS / "runs" / log for log in STOPPED.get(task, [])])
@@ -261,14 +323,17 @@ def main() -> None:
         figure(task, curves | stopped_curves, RESULTS / f"pixels_{short}.png")
         table += task_rows
         early += task_stopped
+        task_matched = []
         if task in MATCHED:
             agent_steps, logs = MATCHED[task]
             task_matched, matched_curves = matched(task, agent_steps, [RESULTS / "runs" / log for log in logs])
             note = f", equal frames (runs pooled to {action_repeat(task) * agent_steps // 1000}k)"
             figure(task, matched_curves, RESULTS / f"pixels_{short}_matched.png", note)
             same += task_matched
+        for a, b in PAIRED.get(task, []):
+            pairs += paired(task_rows, a, b, "final_returns") + paired(task_matched, a, b, "matched_returns")
     (RESULTS / "pixels.json").write_text(
-        json.dumps({"rows": table, "stopped": early, "matched": same}, indent=1) + "\n"
+        json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs}, indent=1) + "\n"
     )
     print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
     print("|---|---|---:|---:|---:|---:|")
@@ -298,6 +363,7 @@ def main() -> None:
             f"{r['std']:.1f} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
         )
     _quality_table(table + same)
+    _paired_table(pairs)
 
 
 def _quality_table(entries: list[dict]) -> None:
@@ -308,6 +374,19 @@ def _quality_table(entries: list[dict]) -> None:
         if "reward_accuracy_new" in r:
             cells = [np.mean([v for v in r[name] if v is not None]) for name in REWARD_METRICS]
             print(f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {cells[0]:.3f} | {cells[1]:.3f} |")
+
+
+def _paired_table(entries: list[dict]) -> None:
+    """Each :func:`paired` entry: method b minus method a, key by key."""
+    print("\n| task | frames | scores | b minus a | keys | per key | mean +- s.e. [95% CI] | positive | sign test p |")
+    print("|---|---:|---|---|---:|---|---:|---:|---:|")
+    for e in entries:
+        low, high = e["mean_ci"]
+        diffs = ", ".join(f"{d:+.1f}" for d in e["differences"])
+        print(
+            f"| {e['task']} | {e['frames']:,} | {e['scores']} | {e['b']} minus {e['a']} | {len(e['keys'])} | {diffs} "
+            f"| {e['mean']:+.1f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} | {e['sign_test_p']} |"
+        )
 
 
 if __name__ == "__main__":

@@ -64,6 +64,7 @@ from analysis import (
     mean_curve,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
+    sign_test_p,
     steps_to_reach,
 )
 from compare import compare, gather, methods
@@ -276,13 +277,6 @@ def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
         return None
     best = max(eligible, key=lambda r: r["iqm"])
     return {"task": best["task"], "lam": best["lam"], "iqm": best["iqm"], "among": [r["lam"] for r in eligible]}
-
-
-def sign_test_p(positive: int, pairs: int) -> float:
-    """Two-sided sign-test p-value of ``positive`` of ``pairs`` non-zero differences (either sign with
-    probability 1/2): twice the binomial tail of the rarer sign, at most 1."""
-    rare = min(positive, pairs - positive)
-    return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
 
 
 def _differences(a: dict, b: dict) -> list[float]:

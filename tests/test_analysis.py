@@ -422,15 +422,18 @@ def _fake_curve_run(
     lams: list | None = None,
     task: str = "walker_walk",
     teacher: str = "oracle",
+    train_seed: int = 0,
 ) -> None:
     """A run directory whose every column's evaluation return is ``slope * env_steps / 1000`` (a slope per
-    column, or one for all), under a B-Pref ``teacher`` given by ``--teacher``."""
+    column, or one for all), under a B-Pref ``teacher`` given by ``--teacher``, from ``--seed train_seed``;
+    ``seeds`` counts the columns (a grid's seeds are the columns over the lambdas, as ``meta.json`` says)."""
     run.mkdir(parents=True)
     rebel = {"source": "onpolicy", "form": "lower_bound", "normalize": False, "estimator": "discounted"}
     cfg = {"algo": algo, "env": {"task": task, "num_envs": 10}, "feedback": {"labels": 100},
            "teacher": dataclasses.asdict(TEACHERS[teacher]), "sac": {"utd": 1.0}, "rebel": rebel,
-           "reward": {"output": "tanh"}, "train": {"seed": 0}}  # fmt: skip
-    meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams}
+           "reward": {"output": "tanh"}, "train": {"seed": train_seed}}  # fmt: skip
+    meta = {"devices": ["d"], "started": "2026-11-24T00:00:00", "command": f"train --algo {algo}", "lams": lams,
+            "seeds": seeds // len(set(lams)) if lams else seeds}  # fmt: skip
     (run / "config.json").write_text(json.dumps(cfg))
     (run / "meta.json").write_text(json.dumps(meta | {"columns": seeds}))
     steps = range(10_000, 200_001, 10_000)
@@ -742,6 +745,36 @@ def test_pixel_matched_pools_each_methods_seeds_at_the_steps_every_run_reached(t
     json.dumps(entries, allow_nan=False)
     with pytest.raises(ValueError, match="90000 agent steps"):  # the stopped program has no evaluation there
         pixels.matched(task, 90_000, dirs)
+
+
+def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    runs, task = tmp_path / "runs", "cheetah_run_pixels"
+    # PEBBLE (lambda 0) and REBEL from --seed 0 and --seed 2 (2 seeds each, lambda-major as cli.column_keys tiles
+    # them), and SURF from --seed 0 with 3 seeds: SURF shares keys (0, 0) and (0, 1) with PEBBLE.
+    grid = [0, 0, 0.001, 0.001]
+    _fake_curve_run(runs / "grid0", "rebel", [1.0, 2.0, 1.5, 1.0], 4, lams=grid, task=task)
+    _fake_curve_run(runs / "grid2", "rebel", [3.0, 1.0, 4.0, 3.0], 4, lams=grid, task=task, train_seed=2)
+    _fake_curve_run(runs / "surf", "surf", [2.0, 2.0, 5.0], 3, task=task)
+    entries = pixels.rows(task, [runs / n for n in ("grid0", "grid2", "surf")])[0]
+    by = {e["method"]: e for e in entries}
+    assert by["pebble (rebel lam=0)"]["keys"] == [[0, 0], [0, 1], [2, 0], [2, 1]]
+    assert by["surf"]["keys"] == [[0, 0], [0, 1], [0, 2]]
+    (rebel,) = pixels.paired(entries, "pebble (rebel lam=0)", "rebel lam=0.001", "final_returns")
+    # Final return = 155 x slope (the last 10 evaluations, 110k-200k agent steps); REBEL minus PEBBLE per key.
+    expected = [155 * (1.5 - 1.0), 155 * (1.0 - 2.0), 155 * (4.0 - 3.0), 155 * (3.0 - 1.0)]
+    assert rebel["keys"] == [[0, 0], [0, 1], [2, 0], [2, 1]] and rebel["differences"] == pytest.approx(expected)
+    assert rebel["mean"] == pytest.approx(np.mean(expected), abs=0.01) and rebel["frames"] == 400_000
+    assert rebel["sem"] == pytest.approx(np.std(expected, ddof=1) / 2, abs=0.01)
+    assert (rebel["positive"], rebel["pairs"], rebel["sign_test_p"]) == (3, 4, 0.625)
+    low, high = rebel["mean_ci"]
+    assert min(expected) <= low <= rebel["mean"] <= high <= max(expected)
+    (surf,) = pixels.paired(entries, "pebble (rebel lam=0)", "surf", "final_returns")
+    assert surf["keys"] == [[0, 0], [0, 1]] and surf["differences"] == pytest.approx([155.0, 0.0])
+    assert (surf["positive"], surf["pairs"]) == (1, 1)  # a zero difference is no pair of the sign test
+    assert pixels.paired(entries, "surf", "drqv2", "final_returns") == []  # no such method: no entry
+    json.dumps(rebel, allow_nan=False)
 
 
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
