@@ -159,7 +159,7 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     """Method ``b`` against ``a`` key by key: for each frames at which ``entries`` (rows or matched entries) hold
     both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's, their mean,
     standard error, 95% percentile bootstrap interval of the mean, and how many are positive with the two-sided
-    sign test's p-value. None where the two share no key."""
+    sign test's p-value. No entry where the two share no key."""
     out = []
     for x in (e for e in entries if e["method"] == a):
         for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):

@@ -346,6 +346,13 @@ def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
     np.testing.assert_allclose(result["flat"][1], np.stack([result["flat"][0]] * 2))  # No spread, no band.
 
 
+def test_sign_test_p_equals_scipys_two_sided_binomial_test():
+    for pairs in range(1, 13):
+        for positive in range(pairs + 1):
+            expected = scipy.stats.binomtest(positive, pairs, 0.5, alternative="two-sided").pvalue
+            assert analysis.sign_test_p(positive, pairs) == pytest.approx(expected, rel=1e-12)
+
+
 def _experiment(monkeypatch, name: str):
     """``experiments/<name>.py``, importable with its siblings."""
     monkeypatch.syspath_prepend(str(_PATH.parent))
