@@ -23,6 +23,7 @@ import json
 import math
 import pathlib
 import warnings
+from collections.abc import Iterator
 
 import numpy as np
 from analysis import bootstrap_ci, curve_figure, load_runs, log_name, sign_test_p
@@ -100,19 +101,25 @@ def _described(task: str, label: str, info: dict) -> dict:
     }
 
 
+def _columns(run_dirs: list[pathlib.Path], label: str) -> Iterator[tuple[pathlib.Path, list[int]]]:
+    """Each run directory that holds method ``label``, with the label's columns of its per-seed metrics, in the
+    order ``gather`` pools their seeds."""
+    for run_dir in run_dirs:
+        found = methods(run_dir).get(label)
+        if found is not None:
+            yield run_dir, found[1]["columns"]
+
+
 def labels_used(run_dirs: list[pathlib.Path], label: str, max_steps: int) -> list[int]:
     """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round up to
     ``max_steps`` agent steps that logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's
     walker schedule asks 170 of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3). A run that stopped
     before its first session logged none: its seeds are left out."""
     out = []
-    for run_dir in run_dirs:
-        found = methods(run_dir).get(label)
-        if found is None:
-            continue
+    for run_dir, columns in _columns(run_dirs, label):
         logged = [r for r in records(run_dir) if r.get("labels_used") is not None and r["env_steps"] <= max_steps]
         if logged:  # none: stopped before its first session
-            out += [int(logged[-1]["labels_used"][c]) for c in found[1]["columns"]]
+            out += [int(logged[-1]["labels_used"][c]) for c in columns]
     return out
 
 
@@ -128,17 +135,14 @@ def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name
     sessions up to ``max_steps`` agent steps (the rounds that log it; NaN in the others). A run that logs none,
     a DrQ-v2 run or one from before the metric, adds no seeds."""
     out = []
-    for run_dir in run_dirs:
-        found = methods(run_dir).get(label)
-        if found is None:
-            continue
+    for run_dir, columns in _columns(run_dirs, label):
         rounds = [r for r in records(run_dir) if r["env_steps"] <= max_steps]
         logged = [per_seed(r[name]) for r in rounds if r.get(name) is not None]
         if logged:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a session: NaN, None in the JSON
                 means = np.nanmean(np.asarray(logged, dtype=float), axis=0)
-            out += [round(float(means[c]), 3) if np.isfinite(means[c]) else None for c in found[1]["columns"]]
+            out += [round(float(means[c]), 3) if np.isfinite(means[c]) else None for c in columns]
     return out
 
 
@@ -147,11 +151,10 @@ def seed_keys(run_dirs: list[pathlib.Path], label: str) -> list[list[int]]:
     its column c the key ``fold_in(PRNGKey(train.seed), c % seeds)`` (``cli.column_keys``), so a grid's lambdas,
     and runs of other methods started from the same ``--seed``, share their seeds' keys."""
     out = []
-    for run_dir in run_dirs:
-        found = methods(run_dir).get(label)
-        if found is not None:
-            seeds = json.loads((run_dir / "meta.json").read_text())["seeds"]
-            out += [[found[1]["train_seed"], c % seeds] for c in found[1]["columns"]]
+    for run_dir, columns in _columns(run_dirs, label):
+        seed = json.loads((run_dir / "config.json").read_text())["train"]["seed"]
+        seeds = json.loads((run_dir / "meta.json").read_text())["seeds"]
+        out += [[seed, c % seeds] for c in columns]
     return out
 
 
