@@ -111,7 +111,10 @@
 #       rounds, 561 s; LIMIT 470, 585, 585 chained with the SURF_ADAM start, 480; about 1,930 s held). Next
 #       (estimated, not run): ALGO=surf SEED=4 SEEDS=2 STEPS=150000 on one machine (about 22 min) and, on another,
 #       ALGO=surf SEED=6 SEEDS=1 with ALGO=rebel LAMS="0 0.001" SEED=6 SEEDS=1, one per GPU of a two-GPU machine or
-#       one after another: 5 seeds of each method at 300k frames. A machine goes back only at the end of the call in
+#       one after another: 5 seeds of each method at 300k frames. Twenty-third session (code 693e1cd, one machine of
+#       two H200s, three chained calls, LIMIT 470, 585, 585, 1,392 s held, counted in full): GPU=0 WATCH=0 ALGO=surf
+#       SEED=4 SEEDS=2 STEPS=150000 (3.46 s plain rounds, 1,259 s of rounds) beside GPU=1 ALGO=rebel LAMS="0 0.001"
+#       SEED=6 SEEDS=2 STEPS=150000 (5.89 s, 1,101 s): neither slowed; at 300k frames 6, 6 and 4 seeds. A machine goes back only at the end of the call in
 #       flight at 30 minutes held (1,930 s held twice), so a job of up to about 35 min fits one machine if its last
 #       call starts before then. By that (estimated, not run): the 4-column PEBBLE + REBEL program to 500k frames
 #       (about 90 + 224 x 5.95 + 25 session rounds growing from 12 to about 38 s = 34 min) fits one machine; SURF to
