@@ -119,9 +119,11 @@
 #       call starts before then. By that (estimated, not run): the 4-column PEBBLE + REBEL program to 500k frames
 #       (about 90 + 224 x 5.95 + 25 session rounds growing from 12 to about 38 s = 34 min) fits one machine; SURF to
 #       500k at 2 seeds (about 45 min) does not, at 1 seed (about 27 min) it does: 5 seeds of the three methods at
-#       500k frames are about 8 machines (3 + 5). Untried and worth one call first: two 1-seed jobs on one H200,
-#       each with XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 (a caller's value stands) and WATCH=0 on the first, against
-#       the 2-seed program's round times above; if they overlap well, a machine holds two such jobs;
+#       500k frames are about 8 machines (3 + 5). Two jobs on one GPU do not pay (twenty-third session, one H200,
+#       one call, LIMIT 270: XLA_PYTHON_CLIENT_MEM_FRACTION=0.55 WATCH=0 ALGO=surf SEED=8 SEEDS=2 beside
+#       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 ALGO=rebel LAMS="0 0.001" SEED=8 SEEDS=2, STEPS=150000): plain rounds
+#       8.79 s and 11.8 s against 3.46 s and 5.89 s alone, about 11% less work per second than one after the other
+#       (BENCHMARKS.md); one job per GPU;
 #   SET "determinism": one walker PEBBLE program run twice from the same keys, compared bit for bit, without and
 #       with --xla_gpu_deterministic_ops; ran in the fourteenth session (494 s: 141 of 204 leaves differ without,
 #       none with; rounds 22.5 s against 28.3 s);
