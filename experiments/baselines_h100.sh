@@ -116,10 +116,12 @@
 #       SEED=4 SEEDS=2 STEPS=150000 (3.46 s plain rounds, 1,259 s of rounds) beside GPU=1 ALGO=rebel LAMS="0 0.001"
 #       SEED=6 SEEDS=2 STEPS=150000 (5.89 s, 1,101 s): neither slowed; at 300k frames 6, 6 and 4 seeds. A machine goes back only at the end of the call in
 #       flight at 30 minutes held (1,930 s held twice), so a job of up to about 35 min fits one machine if its last
-#       call starts before then. By that (estimated, not run): the 4-column PEBBLE + REBEL program to 500k frames
-#       (about 90 + 224 x 5.95 + 25 session rounds growing from 12 to about 38 s = 34 min) fits one machine; SURF to
-#       500k at 2 seeds (about 45 min) does not, at 1 seed (about 27 min) it does: 5 seeds of the three methods at
-#       500k frames are about 8 machines (3 + 5). Two jobs on one GPU do not pay (twenty-third session, one H200,
+#       call starts before then. By that (projected from the 300k-frame runs' rounds by experiments/job_time.py, within
+#       1.1% of each run from its first 80k steps): the 4-column PEBBLE + REBEL program to 500k frames (30-32 min of
+#       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (about 27 min, by hand) it
+#       does: 5 seeds of the three methods at 500k frames are about 8 machines (3 + 5). On a machine of four GPUs
+#       counted in full (untried), one job per GPU: the 2-column PEBBLE + REBEL program (1 key each) and 1-seed SURF;
+#       neither size has run, so run it and project with job_time.py from its first rounds. Two jobs on one GPU do not pay (twenty-third session, one H200,
 #       one call, LIMIT 270: XLA_PYTHON_CLIENT_MEM_FRACTION=0.55 WATCH=0 ALGO=surf SEED=8 SEEDS=2 beside
 #       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 ALGO=rebel LAMS="0 0.001" SEED=8 SEEDS=2, STEPS=150000): plain rounds
 #       8.79 s and 11.8 s against 3.46 s and 5.89 s alone, about 11% less work per second than one after the other

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rebel_jax import render, video
-from rebel_jax.config import PRESETS
+from rebel_jax.config import PRESETS, from_dict
 from rebel_jax.drqv2 import DrQV2, DrQV2Config
 from rebel_jax.envs import dmc
 from rebel_jax.envs.pixels import PixelEnv
@@ -44,7 +44,7 @@ def test_config_read_back_from_a_run_directory_equals_the_original(preset):
     cfg = PRESETS[preset]
     cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, task="cheetah_run"))
     text = json.dumps(dataclasses.asdict(cfg))  # what cli._write_meta writes as config.json
-    assert video._from_dict(type(cfg), json.loads(text)) == cfg
+    assert from_dict(type(cfg), json.loads(text)) == cfg
 
 
 def test_a_pixel_policy_s_clip_is_its_episode_seen_by_the_clip_camera():

@@ -8,7 +8,11 @@ compiled program; float hyperparameters are plain data.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
+import pathlib
+import typing
 from typing import Annotated, Literal
 
 import tyro
@@ -347,6 +351,28 @@ class Config:
                 f"0 or >= train.total_steps={self.train.total_steps} (relabelling and queries assume no eviction)",
             )
         return self
+
+
+def from_dict(cls, data: dict):
+    """A (nested, frozen) config dataclass from ``dataclasses.asdict`` output read back from JSON (fields
+    missing from ``data`` keep their defaults)."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for field in dataclasses.fields(cls):
+        if field.name not in data:
+            continue
+        value, hint = data[field.name], hints[field.name]
+        if dataclasses.is_dataclass(hint):
+            value = from_dict(hint, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[field.name] = value
+    return cls(**kwargs)
+
+
+def read_config(path: str | os.PathLike) -> Config:
+    """The :class:`Config` a run wrote to its ``config.json``."""
+    return from_dict(Config, json.loads(pathlib.Path(path).read_text()))
 
 
 def _tiny() -> Config:

@@ -10,11 +10,9 @@ imageio's Pillow plugin; MP4 needs imageio's ffmpeg plugin (``pip install imagei
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import pathlib
-import typing
 from collections.abc import Callable
 
 import jax
@@ -71,22 +69,6 @@ def policy_video(
     return float(total)
 
 
-def _from_dict(cls, data: dict):
-    """A (nested, frozen) config dataclass from ``dataclasses.asdict`` output read back from JSON."""
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for field in dataclasses.fields(cls):
-        if field.name not in data:
-            continue
-        value, hint = data[field.name], hints[field.name]
-        if dataclasses.is_dataclass(hint):
-            value = _from_dict(hint, value)
-        elif isinstance(value, list):
-            value = tuple(value)
-        kwargs[field.name] = value
-    return cls(**kwargs)
-
-
 def load_policy(run_dir: pathlib.Path, column: int = 0):
     """(trainer, checkpoint step, policy parameters) of one column of a run's latest checkpoint; the trainer
     (``PixelTrainer`` for a pixel run) acts with them through ``trainer.mean_action(params, obs)``.
@@ -94,11 +76,11 @@ def load_policy(run_dir: pathlib.Path, column: int = 0):
     Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run).
     """
     from rebel_jax.checkpoint import Checkpointer
-    from rebel_jax.config import Config
+    from rebel_jax.config import read_config
     from rebel_jax.pixel_train import PixelTrainer
     from rebel_jax.train import Trainer, seed_keys
 
-    cfg = _from_dict(Config, json.loads((run_dir / "config.json").read_text()))
+    cfg = read_config(run_dir / "config.json")
     meta = json.loads((run_dir / "meta.json").read_text())
     columns = int(meta["columns"])
     if not 0 <= column < columns:
