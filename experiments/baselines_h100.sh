@@ -121,7 +121,11 @@
 #       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (about 27 min, by hand) it
 #       does: 5 seeds of the three methods at 500k frames are about 8 machines (3 + 5). On a machine of four GPUs
 #       counted in full (untried), one job per GPU: the 2-column PEBBLE + REBEL program (1 key each) and 1-seed SURF;
-#       neither size has run, so run it and project with job_time.py from its first rounds. Two jobs on one GPU do not pay (twenty-third session, one H200,
+#       neither size has run, so run it and project with job_time.py from its first rounds. By hand (estimated, not
+#       run): plain rounds on an H200 lie on a line of about 1.1 + 1.2 s per column (SURF at 2 and 3 columns, PEBBLE +
+#       REBEL at 4: 3.5, 4.67, 5.9 s), SURF's session slope is 0.1 s per label per column, so to 500k frames the
+#       2-column program takes about 18 min and 1-seed SURF about 26 min: on four GPUs counted in full, SURF is at
+#       the edge of one session's 30 minutes with the machine's start. Two jobs on one GPU do not pay (twenty-third session, one H200,
 #       one call, LIMIT 270: XLA_PYTHON_CLIENT_MEM_FRACTION=0.55 WATCH=0 ALGO=surf SEED=8 SEEDS=2 beside
 #       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 ALGO=rebel LAMS="0 0.001" SEED=8 SEEDS=2, STEPS=150000): plain rounds
 #       8.79 s and 11.8 s against 3.46 s and 5.89 s alone, about 11% less work per second than one after the other
