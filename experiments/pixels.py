@@ -83,7 +83,8 @@ PAIRED: dict[str, list[tuple[str, str]]] = {
     "cheetah_run_pixels": [(PEBBLE, REBEL), (PEBBLE, SURF), (SURF, f"{SURF} (SURF's reward Adam)")],
 }
 """Pixel task -> (method a, method b): b against a key by key (:func:`paired`), in the rows and the matched
-entries wherever both methods have seeds of the same keys at the same frames; ``pixels.json``'s ``paired``."""
+entries wherever both methods have seeds of the same keys at the same frames, by their returns and by their
+learned rewards' measures (:data:`REWARD_METRICS`); ``pixels.json``'s ``paired``."""
 
 
 def action_repeat(task: str) -> int:
@@ -170,8 +171,8 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     out = []
     for x in (e for e in entries if e["method"] == a):
         for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):
-            mine = {tuple(k): v for k, v in zip(x["keys"], x[scores], strict=True)}
-            theirs = {tuple(k): v for k, v in zip(y["keys"], y[scores], strict=True)}
+            mine = {tuple(k): v for k, v in zip(x["keys"], x[scores], strict=True) if v is not None}
+            theirs = {tuple(k): v for k, v in zip(y["keys"], y[scores], strict=True) if v is not None}
             keys = [k for k in mine if k in theirs]
             if not keys:
                 continue
@@ -180,6 +181,7 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
             positive = int(np.sum(nonzero > 0))
             low, high = bootstrap_ci(diffs, np.mean)
             sem = float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else math.nan
+            digits = 3 if scores in REWARD_METRICS else 2  # returns, or the rewards' accuracies and correlations
             out.append(
                 {
                     "task": x["task"],
@@ -188,10 +190,10 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
                     "a": a,
                     "b": b,
                     "keys": [list(k) for k in keys],
-                    "differences": [round(float(d), 2) for d in diffs],
-                    "mean": round(float(diffs.mean()), 2),
-                    "sem": round(sem, 2) if math.isfinite(sem) else None,
-                    "mean_ci": [round(v, 2) if math.isfinite(v) else None for v in (low, high)],
+                    "differences": [round(float(d), digits) for d in diffs],
+                    "mean": round(float(diffs.mean()), digits),
+                    "sem": round(sem, digits) if math.isfinite(sem) else None,
+                    "mean_ci": [round(v, digits) if math.isfinite(v) else None for v in (low, high)],
                     "positive": positive,
                     "pairs": len(nonzero),
                     "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
@@ -339,6 +341,8 @@ def main() -> None:
             same += task_matched
         for a, b in PAIRED.get(task, []):
             pairs += paired(task_rows, a, b, "final_returns") + paired(task_matched, a, b, "matched_returns")
+            for name in REWARD_METRICS:  # Whether b's learned reward is better than a's on the same keys.
+                pairs += paired(task_rows, a, b, name) + paired(task_matched, a, b, name)
     (RESULTS / "pixels.json").write_text(
         json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs}, indent=1) + "\n"
     )
@@ -389,10 +393,12 @@ def _paired_table(entries: list[dict]) -> None:
     print("|---|---:|---|---|---:|---|---:|---:|---:|")
     for e in entries:
         low, high = e["mean_ci"]
-        diffs = ", ".join(f"{d:+.1f}" for d in e["differences"])
+        digits = 3 if e["scores"] in REWARD_METRICS else 1
+        diffs = ", ".join(f"{d:+.{digits}f}" for d in e["differences"])
         print(
             f"| {e['task']} | {e['frames']:,} | {e['scores']} | {e['b']} minus {e['a']} | {len(e['keys'])} | {diffs} "
-            f"| {e['mean']:+.1f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} | {e['sign_test_p']} |"
+            f"| {e['mean']:+.{digits}f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} "
+            f"| {e['sign_test_p']} |"
         )
 
 

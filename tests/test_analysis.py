@@ -782,6 +782,11 @@ def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path,
     assert (surf["positive"], surf["pairs"]) == (1, 1)  # a zero difference is no pair of the sign test
     assert pixels.paired(entries, "surf", "drqv2", "final_returns") == []  # no such method: no entry
     json.dumps(rebel, allow_nan=False)
+    # A learned-reward measure that a seed lacks (null) leaves that key out; such measures keep 3 decimals.
+    by["pebble (rebel lam=0)"]["reward_correlation"] = [0.1, None, 0.2, 0.3]
+    by["rebel lam=0.001"]["reward_correlation"] = [0.1234, 0.5, 0.25, None]
+    (correlation,) = pixels.paired(entries, "pebble (rebel lam=0)", "rebel lam=0.001", "reward_correlation")
+    assert correlation["keys"] == [[0, 0], [2, 0]] and correlation["differences"] == [0.023, 0.05]
 
 
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
