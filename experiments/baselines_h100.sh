@@ -125,7 +125,10 @@
 #       run): plain rounds on an H200 lie on a line of about 1.1 + 1.2 s per column (SURF at 2 and 3 columns, PEBBLE +
 #       REBEL at 4: 3.5, 4.67, 5.9 s), SURF's session slope is 0.1 s per label per column, so to 500k frames the
 #       2-column program takes about 18 min and 1-seed SURF about 26 min: on four GPUs counted in full, SURF is at
-#       the edge of one session's 30 minutes with the machine's start. Two jobs on one GPU do not pay (twenty-third session, one H200,
+#       the edge of one session's 30 minutes with the machine's start. With REWARD_BF16=1 (if its sessions speed up
+#       as its epochs did, 1.9x; untried in a run) 1-seed SURF would take about 19 min and 2-seed SURF to 500k frames
+#       about 31 min, which fits a one-GPU machine counted at half; a 500k-frame campaign that takes it gives it to
+#       every method. Two jobs on one GPU do not pay (twenty-third session, one H200,
 #       one call, LIMIT 270: XLA_PYTHON_CLIENT_MEM_FRACTION=0.55 WATCH=0 ALGO=surf SEED=8 SEEDS=2 beside
 #       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 ALGO=rebel LAMS="0 0.001" SEED=8 SEEDS=2, STEPS=150000): plain rounds
 #       8.79 s and 11.8 s against 3.46 s and 5.89 s alone, about 11% less work per second than one after the other
@@ -277,9 +280,12 @@ case "${2:-shared}" in
     # ENVS=<envs per seed> with SEED_STEPS=<agent steps> (e.g. 20 and 10000: every env ends an episode before the
     # first session, which queries complete episodes): the physics of the preset's 4 envs is about 7.5 s of a 10 s
     # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
-    # SURF_ADAM=1: the reward ensemble's Adam stepped as SURF's torch code does (--pixel-reward.per-member-adam)
-    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}${SURF_ADAM:+_surfadam}
-    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS} ${SURF_ADAM:+--pixel-reward.per-member-adam}
+    # SURF_ADAM=1: the reward ensemble's Adam stepped as SURF's torch code does (--pixel-reward.per-member-adam);
+    # REWARD_BF16=1: the reward ensemble trained in bf16 (--pixel-reward.precision bf16, epochs 1.9x faster; SURF's
+    # sessions are 64% of its 500k-frame job, BENCHMARKS.md): a speed setting, named apart ("_rbf16"), so a
+    # campaign takes it for every method or for none
+    name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}${SURF_ADAM:+_surfadam}${REWARD_BF16:+_rbf16}
+    start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS} ${SURF_ADAM:+--pixel-reward.per-member-adam} ${REWARD_BF16:+--pixel-reward.precision bf16}
     exit 0 ;;
   drqv2_bench)  # issue 12's update benchmarks before any pixel run (about 9 min after the install): where one
     # seed's DrQ-v2 update spends its time (drqv2_parts.py), and the 5-seed looped update with XLA's kernel

@@ -50,6 +50,7 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
     ),
     ("pixel_seed", {"ALGO": "pebble", "TASK": "cheetah", "SEED": "0", "SEEDS": "3", "STEPS": "250000"}),
     ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "2", "SEEDS": "2", "STEPS": "150000", "SURF_ADAM": "1"}),
+    ("pixel_seed", {"ALGO": "surf", "TASK": "cheetah", "SEED": "4", "STEPS": "250000", "REWARD_BF16": "1"}),
     (
         "pixel_seed",
         {"ALGO": "rebel", "TASK": "cheetah", "SEED": "0", "SEEDS": "2", "STEPS": "250000", "LAMS": "0 0.001"},
@@ -128,6 +129,8 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.train.seed_steps == int(env.get("SEED_STEPS", 2_000))
             assert ("ENVS" in env) == ("_envs" in run_dir.name)
             assert args.config.pixel_reward.per_member_adam == ("SURF_ADAM" in env) == ("_surfadam" in run_dir.name)
+            reward_bf16 = args.config.pixel_reward.precision == "bf16"
+            assert reward_bf16 == ("REWARD_BF16" in env) == run_dir.name.endswith("_rbf16")
             assert args.config.query.sampling == "uniform"
         if name == "drqv2_seed":  # SEEDS seeds (default 1) from SEED, ENVS envs each (default 10), 500k frames
             assert (args.config.algo, args.seeds, args.config.train.seed) == (
