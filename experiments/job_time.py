@@ -130,6 +130,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--total-steps", type=int, required=True, help="agent steps of the projected run")
     p.add_argument("--fit-steps", type=int, default=None, help="fit on the rounds up to this step (default: all)")
     args = p.parse_args(argv)
+    if args.total_steps < 1 or (args.fit_steps is not None and args.fit_steps < 1):
+        p.error("--total-steps and --fit-steps must be positive agent steps")
     print("| run | plain s | session s: a + b x labels | measured: steps, s (fit at its length) | projected s |")
     print("|---|---:|---:|---:|---:|")
     for run in args.runs:

@@ -115,3 +115,6 @@ def test_a_run_without_a_plain_round_or_a_log_is_refused(tmp_path, capsys):
         job_time.round_costs(_metrics(cfg), cfg)
     with pytest.raises(SystemExit, match="config.json"):
         job_time.main([str(tmp_path / "missing"), "--total-steps", "1000"])
+    with pytest.raises(SystemExit):
+        job_time.main([str(tmp_path), "--total-steps", "0"])
+    assert "must be positive" in capsys.readouterr().err
