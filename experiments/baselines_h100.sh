@@ -48,8 +48,8 @@
 #       Next, for the walker target (planned, not run): 5 new seeds with the critics' output in float32
 #       (CRITIC_F32=1, the take-off test's better arm, free in time) and PRECISION=bf16, one detached job per GPU:
 #       on four H200s (if status lends nvidia-h200-x4 or nvidia-h100-x4) GPU=0 SEED=20 SEEDS=2 and GPU=1..3
-#       SEED=22, 23, 24, WATCH=0 on all but the last; the 1-seed jobs project to 16.5 min of rounds from the
-#       nineteenth session's H200 run (experiments/job_time.py), the 2-seed job about 23 min (estimated);
+#       SEED=22, 23, 24, WATCH=0 on all but the last; one seed took 16.8 min of rounds on an H200 in the
+#       nineteenth session, the 2-seed job about 23 min (estimated);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
