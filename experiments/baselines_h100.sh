@@ -42,14 +42,14 @@
 #       out at round 245 of 250. Two walker seeds fit a session only where held time counts at less than full.
 #       Nineteenth session (two H200s, GPU=0 beside a pixel_seed job on GPU=1): SEED=0 to 500k, 3.79 s rounds,
 #       1,006 s of rounds (it failed: RESULTS.md). On two H200s, SEED=3 SEEDS=2 on GPU 0 and SEED=5 SEEDS=2 on GPU
-#       1 would take about 23 min of rounds each (estimated). Twentieth session, the take-off test (two H200s):
+#       1 would take about 24 min of rounds each (estimated). Twentieth session, the take-off test (two H200s):
 #       SEED=10 SEEDS=8 STEPS=60000 PRECISION=bf16 on GPU 0 and the same with CRITIC_F32=1 on GPU 1, 17.0 s rounds,
 #       about 1,040 s of rounds each, three chained calls (LIMIT 470, 585, 150), 1,566 s held.
 #       Next, for the walker target (planned, not run): 5 new seeds with the critics' output in float32
 #       (CRITIC_F32=1, the take-off test's better arm, free in time) and PRECISION=bf16, one detached job per GPU:
 #       on four H200s (if status lends nvidia-h200-x4 or nvidia-h100-x4) GPU=0 SEED=20 SEEDS=2 and GPU=1..3
 #       SEED=22, 23, 24, WATCH=0 on all but the last; one seed took 16.8 min of rounds on an H200 in the
-#       nineteenth session, the 2-seed job about 23 min (estimated);
+#       nineteenth session, the 2-seed job about 24 min (estimated);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -122,14 +122,14 @@
 #       SEED=6 SEEDS=2 STEPS=150000 (5.89 s, 1,101 s): neither slowed; at 300k frames 6, 6 and 4 seeds. A machine goes back only at the end of the call in
 #       flight at 30 minutes held (1,930 s held twice), so a job of up to about 35 min fits one machine if its last
 #       call starts before then. By that (projected from the 300k-frame runs' rounds by experiments/job_time.py, within
-#       1.1% of each run from its first 80k steps): the 4-column PEBBLE + REBEL program to 500k frames (30-32 min of
-#       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (about 27 min, by hand) it
+#       1.2% of each run from its first 80k steps): the 4-column PEBBLE + REBEL program to 500k frames (30-32 min of
+#       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (about 26-27 min, by hand) it
 #       does: 5 seeds of the three methods at 500k frames are about 8 machines (3 + 5). On a machine of four GPUs
 #       counted in full (untried), one job per GPU: the 2-column PEBBLE + REBEL program (1 key each) and 1-seed SURF;
 #       neither size has run, so run it and project with job_time.py from its first rounds. By hand (estimated, not
 #       run): plain rounds on an H200 lie on a line of about 1.1 + 1.2 s per column (SURF at 2 and 3 columns, PEBBLE +
 #       REBEL at 4: 3.5, 4.67, 5.9 s), SURF's session slope is 0.1 s per label per column, so to 500k frames the
-#       2-column program takes about 18 min and 1-seed SURF about 26 min: on four GPUs counted in full, SURF is at
+#       2-column program takes about 18 min and 1-seed SURF about 26-27 min: on four GPUs counted in full, SURF is at
 #       the edge of one session's 30 minutes with the machine's start. With REWARD_BF16=1 (if its sessions speed up
 #       as its epochs did, 1.9x; untried in a run) 1-seed SURF would take about 19 min and 2-seed SURF to 500k frames
 #       about 31 min, which fits a one-GPU machine counted at half; a 500k-frame campaign that takes it gives it to
