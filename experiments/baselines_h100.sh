@@ -123,14 +123,14 @@
 #       flight at 30 minutes held (1,930 s held twice), so a job of up to about 35 min fits one machine if its last
 #       call starts before then. By that (projected from the 300k-frame runs' rounds by experiments/job_time.py, within
 #       1.2% of each run from its first 80k steps): the 4-column PEBBLE + REBEL program to 500k frames (30-32 min of
-#       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (about 26-27 min, by hand) it
-#       does: 5 seeds of the three methods at 500k frames are about 8 machines (3 + 5). On a machine of four GPUs
-#       counted in full (untried), one job per GPU: the 2-column PEBBLE + REBEL program (1 key each) and 1-seed SURF;
-#       neither size has run, so run it and project with job_time.py from its first rounds. By hand (estimated, not
-#       run): plain rounds on an H200 lie on a line of about 1.1 + 1.2 s per column (SURF at 2 and 3 columns, PEBBLE +
-#       REBEL at 4: 3.5, 4.67, 5.9 s), SURF's session slope is 0.1 s per label per column, so to 500k frames the
-#       2-column program takes about 18 min and 1-seed SURF about 26-27 min: on four GPUs counted in full, SURF is at
-#       the edge of one session's 30 minutes with the machine's start. With REWARD_BF16=1 (if its sessions speed up
+#       rounds) fits one machine; SURF to 500k at 2 seeds (44-45 min) does not, at 1 seed (25-25.5 min, job_time.py
+#       --columns 1) it does: 5 seeds of the three methods at 500k frames are about 8 machines (3 + 5). On a machine
+#       of four GPUs counted in full (untried), one job per GPU: job_time.py --columns (plain rounds on the line
+#       1.08 + 1.21 s per column through the 2-, 3- and 4-column H200 runs, sessions scaled by the columns; the
+#       2-column SURF runs carried to 3 columns came within 5% of the 3-column run) projects the 2-column PEBBLE +
+#       REBEL program (1 key each) to 500k frames at 18-19 min of rounds and 1-seed SURF at 25-25.5 min: on four
+#       GPUs counted in full, SURF is at the edge of one session's 30 minutes with the machine's start. Neither size
+#       has run. With REWARD_BF16=1 (if its sessions speed up
 #       as its epochs did, 1.9x; untried in a run) 1-seed SURF would take about 19 min and 2-seed SURF to 500k frames
 #       about 31 min, which fits a one-GPU machine counted at half; a 500k-frame campaign that takes it gives it to
 #       every method. Two jobs on one GPU do not pay (twenty-third session, one H200,

@@ -56,11 +56,11 @@ def _expected_rounds(cfg) -> list[float]:
     return seconds
 
 
-def _metrics(cfg, columns: int = 2) -> list[dict]:
-    """``metrics.jsonl`` records of a run that cost exactly :func:`_expected_rounds`."""
+def _metrics(cfg, columns: int = 2, rounds: list[float] | None = None) -> list[dict]:
+    """``metrics.jsonl`` records of a run that cost exactly ``rounds`` (default :func:`_expected_rounds`)."""
     t, fb = cfg.train, cfg.feedback
     rows, held = [], 0
-    for r, seconds in enumerate(_expected_rounds(cfg)):
+    for r, seconds in enumerate(_expected_rounds(cfg) if rounds is None else rounds):
         step = r * t.steps_per_round
         session = _is_session(cfg, step, held)
         held = min(held + fb.per_session, fb.labels) if session else held
@@ -94,10 +94,18 @@ def test_a_projection_to_another_length_follows_the_label_schedule(longer, budge
     assert job_time.round_seconds(costs, long) == pytest.approx(_expected_rounds(long))
 
 
+def _write_run(run_dir: pathlib.Path, cfg, columns: int = 2, rounds=None, device: str = "NVIDIA H200") -> pathlib.Path:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    (run_dir / "meta.json").write_text(json.dumps({"columns": columns, "devices": [device]}))
+    rows = _metrics(cfg, columns, rounds)
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return run_dir
+
+
 def test_project_reads_a_run_directory(tmp_path):
     cfg = _config(40_000)
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(row) + "\n" for row in _metrics(cfg)))
+    _write_run(tmp_path, cfg)
     out = job_time.project(tmp_path, 300_000)
     assert out["measured_steps"] == 40_000
     assert out["measured_s"] == pytest.approx(sum(_expected_rounds(cfg)))
@@ -118,3 +126,44 @@ def test_a_run_without_a_plain_round_or_a_log_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         job_time.main([str(tmp_path), "--total-steps", "0"])
     assert "must be positive" in capsys.readouterr().err
+
+
+ALPHA, BETA = 1.1, 1.2  # plain round = ALPHA + BETA x columns; a session costs per column
+
+
+def _rounds_at(cfg, columns: int) -> list[float]:
+    """A round's seconds for ``columns`` columns: the plain rounds on the line, the sessions' extra cost per column."""
+    plain = ALPHA + BETA * columns
+    out = []
+    for seconds in _expected_rounds(cfg):
+        if seconds in (FIRST, SEED_ROUND):
+            out.append(seconds)
+        else:  # PLAIN, or PLAIN + a session's (BASE + PER_LABEL x labels), the latter for each column
+            out.append(plain + (seconds - PLAIN) * columns)
+    return out
+
+
+def test_columns_carry_a_run_to_another_size_on_the_plain_rounds_line(tmp_path, capsys):
+    short = _config(60_000)
+    runs = [_write_run(tmp_path / f"c{c}", short, c, _rounds_at(short, c)) for c in (2, 4)]
+    assert job_time.fit_line(runs) == pytest.approx((ALPHA, BETA))
+    for columns in (1, 3):
+        out = job_time.project(runs[1], 250_000, columns=columns, line=(ALPHA, BETA))
+        assert out["columns"] == columns
+        assert out["projected_s"] == pytest.approx(sum(_rounds_at(_config(250_000), columns)))
+    job_time.main([*map(str, runs), "--total-steps", "250000", "--columns", "1"])
+    assert "1.10 + 1.20 s per column" in capsys.readouterr().out
+
+
+def test_columns_refuse_one_size_other_tasks_or_devices_and_state_runs(tmp_path):
+    pixels = _config(60_000)
+    two = _write_run(tmp_path / "two", pixels, 2, _rounds_at(pixels, 2))
+    with pytest.raises(ValueError, match="two column counts"):
+        job_time.fit_line([two, _write_run(tmp_path / "again", pixels, 2, _rounds_at(pixels, 2))])
+    h100 = _write_run(tmp_path / "h100", pixels, 4, _rounds_at(pixels, 4), device="NVIDIA H100 80GB HBM3")
+    with pytest.raises(ValueError, match="one task on one device"):
+        job_time.fit_line([two, h100])
+    state = dataclasses.replace(PRESETS["paper"], train=dataclasses.replace(PRESETS["paper"].train, total_steps=60_000))
+    costs = job_time.round_costs(_metrics(pixels), pixels)
+    with pytest.raises(ValueError, match="session_loop"):
+        job_time.at_columns(costs, state, 2, 1, (ALPHA, BETA))
