@@ -287,7 +287,7 @@ case "${2:-shared}" in
     # one-seed round (BENCHMARKS.md, "Pixel PEBBLE on one H100"), so more envs make a seed's job fit one machine
     # SURF_ADAM=1: the reward ensemble's Adam stepped as SURF's torch code does (--pixel-reward.per-member-adam);
     # REWARD_BF16=1: the reward ensemble trained in bf16 (--pixel-reward.precision bf16, epochs 1.9x faster; SURF's
-    # sessions are 64% of its 500k-frame job, BENCHMARKS.md): a speed setting, named apart ("_rbf16"), so a
+    # sessions, beyond a plain round, are 64% of its 500k-frame job, BENCHMARKS.md): a speed setting, named apart ("_rbf16"), so a
     # campaign takes it for every method or for none
     name=${ALGO}_${TASK}_pixels_${STEPS:?set STEPS}steps_seed${SEED:?set SEED}${SEEDS:+_seeds$SEEDS}${LAMS:+_lams_${LAMS// /_}}${CAPACITY:+_replay$CAPACITY}${ENVS:+_envs$ENVS}${SEED_STEPS:+_seedsteps$SEED_STEPS}${PRECISION:+_$PRECISION}${SURF_ADAM:+_surfadam}${REWARD_BF16:+_rbf16}
     start "$name" $flags --total-steps "$STEPS" --seeds "${SEEDS:-1}" --seed "$SEED" ${CAPACITY:+--buffer-capacity $CAPACITY} ${ENVS:+--num-envs $ENVS} ${SEED_STEPS:+--seed-steps $SEED_STEPS} ${PRECISION:+--drqv2.precision $PRECISION} ${LAMS:+--lam-grid $LAMS} ${SURF_ADAM:+--pixel-reward.per-member-adam} ${REWARD_BF16:+--pixel-reward.precision bf16}
