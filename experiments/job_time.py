@@ -162,10 +162,11 @@ def project(
     rows = records(run_dir)
     costs = round_costs([r for r in rows if fit_steps is None or r["env_steps"] <= fit_steps], cfg)
     longer = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, total_steps=total_steps))
-    projected = costs if columns is None else at_columns(costs, cfg, columns_of(run_dir), columns, line)
+    own = columns_of(run_dir)
+    projected = costs if columns is None else at_columns(costs, cfg, own, columns, line)
     return {
         "run": run_dir.name,
-        "columns": columns_of(run_dir) if columns is None else columns,
+        "columns": own if columns is None else columns,
         "costs": costs._asdict(),
         "measured_steps": rows[-1]["env_steps"],
         "measured_s": sum(r["seconds"] for r in rows),
