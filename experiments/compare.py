@@ -9,8 +9,9 @@ REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lam
 labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
 its teachers (``..., noisy``; a single ``--teacher`` other than the oracle is named the same way); other
 runs are labelled by their algo, and budgets other than 100 labels are named (``pebble 1000 labels``), as are
-a SURF ``reward_update`` other than 1000, a pixel reward stepped as SURF's (``pixel_reward.per_member_adam``) and
-one trained in another precision than tf32.
+a SURF ``reward_update`` other than 1000, a pixel reward stepped as SURF's (``pixel_reward.per_member_adam``),
+one trained in another precision than tf32, and a pixel agent whose critics' output layer is float32
+(``drqv2.critic_out_f32``).
 A REBEL term other than the paper's (on-policy V, lower bound, raw) and a reward output other than tanh are named
 in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that variants never merge.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
@@ -133,6 +134,8 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
             label += " (SURF's reward Adam)"
         if pixel_reward.get("precision", "tf32") != "tf32":
             label += f" ({pixel_reward['precision']} reward)"
+        if cfg.get("drqv2", {}).get("critic_out_f32"):  # the pixel agent's critics' output layer in float32
+            label += " (float32 critic output)"
         label += f", {teacher}" if teacher else ""
         out.setdefault(label, ([], _info(run_dir, lam, teacher)))[0].append(i)
     return {label: ((steps, returns[:, idx]), info | {"columns": idx}) for label, (idx, info) in out.items()}

@@ -44,7 +44,13 @@ RUNS: dict[str, list[str]] = {
         "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
         "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
     ],
-    "walker_walk_pixels": ["pixels/drqv2_walker_500kframes_seed0_bf16"],
+    "walker_walk_pixels": [
+        "pixels/drqv2_walker_500kframes_seed0_bf16",
+        "pixels/drqv2_walker_500kframes_seed20_seeds1_bf16_qf32",
+        "pixels/drqv2_walker_500kframes_seed22_bf16_qf32",
+        "pixels/drqv2_walker_500kframes_seed23_bf16_qf32",
+        "pixels/drqv2_walker_500kframes_seed24_bf16_qf32",
+    ],
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``; runs of one method that
 ended at different lengths are rows apart (:func:`by_length`)."""

@@ -112,6 +112,26 @@ def test_a_pixel_reward_stepped_as_surfs_or_in_bf16_is_named_and_never_merges(tm
     assert curves["surf, noisy"][1].shape[1] == 2 * curves["surf (SURF's reward Adam), noisy"][1].shape[1]
 
 
+def test_a_float32_critic_output_is_named_and_never_merges(tmp_path):
+    for name, out_f32 in (("bf16", False), ("qf32", True), ("before_the_setting", None)):
+        write_grid_run(tmp_path / name, algo="drqv2")
+        cfg = json.loads((tmp_path / name / "config.json").read_text())
+        if out_f32 is None:
+            del cfg["drqv2"]["critic_out_f32"]
+        else:
+            cfg["drqv2"]["critic_out_f32"] = out_f32
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+    curves, infos = compare.gather([tmp_path / n for n in ("bf16", "qf32", "before_the_setting")])
+    assert list(curves) == [
+        "drqv2, noisy",
+        "drqv2, skip",
+        "drqv2 (float32 critic output), noisy",
+        "drqv2 (float32 critic output), skip",
+    ]
+    assert [p.name for p in infos["drqv2, noisy"]["run_dirs"]] == ["bf16", "before_the_setting"]
+    assert [p.name for p in infos["drqv2 (float32 critic output), noisy"]["run_dirs"]] == ["qf32"]
+
+
 def test_a_single_teacher_other_than_the_oracle_names_the_method_and_never_merges_with_the_oracle(tmp_path):
     for name, teacher in (("oracle", {}), ("mistake", {"eps_mistake": 0.1})):
         write_grid_run(tmp_path / name, algo="pebble")
