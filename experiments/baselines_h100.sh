@@ -45,11 +45,14 @@
 #       1 would take about 24 min of rounds each (estimated). Twentieth session, the take-off test (two H200s):
 #       SEED=10 SEEDS=8 STEPS=60000 PRECISION=bf16 on GPU 0 and the same with CRITIC_F32=1 on GPU 1, 17.0 s rounds,
 #       about 1,040 s of rounds each, three chained calls (LIMIT 470, 585, 150), 1,566 s held.
-#       Next, for the walker target (planned, not run): 5 new seeds with the critics' output in float32
-#       (CRITIC_F32=1, the take-off test's better arm, free in time) and PRECISION=bf16, one detached job per GPU:
-#       on four H200s (if status lends nvidia-h200-x4 or nvidia-h100-x4) GPU=0 SEED=20 SEEDS=2 and GPU=1..3
-#       SEED=22, 23, 24, WATCH=0 on all but the last; one seed took 16.8 min of rounds on an H200 in the
-#       nineteenth session, the 2-seed job about 24 min (estimated);
+#       Twenty-fourth session, for the walker target (code 2c946c3, one machine of four H100s, 1,320 s held, counted
+#       in full; three chained calls, LIMIT 470, 585, 380): CRITIC_F32=1 PRECISION=bf16, one detached job per GPU,
+#       GPU=0 SEED=20 (SEEDS=2 only where the GPUs are H200s: the 2-seed job is about 28 min on an H100) and
+#       GPU=1..3 SEED=22, 23, 24, WATCH=0 on all but the last: 4.52-4.61 s rounds, 1,173-1,205 s each, all four
+#       walk. The fifth seed, SEED=21 alone on a one-GPU machine with 475 s left, was lost: that machine counted
+#       its held time in full and the call's limit_s (445 s, what the budget left) ended it before finish shipped
+#       the log. A call's LIMIT must stay below the limit_s the budget leaves. Next: SEED=21 (about 20 min on an
+#       H100, 16.8 min on an H200);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,

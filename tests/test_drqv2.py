@@ -397,4 +397,4 @@ def test_critic_out_f32_keeps_q_off_the_bfloat16_grid():
     np.testing.assert_allclose(q32, q16, atol=1 / 64)
     with pytest.raises(ConfigError, match="drqv2.critic_out_f32"):
         DrQV2Config(critic_out_f32="yes").validate()
-    assert not DrQV2Config().critic_out_f32  # off by default: every run so far rounded Q
+    assert not DrQV2Config().critic_out_f32  # off by default: the pixel preference runs all rounded Q
