@@ -186,18 +186,27 @@ detach() {  # name, then the training flags: one process for the machine's whole
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
   ${GPU:+env CUDA_VISIBLE_DEVICES=$GPU} setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 --checkpoint-every 0 >"runs/$name.log" 2>&1 </dev/null &
 }
-watch() {  # wait until no training process is left or the call's limit is near, then ship the logs
-  while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do sleep 5; done
+watch() {  # wait until no training process is left or the call's limit is near, then ship the logs; meanwhile
+  # ship them every SHIP_EVERY seconds (default 60): a call the device ends at its limit_s (what the device time
+  # left, which may be below LIMIT) returns what $OUT holds, and the twenty-fourth session lost a whole job's log so
+  local shipped=$SECONDS
+  while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do
+    sleep 5
+    [ $((SECONDS - shipped)) -ge "${SHIP_EVERY:-60}" ] && { ship; shipped=$SECONDS; }
+  done
   pgrep -f rebel_jax.train >/dev/null && echo "still running after ${SECONDS}s"
   finish
 }
 start() {  # name, then the training flags: detached under DETACH=1, else time-limited calls with resume
   if [ -n "${DETACH:-}" ]; then detach "$@"; [ "${WATCH:-1}" = 0 ] || watch; else launch "$@"; wait; finish; fi
 }
+ship() {  # the logs (no checkpoints) to $OUT, replaced whole: a call killed while it writes keeps the last copy
+  tar czf "$OUT/runs.tar.gz.part" --exclude=checkpoints --exclude=.jax_cache runs && mv "$OUT/runs.tar.gz.part" "$OUT/runs.tar.gz"
+}
 finish() {  # print the tails and ship the logs
   for f in runs/*.log; do echo "== $f"; grep -v warp "$f" | tail -3; done
   for d in runs/*/; do echo "$d rounds=$(wc -l <"$d/metrics.jsonl" 2>/dev/null)"; done
-  tar czf "$OUT/runs.tar.gz" --exclude=checkpoints --exclude=.jax_cache runs
+  ship
   if [ "$(du -sm runs/.jax_cache 2>/dev/null | cut -f1)" -lt 15 ] 2>/dev/null; then tar czf "$OUT/jax_cache.tar.gz" -C runs .jax_cache; fi
 }
 mkdir -p runs

@@ -12,6 +12,7 @@ import os
 import pathlib
 import re
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -26,6 +27,7 @@ STUB = """#!/usr/bin/env bash
 [ "$1" = python3 ] && shift  # setsid python3 ...
 printf '%s\\n' "${CUDA_VISIBLE_DEVICES-all}" >>"$CALLS.gpu"  # the GPUs the command may see
 printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
+case "$*" in *rebel_jax.train*) [ -n "${STUB_SECONDS:-}" ] && sleep "$STUB_SECONDS" ;; esac  # a job that runs a while
 """
 SETS = [  # (SET, environment): the sets the script documents, with the variables each needs
     ("rebel_ablation", {"LAMS": "0.001 -0.001"}),
@@ -62,10 +64,9 @@ SETS = [  # (SET, environment): the sets the script documents, with the variable
 ]
 
 
-def _commands(
-    tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bool, program: str = "rebel_jax.train"
-) -> list[list[str]]:
-    """The argument lists the script passes to ``python3`` that name ``program`` (pip's install left out)."""
+def _stubbed(tmp_path: pathlib.Path, env: dict[str, str], detach: bool) -> tuple[pathlib.Path, dict[str, str]]:
+    """A working directory and the environment that runs the script with ``python3`` and ``setsid`` stubbed
+    (``STUB``), recording into ``tmp_path / "calls.txt"`` and shipping into ``tmp_path`` as ``$OUT``."""
     bin_dir, work = tmp_path / "bin", tmp_path / "work"
     bin_dir.mkdir(exist_ok=True)
     work.mkdir(exist_ok=True)
@@ -83,6 +84,15 @@ def _commands(
         **env,
         **({"DETACH": "1"} if detach else {}),
     }
+    return work, full_env
+
+
+def _commands(
+    tmp_path: pathlib.Path, name: str, env: dict[str, str], detach: bool, program: str = "rebel_jax.train"
+) -> list[list[str]]:
+    """The argument lists the script passes to ``python3`` that name ``program`` (pip's install left out)."""
+    work, full_env = _stubbed(tmp_path, env, detach)
+    calls = tmp_path / "calls.txt"
     # LIMIT 20: the detached sets' watch loop (until the call's limit - 20 s) ends at once.
     done = subprocess.run(["bash", str(SCRIPT), "20", name], cwd=work, env=full_env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -162,6 +172,28 @@ def test_one_call_starts_a_detached_job_per_gpu_and_the_last_script_ships_every_
     logs = {pathlib.Path(name).name for name in listed.stdout.split() if name.endswith(".log")}
     names = {pathlib.Path(argv[argv.index("--run-dir") + 1]).name + ".log" for argv in (first, second)}
     assert logs == names  # the last script's watch ships both jobs' logs
+
+
+def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path):
+    """The device ends a call at its ``limit_s``, which the device time left may put below the script's LIMIT:
+    the logs shipped during the watch come back even though ``finish`` never ran."""
+    job = {"TASK": "walker", "SEED": "21", "PRECISION": "bf16", "SHIP_EVERY": "1", "STUB_SECONDS": "60"}
+    work, env = _stubbed(tmp_path, job, detach=True)
+    call = subprocess.Popen(["bash", str(SCRIPT), "300", "drqv2_seed"], cwd=work, env=env, start_new_session=True)
+    shipped = tmp_path / "runs.tar.gz"
+    try:
+        for _ in range(300):
+            if shipped.exists() or call.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert call.poll() is None, "the watch ended before its job did"
+        assert shipped.exists(), "nothing shipped while the job ran"
+    finally:
+        os.killpg(call.pid, signal.SIGKILL)  # as the device ends a call: the script, its job and its watch
+        call.wait()
+    listed = subprocess.run(["tar", "tzf", shipped], capture_output=True, text=True, check=True).stdout.split()
+    assert "runs/drqv2_walker_500kframes_seed21_bf16.log" in listed
+    assert not (tmp_path / "runs.tar.gz.part").exists()
 
 
 def test_the_drqv2_bench_set_passes_arguments_its_benchmarks_accept(tmp_path, monkeypatch):
