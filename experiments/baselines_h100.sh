@@ -53,8 +53,9 @@
 #       its held time in full and the call's limit_s (445 s, what the budget left) ended it before finish shipped
 #       the log. A call's LIMIT must stay below the limit_s the budget leaves. Next: SEED=21 (about 20 min on an
 #       H100, 16.8 min on an H200). Planned for the next machine of four GPUs (estimated, not run; a four-GPU
-#       machine gave about 28 min of rounds after its start and first compile; H100 rounds are about 1.2x an
-#       H200's, 4.55 against 3.79 s for this job): GPU=0 this SEED=21; GPU=1 ALGO=surf TASK=cheetah SEED=6
+#       machine, counted in full, would leave about 28 min of rounds after its start and first compile, this one
+#       held 22 min for 20 min of rounds; H100 rounds are about 1.2x an H200's, 4.55 against 3.79 s for this
+#       job): GPU=0 this SEED=21; GPU=1 ALGO=surf TASK=cheetah SEED=6
 #       SEEDS=2 STEPS=150000 (1,259 s on an H200, about 25 min on an H100); GPU=2 ALGO=rebel LAMS="0 0.001"
 #       TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 (1,101 s on an H200, about 22 min on an H100): at 300k frames
 #       PEBBLE and REBEL at 8 keys, SURF at 6, paired on 6; GPU=3 the first pixel walker preference job, ALGO=rebel
