@@ -18,6 +18,11 @@ criterion counts it as not taken off). The criterion is fixed before the runs:
 An arm is named from each run's ``config.json`` (``drqv2.precision`` and ``drqv2.critic_out_f32``), never from
 its directory, and run directories of one arm merge (``analysis.merge_runs``). Frames are agent steps x the
 task's action repeat (``pixels.action_repeat``).
+
+The same count at full length (``FULL_RUNS``, ``full_length``): a seed **walks** if its final return (the mean of
+its last 10 evaluations, ``analysis.final_returns``, as every table of RESULTS.md) exceeds ``THRESHOLD``; runs of
+one arm are pooled by seed, not merged, so that a run stopped at 480k frames is not cut to its shortest
+neighbour's length. DrQ-v2's own curves are judged alike at 500k frames (``DRQV2_FINAL``).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import pathlib
 
 import numpy as np
 import scipy.stats
-from analysis import Curve, curve_figure, load_runs, log_name, merge_runs
+from analysis import Curve, curve_figure, final_returns, load_runs, log_name, merge_runs
 from pixels import action_repeat
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
@@ -55,6 +60,20 @@ DRQV2_RETURNS = np.array(
 facebookresearch/drqv2 ``curves/dmc_walker_walk.csv`` (commit d6dbadc; rows ``frame`` 100000 and 120000 of each
 seed). Its frames count as ours (agent steps x action repeat 2); seeds 4 and 8 stay on the plateau to 1M frames,
 seed 1 passes 100 only between 160k and 180k."""
+FULL_RUNS: list[str] = [
+    "pixels/drqv2_walker_500kframes_seed0_bf16",
+    "pixels/drqv2_walker_500kframes_seed1_seeds2_bf16_stopped245k",
+    "pixels/drqv2_walker_500kframes_seed20_seeds1_bf16_qf32",
+    "pixels/drqv2_walker_500kframes_seed22_bf16_qf32",
+    "pixels/drqv2_walker_500kframes_seed23_bf16_qf32",
+    "pixels/drqv2_walker_500kframes_seed24_bf16_qf32",
+]
+"""The walker DrQ-v2 runs of today's code that reached 480k-500k frames (the 218k-frame run of earlier code is
+left out)."""
+DRQV2_FINAL = np.array([410.1, 953.2, 887.8, 26.4, 880.6, 915.1, 787.4, 28.0, 860.6, 922.9])
+"""DrQ-v2's own final returns at 500k frames, seeds 1-10: per seed the mean of its 10 evaluations at 320k-500k
+frames in facebookresearch/drqv2 ``curves/dmc_walker_walk.csv`` (commit c0c650b; rows ``frame`` 320000 to 500000
+of each seed), the final return of our tables."""
 
 
 def run_config(run_dir: pathlib.Path) -> dict:
@@ -94,27 +113,62 @@ def arm_curves(run_dirs: list[pathlib.Path]) -> tuple[dict[str, Curve], dict[str
     return {name: merge_runs(*runs) for name, runs in parts.items()}, logs
 
 
-def summary(curves: dict[str, Curve], logs: dict[str, list[str]]) -> dict:
-    """Per arm of ``curves`` (:func:`arm_curves`' and any reference's, e.g. DrQ-v2's own curves in ``main``) its
-    seeds' late means, take-offs, rate and interval, and its ``logs``; Fisher's test for every pair of arms."""
+def tally(
+    scores: dict[str, np.ndarray], frames: dict[str, list[int]], logs: dict[str, list[str]], count: str, score: str
+) -> tuple[dict, list[dict]]:
+    """Per arm its seeds' ``scores`` (under the key ``score``), how many exceed ``THRESHOLD`` (under ``count``),
+    the rate with its 95% Clopper-Pearson interval, its ``frames`` and ``logs``; Fisher's two-sided test for every
+    pair of arms."""
     arms = {}
-    for name, (frames, returns) in curves.items():
-        means, up = took_off(frames, returns)
+    for name, values in scores.items():
+        up = values > THRESHOLD
         ci = scipy.stats.binomtest(int(up.sum()), len(up)).proportion_ci(0.95, method="exact")
         arms[name] = {
             "seeds": len(up),
-            "took_off": int(up.sum()),
+            count: int(up.sum()),
             "rate": float(up.mean()),
             "rate_ci": [round(float(ci.low), 3), round(float(ci.high), 3)],
-            "late_means": [round(float(m), 1) for m in means],
-            "frames": int(frames[-1]),
+            score: [round(float(v), 1) for v in values],
+            "frames": frames[name][0] if len(frames[name]) == 1 else frames[name],
             "log": logs[name],
         }
     tests = []
     for a, b in itertools.combinations(arms, 2):
-        table = [[arms[x]["took_off"], arms[x]["seeds"] - arms[x]["took_off"]] for x in (a, b)]
+        table = [[arms[x][count], arms[x]["seeds"] - arms[x][count]] for x in (a, b)]
         tests.append({"arms": [a, b], "table": table, "fisher_p": float(scipy.stats.fisher_exact(table)[1])})
+    return arms, tests
+
+
+def summary(curves: dict[str, Curve], logs: dict[str, list[str]]) -> dict:
+    """Per arm of ``curves`` (:func:`arm_curves`' and any reference's, e.g. DrQ-v2's own curves in ``main``) its
+    seeds' late means, take-offs, rate and interval, and its ``logs``; Fisher's test for every pair of arms."""
+    means = {name: took_off(frames, returns)[0] for name, (frames, returns) in curves.items()}
+    last = {name: [int(frames[-1])] for name, (frames, _) in curves.items()}
+    arms, tests = tally(means, last, logs, "took_off", "late_means")
     return {"threshold": THRESHOLD, "from_frames": FROM_FRAMES, "arms": arms, "fisher": tests}
+
+
+def full_length(run_dirs: list[pathlib.Path], reference: dict[str, tuple[np.ndarray, int, str]]) -> dict:
+    """Per arm of ``run_dirs`` (named by config) and of ``reference`` (``{name: (final returns, frames, log)}``)
+    its seeds' final returns (``analysis.final_returns`` of each run, pooled by seed), how many walk, the rate and
+    interval, the frames of its runs' last evaluations and its logs; Fisher's test for every pair of arms."""
+    scores: dict[str, list] = {}
+    frames: dict[str, list[int]] = {}
+    logs: dict[str, list[str]] = {}
+    for run_dir in run_dirs:
+        cfg = run_config(run_dir)
+        steps, returns = load_runs(run_dir)
+        name = arm(cfg)
+        scores.setdefault(name, []).extend(final_returns(returns))
+        last = int(steps[-1]) * action_repeat(cfg["env"]["task"])
+        seen = frames.setdefault(name, [])
+        if last not in seen:
+            seen.append(last)
+        logs.setdefault(name, []).append(log_name(run_dir, RESULTS))
+    for name, (values, at, log) in reference.items():
+        scores[name], frames[name], logs[name] = list(values), [at], [log]
+    arms, tests = tally({k: np.asarray(v) for k, v in scores.items()}, frames, logs, "walked", "final_returns")
+    return {"threshold": THRESHOLD, "arms": arms, "fisher": tests}
 
 
 def main() -> None:
@@ -124,6 +178,8 @@ def main() -> None:
     curves, logs = arm_curves([RESULTS / "runs" / d for d in RUNS])
     reference = {DRQV2: (DRQV2_FRAMES, DRQV2_RETURNS)}
     out = summary(curves | reference, logs | {DRQV2: ["facebookresearch/drqv2 curves/dmc_walker_walk.csv (d6dbadc)"]})
+    csv = "facebookresearch/drqv2 curves/dmc_walker_walk.csv (c0c650b)"
+    out["full_length"] = full_length([RESULTS / "runs" / d for d in FULL_RUNS], {DRQV2: (DRQV2_FINAL, 500_000, csv)})
     (RESULTS / "drqv2_takeoff.json").write_text(json.dumps(out, indent=1) + "\n")
     title = f"DrQ-v2 walker_walk pixels: take-off (mean from {FROM_FRAMES // 1000}k frames > {THRESHOLD:g})"
     xlabel = "frames (agent steps x action repeat)"
@@ -133,6 +189,13 @@ def main() -> None:
     for name, a in out["arms"].items():
         print(f"| {name} | {a['seeds']} | {a['took_off']} | {a['rate']:.2f} {a['rate_ci']} | {a['late_means']} |")
     for t in out["fisher"]:
+        print(f"Fisher's exact test, {t['arms'][0]} against {t['arms'][1]}: p = {t['fisher_p']:.3f}")
+    full = out["full_length"]
+    print(f"\nAt full length (final return > {THRESHOLD:g}):\n| arm | seeds | walked | rate [95% CI] | final returns |")
+    print("|---|---:|---:|---:|---|")
+    for name, a in full["arms"].items():
+        print(f"| {name} | {a['seeds']} | {a['walked']} | {a['rate']:.2f} {a['rate_ci']} | {a['final_returns']} |")
+    for t in full["fisher"]:
         print(f"Fisher's exact test, {t['arms'][0]} against {t['arms'][1]}: p = {t['fisher_p']:.3f}")
 
 

@@ -912,6 +912,36 @@ def _takeoff_run(run: pathlib.Path, precision: str, out_f32: bool, finals: list[
     (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
 
 
+def _walker_run(run: pathlib.Path, out_f32: bool, returns: np.ndarray) -> None:
+    """A DrQ-v2 walker run (bf16) with ``returns`` (evals, seeds) at every 10k agent steps."""
+    _takeoff_run(run, "bf16", out_f32, [25.0] * returns.shape[1])
+    steps = 10_000 * np.arange(1, len(returns) + 1)
+    lines = [json.dumps({"env_steps": int(s), "eval_return": r.tolist()}) for s, r in zip(steps, returns, strict=True)]
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_takeoff_full_length_pools_each_arms_seeds_by_their_own_final_returns(tmp_path, monkeypatch):
+    takeoff = _experiment(monkeypatch, "takeoff")
+    rng = np.random.default_rng(0)
+    long, stopped = rng.uniform(0, 1000, (25, 2)), rng.uniform(0, 300, (24, 1))  # 500k and 480k frames
+    stopped[-12:] = 20.0  # its seed ends on the plateau: the last 10 evaluations alone decide
+    _walker_run(tmp_path / "long", False, long)
+    _walker_run(tmp_path / "stopped", False, stopped)
+    _walker_run(tmp_path / "f32", True, np.full((25, 3), 900.0))
+    reference = {"ref": (np.array([20.0, 800.0]), 500_000, "ref.csv")}
+    out = takeoff.full_length([tmp_path / d for d in ("long", "stopped", "f32")], reference)
+    plain = out["arms"]["bf16"]
+    expected = [float(np.mean(long[-10:, j])) for j in range(2)] + [20.0]  # not cut to the stopped run's length
+    np.testing.assert_allclose(plain["final_returns"], np.round(expected, 1))
+    assert plain["walked"] == sum(v > takeoff.THRESHOLD for v in expected)
+    assert plain["frames"] == [500_000, 480_000] and plain["seeds"] == 3
+    f32, ref = out["arms"]["bf16 + float32 critic output"], out["arms"]["ref"]
+    assert (f32["walked"], f32["frames"], ref["walked"], ref["log"]) == (3, 500_000, 1, ["ref.csv"])
+    tables = {tuple(t["arms"]): t["table"] for t in out["fisher"]}
+    assert tables[("bf16", "bf16 + float32 critic output")] == [[plain["walked"], 3 - plain["walked"]], [3, 0]]
+    assert len(tables) == 3
+
+
 def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path, monkeypatch):
     takeoff = _experiment(monkeypatch, "takeoff")
     plain = [25.0, 400.0, 30.0, 500.0, 600.0, 350.0, 450.0, 300.0]  # two stay on the plateau
