@@ -56,11 +56,14 @@
 #       machine, counted in full, would leave about 28 min of rounds after its start and first compile, this one
 #       held 22 min for 20 min of rounds; H100 rounds are about 1.2x an H200's, 4.55 against 3.79 s for this
 #       job): GPU=0 this SEED=21; GPU=1 ALGO=surf TASK=cheetah SEED=6
-#       SEEDS=2 STEPS=150000 (1,259 s on an H200, about 25 min on an H100); GPU=2 ALGO=rebel LAMS="0 0.001"
+#       SEEDS=2 STEPS=150000 (1,259 s on an H200, about 25 min on an H100; it has run on H200s only: the CPU
+#       estimate, benchmarks/pixel_memory.py --configs surf_cheetah --seeds 2 --total-steps 150000, is 34.2 GiB of
+#       state and 25.9 GiB of round temp, inside an H100's 76 GiB at the set's 95%); GPU=2 ALGO=rebel LAMS="0 0.001"
 #       TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 (1,101 s on an H200, about 22 min on an H100): at 300k frames
 #       PEBBLE and REBEL at 8 keys, SURF at 6, paired on 6; GPU=3 the first pixel walker preference job, ALGO=rebel
 #       LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000 (unmeasured: 4 envs were 10.3 s
-#       rounds, 7.5 s of them physics, 43 min; 20 envs cut the physics 5x); the watch ships its log every minute;
+#       rounds, 7.5 s of them physics, 43 min; 20 envs cut the physics 5x; CPU estimate 2.85 GiB of state and
+#       3.6 GiB of round temp per column); the watch ships its log every minute;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
