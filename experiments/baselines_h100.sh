@@ -63,7 +63,9 @@
 #       PEBBLE and REBEL at 8 keys, SURF at 6, paired on 6; GPU=3 the first pixel walker preference job, ALGO=rebel
 #       LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000 (unmeasured: 4 envs were 10.3 s
 #       rounds, 7.5 s of them physics, 43 min; 20 envs cut the physics 5x; CPU estimate 2.85 GiB of state and
-#       3.6 GiB of round temp per column); the watch ships its log every minute;
+#       3.6 GiB of round temp per column); the watch ships its log every minute. SET "four_gpu_plan" starts all
+#       four in one call (REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT four_gpu_plan, chained
+#       with the same command: a job that runs or has finished is not started again);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -275,6 +277,17 @@ case "${2:-shared}" in
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
+  four_gpu_plan)  # the plan for the next machine of four GPUs (header, drqv2_seed): one detached job per GPU,
+    # each this script's own set in a clean environment; the last one's watch waits for all four and ships every log
+    self=(bash "$0" "$((call_limit - SECONDS))")
+    clean=(env -u ALGO -u TASK -u SEED -u SEEDS -u STEPS -u LAMS -u ENVS -u SEED_STEPS -u CRITIC_F32 -u CAPACITY
+      -u SURF_ADAM -u REWARD_BF16 -u GPU -u WATCH DETACH=1 PRECISION=bf16)
+    "${clean[@]}" GPU=0 WATCH=0 TASK=walker SEED=21 CRITIC_F32=1 "${self[@]}" drqv2_seed
+    "${clean[@]}" GPU=1 WATCH=0 ALGO=surf TASK=cheetah SEED=6 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
+    "${clean[@]}" GPU=2 WATCH=0 ALGO=rebel LAMS="0 0.001" TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
+    "${clean[@]}" GPU=3 ALGO=rebel LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000 \
+      "${self[@]}" pixel_seed
+    exit 0 ;;
   drqv2_seed)  # DrQ-v2 on pixels, SEEDS seeds per job (default 1; seed_loop runs their updates one after another)
     case ${TASK:?set TASK=walker or cheetah} in
       walker) task=(--task walker_walk_pixels --drqv2.nstep 1 --drqv2.batch-size 512 --drqv2.std-steps 100000) ;;

@@ -27,6 +27,7 @@ STUB = """#!/usr/bin/env bash
 [ "$1" = python3 ] && shift  # setsid python3 ...
 printf '%s\\n' "${CUDA_VISIBLE_DEVICES-all}" >>"$CALLS.gpu"  # the GPUs the command may see
 printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
+printf '%s\\t%s\\n' "${CUDA_VISIBLE_DEVICES-all}" "$(printf '%q ' "$@")" >>"$CALLS.both"  # one write: GPU, command
 case "$*" in *rebel_jax.train*) [ -n "${STUB_SECONDS:-}" ] && sleep "$STUB_SECONDS" ;; esac  # a job that runs a while
 """
 SETS = [  # (SET, environment): the sets the script documents, with the variables each needs
@@ -172,6 +173,39 @@ def test_one_call_starts_a_detached_job_per_gpu_and_the_last_script_ships_every_
     logs = {pathlib.Path(name).name for name in listed.stdout.split() if name.endswith(".log")}
     names = {pathlib.Path(argv[argv.index("--run-dir") + 1]).name + ".log" for argv in (first, second)}
     assert logs == names  # the last script's watch ships both jobs' logs
+
+
+def test_the_four_gpu_plan_starts_one_planned_job_per_gpu_and_ships_all_their_logs(tmp_path):
+    # The caller's variables must not reach the planned jobs. Each stubbed job lives 1 s, so that the last watch
+    # (LIMIT 45) waits for all four, as on the device, before it ships their logs.
+    env = {"SEEDS": "5", "LAMS": "0.1", "ENVS": "40", "STUB_SECONDS": "1"}
+    work, full_env = _stubbed(tmp_path, env, detach=False)
+    done = subprocess.run(["bash", str(SCRIPT), "45", "four_gpu_plan"], cwd=work, env=full_env, capture_output=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = (tmp_path / "calls.txt").read_text().splitlines()
+    commands = [shlex.split(line) for line in lines if "rebel_jax.train" in line]
+    gpus = {}
+    for line in (tmp_path / "calls.txt.both").read_text().splitlines():
+        gpu, command = line.split("\t")
+        argv = shlex.split(command)
+        if "rebel_jax.train" in argv:
+            gpus[argv[argv.index("--run-dir") + 1]] = gpu
+    planned = {
+        "runs/drqv2_walker_500kframes_seed21_bf16_qf32": "0",
+        "runs/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16": "1",
+        "runs/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16": "2",
+        "runs/rebel_walker_pixels_250000steps_seed0_lams_0_0.001_envs20_seedsteps10000_bf16": "3",
+    }
+    assert gpus == planned
+    for argv in commands:
+        args = cli.parse(argv[2:])
+        assert args.checkpoint_every == 0 and args.config.drqv2.precision == "bf16"
+        assert args.seeds == (2 if "_seeds2" in argv[argv.index("--run-dir") + 1] else 1)
+    walker = cli.parse(next(a for a in commands if "runs/rebel_walker" in " ".join(a))[2:])
+    assert (walker.config.env.num_envs, walker.config.train.seed_steps, walker.lams) == (20, 10_000, (0.0, 0.001))
+    listed = subprocess.run(["tar", "tzf", tmp_path / "runs.tar.gz"], capture_output=True, text=True, check=True)
+    logs = {name for name in listed.stdout.split() if name.endswith(".log")}
+    assert logs == {f"{run}.log" for run in planned}  # the last job's watch ships all four
 
 
 def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path):
