@@ -279,6 +279,9 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   four_gpu_plan)  # the plan for the next machine of four GPUs (header, drqv2_seed): one detached job per GPU,
     # each this script's own set in a clean environment; the last one's watch waits for all four and ships every log
+    if command -v nvidia-smi >/dev/null && [ "$(nvidia-smi -L | wc -l)" -lt 4 ]; then
+      echo "four_gpu_plan needs 4 GPUs, this machine has $(nvidia-smi -L | wc -l): start the jobs one by one"; exit 1
+    fi
     self=(bash "$0" "$((call_limit - SECONDS))")
     clean=(env -u ALGO -u TASK -u SEED -u SEEDS -u STEPS -u LAMS -u ENVS -u SEED_STEPS -u CRITIC_F32 -u CAPACITY
       -u SURF_ADAM -u REWARD_BF16 -u GPU -u WATCH DETACH=1 PRECISION=bf16)

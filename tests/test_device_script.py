@@ -206,6 +206,10 @@ def test_the_four_gpu_plan_starts_one_planned_job_per_gpu_and_ships_all_their_lo
     listed = subprocess.run(["tar", "tzf", tmp_path / "runs.tar.gz"], capture_output=True, text=True, check=True)
     logs = {name for name in listed.stdout.split() if name.endswith(".log")}
     assert logs == {f"{run}.log" for run in planned}  # the last job's watch ships all four
+    (tmp_path / "bin" / "nvidia-smi").write_text("#!/usr/bin/env bash\necho 'GPU 0: NVIDIA H100'\n")
+    (tmp_path / "bin" / "nvidia-smi").chmod(0o755)
+    refused = subprocess.run(["bash", str(SCRIPT), "45", "four_gpu_plan"], cwd=work, env=full_env, capture_output=True)
+    assert refused.returncode == 1 and b"needs 4 GPUs, this machine has 1" in refused.stdout
 
 
 def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path):
