@@ -5,7 +5,8 @@ Usage:
 
 For planning device sessions (BENCHMARKS.md, "plan every GPU session"): a run directory's
 ``metrics.jsonl`` gives each round's seconds, its ``config.json`` the schedule. The projection keeps the
-run's program (task, algorithm, columns, device) and changes only ``train.total_steps``:
+run's program (task, algorithm, columns, device; the table names the device from ``meta.json``) and changes only
+``train.total_steps``:
 
 - the first round (the compile and the first seed steps) as measured;
 - every later seed-step round (no updates yet) at the run's median seed-step round;
@@ -116,6 +117,11 @@ def columns_of(run_dir: pathlib.Path) -> int:
     return int(json.loads((run_dir / "meta.json").read_text())["columns"])
 
 
+def devices_of(run_dir: pathlib.Path) -> str:
+    """The devices the run ran on, from its ``meta.json`` (an H100's rounds are not an H200's)."""
+    return ", ".join(json.loads((run_dir / "meta.json").read_text())["devices"])
+
+
 def plain_line(points: list[tuple[int, float]]) -> tuple[float, float]:
     """``(alpha, beta)`` of the least-squares line ``plain = alpha + beta x columns`` through ``(columns, plain)``.
 
@@ -166,6 +172,7 @@ def project(
     projected = costs if columns is None else at_columns(costs, cfg, own, columns, line)
     return {
         "run": run_dir.name,
+        "device": devices_of(run_dir),
         "columns": own if columns is None else columns,
         "costs": costs._asdict(),
         "measured_steps": rows[-1]["env_steps"],
@@ -187,7 +194,7 @@ def fit_line(runs: list[pathlib.Path], fit_steps: int | None = None) -> tuple[fl
         cfg = read_config(run / "config.json")
         rows = [r for r in records(run) if fit_steps is None or r["env_steps"] <= fit_steps]
         points.append((columns_of(run), round_costs(rows, cfg).plain))
-        where.add((cfg.env.task, tuple(json.loads((run / "meta.json").read_text())["devices"])))
+        where.add((cfg.env.task, devices_of(run)))
     if len(where) > 1:
         raise ValueError(f"--columns needs runs of one task on one device; got {sorted(where)}")
     return plain_line(points)
@@ -211,8 +218,10 @@ def main(argv: list[str] | None = None) -> None:
         except (FileNotFoundError, KeyError, ValueError) as err:
             sys.exit(f"error: {err}")
         print(f"plain rounds: {line[0]:.2f} + {line[1]:.2f} s per column")
-    print("| run | plain s | session s: a + b x labels | measured: steps, s (fit at its length) | projected s |")
-    print("|---|---:|---:|---:|---:|")
+    print(
+        "| run | device | plain s | session s: a + b x labels | measured: steps, s (fit at its length) | projected s |"
+    )
+    print("|---|---|---:|---:|---:|---:|")
     for run in args.runs:
         try:
             out = project(run, args.total_steps, args.fit_steps, args.columns, line)
@@ -220,7 +229,8 @@ def main(argv: list[str] | None = None) -> None:
             sys.exit(f"error: {run}: {err}")
         c = out["costs"]
         print(
-            f"| {out['run']} | {c['plain']:.2f} | {c['session_base']:.1f} + {c['session_per_label']:.3f} x labels "
+            f"| {out['run']} | {out['device']} | {c['plain']:.2f} "
+            f"| {c['session_base']:.1f} + {c['session_per_label']:.3f} x labels "
             f"({c['sessions']} sessions) | {out['measured_steps']:,}, {out['measured_s']:,.0f} "
             f"({out['own_length_s']:,.0f}) | {out['projected_s']:,.0f} at {out['total_steps']:,}, "
             f"{out['columns']} columns |"

@@ -107,7 +107,7 @@ def test_project_reads_a_run_directory(tmp_path):
     cfg = _config(40_000)
     _write_run(tmp_path, cfg)
     out = job_time.project(tmp_path, 300_000)
-    assert out["measured_steps"] == 40_000
+    assert out["measured_steps"] == 40_000 and out["device"] == "NVIDIA H200"  # as _write_run's meta.json
     assert out["measured_s"] == pytest.approx(sum(_expected_rounds(cfg)))
     assert out["own_length_s"] == pytest.approx(out["measured_s"])
     assert out["projected_s"] == pytest.approx(sum(_expected_rounds(_config(300_000))))
