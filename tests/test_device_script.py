@@ -25,9 +25,8 @@ SCRIPT = pathlib.Path(__file__).parents[1] / "experiments" / "baselines_h100.sh"
 STUB = """#!/usr/bin/env bash
 [ "$1" = -c ] && exec "$REAL_PYTHON" "$@"  # python3 -c: a set reading its flags from Python runs it for real
 [ "$1" = python3 ] && shift  # setsid python3 ...
-printf '%s\\n' "${CUDA_VISIBLE_DEVICES-all}" >>"$CALLS.gpu"  # the GPUs the command may see
 printf '%s\\n' "$(printf '%q ' "$@")" >>"$CALLS"
-printf '%s\\t%s\\n' "${CUDA_VISIBLE_DEVICES-all}" "$(printf '%q ' "$@")" >>"$CALLS.both"  # one write: GPU, command
+printf '%s\\t%s\\n' "${CUDA_VISIBLE_DEVICES-all}" "$(printf '%q ' "$@")" >>"$CALLS.gpu"  # the GPUs it may see
 case "$*" in *rebel_jax.train*) [ -n "${STUB_SECONDS:-}" ] && sleep "$STUB_SECONDS" ;; esac  # a job that runs a while
 """
 SETS = [  # (SET, environment): the sets the script documents, with the variables each needs
@@ -160,15 +159,25 @@ def test_every_set_of_the_device_script_passes_a_command_the_cli_accepts(tmp_pat
             assert args.config.drqv2.batch_size == (512 if env["TASK"] == "walker" else 256)
 
 
+def _gpus(tmp_path: pathlib.Path) -> dict[str, str]:
+    """Each recorded training command's run directory -> the GPUs it could see (``STUB``'s ``calls.txt.gpu``)."""
+    out = {}
+    for line in (tmp_path / "calls.txt.gpu").read_text().splitlines():
+        gpu, command = line.split("\t")
+        argv = shlex.split(command)
+        if "rebel_jax.train" in argv:
+            out[argv[argv.index("--run-dir") + 1]] = gpu
+    return out
+
+
 def test_one_call_starts_a_detached_job_per_gpu_and_the_last_script_ships_every_log(tmp_path):
     walker = {"TASK": "walker", "SEED": "0", "PRECISION": "bf16"}
     cheetah = {"ALGO": "rebel", "TASK": "cheetah", "LAMS": "0 0.001", "SEED": "0", "SEEDS": "2", "STEPS": "150000"}
     (first,) = _commands(tmp_path, "drqv2_seed", walker | {"GPU": "0", "WATCH": "0"}, detach=True)
-    assert (tmp_path / "calls.txt.gpu").read_text().split()[-1] == "0"
     assert not (tmp_path / "runs.tar.gz").exists()  # WATCH=0 starts its job and returns: nothing shipped yet
-    (tmp_path / "calls.txt.gpu").unlink()
     (second,) = _commands(tmp_path, "pixel_seed", cheetah | {"GPU": "1"}, detach=True)
-    assert (tmp_path / "calls.txt.gpu").read_text().split()[-1] == "1"
+    gpus = _gpus(tmp_path)
+    assert [gpus[argv[argv.index("--run-dir") + 1]] for argv in (first, second)] == ["0", "1"]
     listed = subprocess.run(["tar", "tzf", tmp_path / "runs.tar.gz"], capture_output=True, text=True, check=True)
     logs = {pathlib.Path(name).name for name in listed.stdout.split() if name.endswith(".log")}
     names = {pathlib.Path(argv[argv.index("--run-dir") + 1]).name + ".log" for argv in (first, second)}
@@ -184,19 +193,13 @@ def test_the_four_gpu_plan_starts_one_planned_job_per_gpu_and_ships_all_their_lo
     assert done.returncode == 0, done.stderr[-2000:]
     lines = (tmp_path / "calls.txt").read_text().splitlines()
     commands = [shlex.split(line) for line in lines if "rebel_jax.train" in line]
-    gpus = {}
-    for line in (tmp_path / "calls.txt.both").read_text().splitlines():
-        gpu, command = line.split("\t")
-        argv = shlex.split(command)
-        if "rebel_jax.train" in argv:
-            gpus[argv[argv.index("--run-dir") + 1]] = gpu
     planned = {
         "runs/drqv2_walker_500kframes_seed21_bf16_qf32": "0",
         "runs/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16": "1",
         "runs/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16": "2",
         "runs/rebel_walker_pixels_250000steps_seed0_lams_0_0.001_envs20_seedsteps10000_bf16": "3",
     }
-    assert gpus == planned
+    assert _gpus(tmp_path) == planned
     for argv in commands:
         args = cli.parse(argv[2:])
         assert args.checkpoint_every == 0 and args.config.drqv2.precision == "bf16"
