@@ -43,6 +43,8 @@ RUNS: dict[str, list[str]] = {
         "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
         "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
         "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
+        "pixels/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16",
+        "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
     ],
     "walker_walk_pixels": [
         "pixels/drqv2_walker_500kframes_seed0_bf16",
@@ -50,6 +52,8 @@ RUNS: dict[str, list[str]] = {
         "pixels/drqv2_walker_500kframes_seed22_bf16_qf32",
         "pixels/drqv2_walker_500kframes_seed23_bf16_qf32",
         "pixels/drqv2_walker_500kframes_seed24_bf16_qf32",
+        "pixels/drqv2_walker_500kframes_seed21_bf16_qf32",
+        "pixels/rebel_walker_pixels_250000steps_seed0_lams_0_0.001_envs20_seedsteps10000_bf16",
     ],
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``; runs of one method that
@@ -75,6 +79,8 @@ MATCHED: dict[str, tuple[int, list[str]]] = {
             "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
             "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
             "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
+            "pixels/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16",
+            "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
         ],
     ),
 }
@@ -87,6 +93,7 @@ PEBBLE, REBEL = "pebble (rebel lam=0) 1000 labels", "rebel lam=0.001 1000 labels
 SURF = "surf 1000 labels (reward_update 20)"
 PAIRED: dict[str, list[tuple[str, str]]] = {
     "cheetah_run_pixels": [(PEBBLE, REBEL), (PEBBLE, SURF), (SURF, f"{SURF} (SURF's reward Adam)")],
+    "walker_walk_pixels": [("pebble (rebel lam=0) 200 labels", "rebel lam=0.001 200 labels")],
 }
 """Pixel task -> (method a, method b): b against a key by key (:func:`paired`), in the rows and the matched
 entries wherever both methods have seeds of the same keys at the same frames, by their returns and by their
@@ -99,15 +106,21 @@ def action_repeat(task: str) -> int:
 
 
 def _described(task: str, label: str, info: dict) -> dict:
-    """What a pixels.json entry is and where it comes from: its task, method and run provenance."""
+    """What a pixels.json entry is and where it comes from: its task, method and run provenance.
+
+    A method's seeds may come from runs on different devices and days, so ``device`` and ``date`` list every
+    one of its runs' values (sorted, each once) and ``command`` each run's command, in the order of ``log``, as
+    ``experiments/baselines.py`` does; all read from the runs' ``meta.json``.
+    """
+    metas = [json.loads((d / "meta.json").read_text()) for d in info["run_dirs"]]
     return {
         "task": task.removesuffix("_pixels"),
         "algo": info["algo"],
         "method": label,
         "obs": "pixels",
-        "device": info["device"],
-        "date": info["date"],
-        "command": info["command"],
+        "device": sorted({m["devices"][0] for m in metas}),
+        "date": sorted({m["started"][:10] for m in metas}),
+        "command": [m["command"] for m in metas],
         "log": [log_name(d, RESULTS) for d in info["run_dirs"]],
     }
 

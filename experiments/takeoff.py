@@ -67,6 +67,7 @@ FULL_RUNS: list[str] = [
     "pixels/drqv2_walker_500kframes_seed22_bf16_qf32",
     "pixels/drqv2_walker_500kframes_seed23_bf16_qf32",
     "pixels/drqv2_walker_500kframes_seed24_bf16_qf32",
+    "pixels/drqv2_walker_500kframes_seed21_bf16_qf32",
 ]
 """The walker DrQ-v2 runs of today's code that reached 480k-500k frames (the 218k-frame run of earlier code is
 left out)."""

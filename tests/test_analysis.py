@@ -596,6 +596,9 @@ def test_pixel_rows_merge_one_seed_jobs_and_count_frames(tmp_path, monkeypatch):
     runs = [tmp_path / "runs" / f"drqv2_seed{k}" for k in range(3)]
     for k, run in enumerate(runs):  # one seed per job, as the drqv2_seed set runs them
         _fake_curve_run(run, "drqv2", 1.0 + k, 1, task="walker_walk_pixels")
+    meta = json.loads((runs[2] / "meta.json").read_text())  # the last job ran on another device, a day later
+    meta |= {"devices": ["e"], "started": "2026-11-25T09:00:00", "command": "train --algo drqv2 --seed 2"}
+    (runs[2] / "meta.json").write_text(json.dumps(meta))
     rows, curves = pixels.rows("walker_walk_pixels", runs)
     assert len(rows) == 1
     row = rows[0]
@@ -604,6 +607,8 @@ def test_pixel_rows_merge_one_seed_jobs_and_count_frames(tmp_path, monkeypatch):
     assert row["frames"] == 2 * 200_000 and pixels.action_repeat("walker_walk_pixels") == 2
     assert (row["task"], row["algo"], row["obs"]) == ("walker_walk", "drqv2", "pixels")
     assert row["log"] == [f"results/runs/drqv2_seed{k}" for k in range(3)]
+    assert row["device"] == ["d", "e"] and row["date"] == ["2026-11-24", "2026-11-25"]
+    assert row["command"] == ["train --algo drqv2"] * 2 + ["train --algo drqv2 --seed 2"]
     low, high = row["iqm_ci"]
     assert low <= row["iqm"] <= high
     frames, returns = curves["drqv2"]
