@@ -51,21 +51,21 @@
 #       GPU=1..3 SEED=22, 23, 24, WATCH=0 on all but the last: 4.52-4.61 s rounds, 1,173-1,205 s each, all four
 #       walk. The fifth seed, SEED=21 alone on a one-GPU machine with 475 s left, was lost: that machine counted
 #       its held time in full and the call's limit_s (445 s, what the budget left) ended it before finish shipped
-#       the log. A call's LIMIT must stay below the limit_s the budget leaves. Next: SEED=21 (about 20 min on an
-#       H100, 16.8 min on an H200). Planned for the next machine of four GPUs (estimated, not run; a four-GPU
-#       machine, counted in full, would leave about 28 min of rounds after its start and first compile, this one
-#       held 22 min for 20 min of rounds; H100 rounds are about 1.2x an H200's, 4.55 against 3.79 s for this
-#       job): GPU=0 this SEED=21; GPU=1 ALGO=surf TASK=cheetah SEED=6
-#       SEEDS=2 STEPS=150000 (1,259 s on an H200, about 25 min on an H100; it has run on H200s only: the CPU
-#       estimate, benchmarks/pixel_memory.py --configs surf_cheetah --seeds 2 --total-steps 150000, is 34.2 GiB of
-#       state and 25.9 GiB of round temp, inside an H100's 76 GiB at the set's 95%); GPU=2 ALGO=rebel LAMS="0 0.001"
-#       TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 (1,101 s on an H200, about 22 min on an H100): at 300k frames
-#       PEBBLE and REBEL at 8 keys, SURF at 6, paired on 6; GPU=3 the first pixel walker preference job, ALGO=rebel
-#       LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000 (unmeasured: 4 envs were 10.3 s
-#       rounds, 7.5 s of them physics, 43 min; 20 envs cut the physics 5x; CPU estimate 2.85 GiB of state and
-#       3.6 GiB of round temp per column); the watch ships its log every minute. SET "four_gpu_plan" starts all
-#       four in one call (REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT four_gpu_plan, chained
-#       with the same command: a job that runs or has finished is not started again);
+#       the log. A call's LIMIT must stay below the limit_s the budget leaves.
+#       SET "four_gpu_plan" (REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT four_gpu_plan, chained
+#       with the same command: a job that runs or has finished is not started again) ran in the twenty-fifth session
+#       (code 9988a96, one machine of four H100s, three chained calls, LIMIT 470, 585, 540, 1,566 s held, counted in
+#       full; every job finished): GPU=0 TASK=walker SEED=21 CRITIC_F32=1 drqv2_seed (3.85 s median rounds, 1,014 s
+#       in all; it failed, 28.2); GPU=1 ALGO=surf TASK=cheetah SEED=6 SEEDS=2 STEPS=150000 pixel_seed (1,383 s);
+#       GPU=2 ALGO=rebel LAMS="0 0.001" TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 (1,201 s); GPU=3 the first pixel
+#       walker preference job, ALGO=rebel LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000
+#       (5.51 s median rounds, 1,440 s in all with a 71 s first round). Its CPU memory estimate was 2.85 GiB of state
+#       and 3.6 GiB of round temp per column.
+#       SET "walker_pixel_plan" is the next four-GPU machine (the same usage; estimated, not run): GPU=0..2 that walker
+#       job on SEED=1, 2, 3 (about 24 min each on an H100, as SEED=0), GPU=3 ALGO=surf TASK=walker SEED=0 with the same
+#       ENVS, SEED_STEPS and STEPS (unmeasured; CPU estimate, benchmarks/pixel_memory.py --configs surf_walker --seeds
+#       1 --total-steps 250000 --flags="--num-envs 20 --seed-steps 10000 --drqv2.precision bf16": 5.1 GiB of state and
+#       6.2 GiB of round temp). After it, PEBBLE and REBEL have 4 walker keys and SURF 1;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -277,19 +277,27 @@ case "${2:-shared}" in
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
-  four_gpu_plan)  # the plan for the next machine of four GPUs (header, drqv2_seed): one detached job per GPU,
-    # each this script's own set in a clean environment; the last one's watch waits for all four and ships every log
+  four_gpu_plan|walker_pixel_plan)  # one detached job per GPU of a four-GPU machine (header, drqv2_seed), each
+    # this script's own set in a clean environment; the last one's watch waits for all four and ships every log.
+    # four_gpu_plan ran in the twenty-fifth session; walker_pixel_plan is the next: the walker pixel preference jobs
     if command -v nvidia-smi >/dev/null && [ "$(nvidia-smi -L | wc -l)" -lt 4 ]; then
-      echo "four_gpu_plan needs 4 GPUs, this machine has $(nvidia-smi -L | wc -l): start the jobs one by one"; exit 1
+      echo "$2 needs 4 GPUs, this machine has $(nvidia-smi -L | wc -l): start the jobs one by one"; exit 1
     fi
     self=(bash "$0" "$((call_limit - SECONDS))")
     clean=(env -u ALGO -u TASK -u SEED -u SEEDS -u STEPS -u LAMS -u ENVS -u SEED_STEPS -u CRITIC_F32 -u CAPACITY
       -u SURF_ADAM -u REWARD_BF16 -u GPU -u WATCH DETACH=1 PRECISION=bf16)
-    "${clean[@]}" GPU=0 WATCH=0 TASK=walker SEED=21 CRITIC_F32=1 "${self[@]}" drqv2_seed
-    "${clean[@]}" GPU=1 WATCH=0 ALGO=surf TASK=cheetah SEED=6 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
-    "${clean[@]}" GPU=2 WATCH=0 ALGO=rebel LAMS="0 0.001" TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
-    "${clean[@]}" GPU=3 ALGO=rebel LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000 \
-      "${self[@]}" pixel_seed
+    walker=(TASK=walker ENVS=20 SEED_STEPS=10000 STEPS=250000)  # the issue's 500k frames, every env's episode first
+    if [ "$2" = four_gpu_plan ]; then
+      "${clean[@]}" GPU=0 WATCH=0 TASK=walker SEED=21 CRITIC_F32=1 "${self[@]}" drqv2_seed
+      "${clean[@]}" GPU=1 WATCH=0 ALGO=surf TASK=cheetah SEED=6 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
+      "${clean[@]}" GPU=2 WATCH=0 ALGO=rebel LAMS="0 0.001" TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
+      "${clean[@]}" GPU=3 ALGO=rebel LAMS="0 0.001" SEED=0 "${walker[@]}" "${self[@]}" pixel_seed
+    else
+      for k in 1 2 3; do
+        "${clean[@]}" GPU=$((k - 1)) WATCH=0 ALGO=rebel LAMS="0 0.001" SEED=$k "${walker[@]}" "${self[@]}" pixel_seed
+      done
+      "${clean[@]}" GPU=3 ALGO=surf SEED=0 "${walker[@]}" "${self[@]}" pixel_seed
+    fi
     exit 0 ;;
   drqv2_seed)  # DrQ-v2 on pixels, SEEDS seeds per job (default 1; seed_loop runs their updates one after another)
     case ${TASK:?set TASK=walker or cheetah} in

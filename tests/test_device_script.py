@@ -215,6 +215,26 @@ def test_the_four_gpu_plan_starts_one_planned_job_per_gpu_and_ships_all_their_lo
     assert refused.returncode == 1 and b"needs 4 GPUs, this machine has 1" in refused.stdout
 
 
+def test_the_walker_pixel_plan_runs_three_pebble_rebel_keys_and_one_surf_key_at_the_issues_length(tmp_path):
+    work, full_env = _stubbed(tmp_path, {"SEED": "9", "ALGO": "drqv2", "STUB_SECONDS": "1"}, detach=False)
+    done = subprocess.run(["bash", str(SCRIPT), "45", "walker_pixel_plan"], cwd=work, env=full_env, capture_output=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    tail = "_envs20_seedsteps10000_bf16"
+    planned = {f"runs/rebel_walker_pixels_250000steps_seed{k}_lams_0_0.001{tail}": str(k - 1) for k in (1, 2, 3)}
+    planned["runs/surf_walker_pixels_250000steps_seed0" + tail] = "3"
+    assert _gpus(tmp_path) == planned
+    lines = (tmp_path / "calls.txt").read_text().splitlines()
+    for argv in (shlex.split(line) for line in lines if "rebel_jax.train" in line):
+        args = cli.parse(argv[2:])
+        run = argv[argv.index("--run-dir") + 1]
+        assert args.config.env.task == "walker_walk_pixels" and args.config.train.total_steps == 250_000
+        assert (args.config.env.num_envs, args.config.train.seed_steps, args.seeds) == (20, 10_000, 1)
+        assert args.config.algo == ("surf" if "surf_" in run else "rebel")
+        assert args.lams == ((0.0,) if "surf_" in run else (0.0, 0.001))  # SURF: its one lambda, unused
+    listed = subprocess.run(["tar", "tzf", tmp_path / "runs.tar.gz"], capture_output=True, text=True, check=True)
+    assert {name for name in listed.stdout.split() if name.endswith(".log")} == {f"{run}.log" for run in planned}
+
+
 def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path):
     """The device ends a call at its ``limit_s``, which the device time left may put below the script's LIMIT:
     the logs shipped during the watch come back even though ``finish`` never ran."""
