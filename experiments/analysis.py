@@ -40,6 +40,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
 from numpy.typing import ArrayLike  # noqa: E402
 from rliable import library as rly  # noqa: E402
 from rliable import metrics as rly_metrics  # noqa: E402
@@ -194,6 +195,20 @@ def sign_test_p(positive: int, pairs: int) -> float:
     probability 1/2): twice the binomial tail of the rarer sign, at most 1."""
     rare = min(positive, pairs - positive)
     return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
+
+
+def signed_rank_p(differences: ArrayLike) -> float | None:
+    """Two-sided Wilcoxon signed-rank p-value of non-zero paired ``differences``: the share of the sign patterns
+    of their ranks (ties at mid-ranks) whose signed-rank sum lies as far from its mean as the observed one.
+
+    Exact (every one of the 2**n patterns, scipy's permutation version) up to 16 differences, a fixed-seed sample
+    of 2**16 patterns beyond; None for none. Unlike the sign test it weighs each difference by its size's rank.
+    """
+    d = np.asarray(differences, dtype=float)
+    if d.size < 2:  # one difference: both of its sign patterns lie as far from the mean (scipy wants two)
+        return 1.0 if d.size else None
+    method = scipy.stats.PermutationMethod(n_resamples=2**16, rng=0)
+    return float(scipy.stats.wilcoxon(d, zero_method="wilcox", method=method).pvalue)
 
 
 def final_returns(returns: ArrayLike, last: int = 10) -> np.ndarray:

@@ -26,7 +26,7 @@ import warnings
 from collections.abc import Iterator
 
 import numpy as np
-from analysis import bootstrap_ci, curve_figure, load_runs, log_name, sign_test_p
+from analysis import bootstrap_ci, curve_figure, load_runs, log_name, sign_test_p, signed_rank_p
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
@@ -185,8 +185,9 @@ def seed_keys(run_dirs: list[pathlib.Path], label: str) -> list[list[int]]:
 def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     """Method ``b`` against ``a`` key by key: for each frames at which ``entries`` (rows or matched entries) hold
     both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's, their mean,
-    standard error, 95% percentile bootstrap interval of the mean, and how many are positive with the two-sided
-    sign test's p-value. No entry where the two share no key."""
+    standard error, 95% percentile bootstrap interval of the mean (at a few keys narrower than its 95%), and how
+    many are positive with the two-sided sign test's p-value and the Wilcoxon signed-rank test's
+    (:func:`analysis.signed_rank_p`). No entry where the two share no key."""
     out = []
     for x in (e for e in entries if e["method"] == a):
         for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):
@@ -216,6 +217,7 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
                     "positive": positive,
                     "pairs": len(nonzero),
                     "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
+                    "signed_rank_p": None if nonzero.size == 0 else round(signed_rank_p(nonzero), 4),
                 }
             )
     return out
@@ -408,8 +410,11 @@ def _quality_table(entries: list[dict]) -> None:
 
 def _paired_table(entries: list[dict]) -> None:
     """Each :func:`paired` entry: method b minus method a, key by key."""
-    print("\n| task | frames | scores | b minus a | keys | per key | mean +- s.e. [95% CI] | positive | sign test p |")
-    print("|---|---:|---|---|---:|---|---:|---:|---:|")
+    print(
+        "\n| task | frames | scores | b minus a | keys | per key | mean +- s.e. [95% CI] | positive | sign test p "
+        "| signed-rank p |"
+    )
+    print("|---|---:|---|---|---:|---|---:|---:|---:|---:|")
     for e in entries:
         low, high = e["mean_ci"]
         digits = 3 if e["scores"] in REWARD_METRICS else 1
@@ -417,7 +422,7 @@ def _paired_table(entries: list[dict]) -> None:
         print(
             f"| {e['task']} | {e['frames']:,} | {e['scores']} | {e['b']} minus {e['a']} | {len(e['keys'])} | {diffs} "
             f"| {e['mean']:+.{digits}f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} "
-            f"| {e['sign_test_p']} |"
+            f"| {e['sign_test_p']} | {e['signed_rank_p']} |"
         )
 
 

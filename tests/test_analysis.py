@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import itertools
 import json
 import math
 import pathlib
@@ -351,6 +352,19 @@ def test_sign_test_p_equals_scipys_two_sided_binomial_test():
         for positive in range(pairs + 1):
             expected = scipy.stats.binomtest(positive, pairs, 0.5, alternative="two-sided").pvalue
             assert analysis.sign_test_p(positive, pairs) == pytest.approx(expected, rel=1e-12)
+
+
+def test_signed_rank_p_equals_an_enumeration_of_every_sign_pattern():
+    rng = np.random.default_rng(0)
+    for n in range(1, 9):
+        d = np.round(rng.normal(size=n), 0) + rng.choice([0.0, 0.5], size=n)  # rounded: ties among the sizes
+        d = d[d != 0]
+        ranks = scipy.stats.rankdata(np.abs(d))  # ties at mid-ranks
+        centre, observed = ranks.sum() / 2, ranks[d > 0].sum()
+        sums = [np.dot(ranks, signs) for signs in itertools.product([0, 1], repeat=d.size)]
+        expected = np.mean([abs(w - centre) >= abs(observed - centre) - 1e-9 for w in sums])
+        assert analysis.signed_rank_p(d) == pytest.approx(expected, rel=1e-9), d
+    assert analysis.signed_rank_p([]) is None
 
 
 def _experiment(monkeypatch, name: str):
@@ -780,6 +794,8 @@ def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path,
     assert rebel["mean"] == pytest.approx(np.mean(expected), abs=0.01) and rebel["frames"] == 400_000
     assert rebel["sem"] == pytest.approx(np.std(expected, ddof=1) / 2, abs=0.01)
     assert (rebel["positive"], rebel["pairs"], rebel["sign_test_p"]) == (3, 4, 0.625)
+    # Ranks of |77.5|, |-155|, |155|, |310|: 1, 2.5, 2.5, 4; 8 of the 16 sign patterns lie as far from 5 as 7.5.
+    assert rebel["signed_rank_p"] == 0.5
     low, high = rebel["mean_ci"]
     assert min(expected) <= low <= rebel["mean"] <= high <= max(expected)
     (surf,) = pixels.paired(entries, "pebble (rebel lam=0)", "surf", "final_returns")
