@@ -98,7 +98,7 @@ class DrQV2Config:
     target are not rounded to bfloat16 (not a DrQ-v2 setting: DrQ-v2 is float32 throughout). Rounded, Q near 5
     moves in steps of 1/32, about the 0.05 per-step reward a lying walker gets, the only signal on the plateau
     where failed walker seeds stay (notes/drqv2_audit.md, difference 1). With it 5 of 8 walker seeds took off by
-    120k frames (3 of 8 without) and 4 of 4 walked at 500k (1 of 3 without): never significant, never against it
+    120k frames (3 of 8 without) and 4 of 5 walked at 500k (1 of 3 without): never significant, never against it
     (RESULTS.md). The walker DrQ-v2 runs turn it on (``experiments/baselines_h100.sh``, ``drqv2_seed`` with
     ``CRITIC_F32=1``); off by default so that the pixel preference runs, which all rounded Q, keep one setting.
     The same parameters either way."""
