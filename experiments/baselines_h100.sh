@@ -184,7 +184,8 @@ limit=${1:-520} call_limit=${1:-520}
 limit=$((limit - SECONDS))  # The install's seconds come out of the run's limit (its time on a fresh machine is not measured).
 export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=$PWD/runs/.jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=1
-[ -d .gpu_cache ] && mkdir -p runs/.jax_cache && cp -rn .gpu_cache/. runs/.jax_cache/  # carried from an earlier machine
+# A carried cache seeds the machine's once, in its first call (cp -n warned on the device's coreutils)
+[ -d .gpu_cache ] && [ ! -d runs/.jax_cache ] && mkdir -p runs && cp -r .gpu_cache runs/.jax_cache
 common="--checkpoint-every 1000 --time-limit $limit --no-progress --no-tensorboard"
 launch() {  # name, then the training flags
   local name=$1; shift

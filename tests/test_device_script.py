@@ -215,6 +215,17 @@ def test_the_four_gpu_plan_starts_one_planned_job_per_gpu_and_ships_all_their_lo
     assert refused.returncode == 1 and b"needs 4 GPUs, this machine has 1" in refused.stdout
 
 
+def test_a_carried_compilation_cache_seeds_the_machines_cache_once(tmp_path):
+    work, env = _stubbed(tmp_path, {"TASK": "walker", "SEED": "0"}, detach=True)
+    (work / ".gpu_cache").mkdir()
+    (work / ".gpu_cache" / "entry").write_text("carried")
+    for call in range(2):  # the first call of a machine, then a chained one
+        done = subprocess.run(["bash", str(SCRIPT), "20", "drqv2_seed"], cwd=work, env=env, capture_output=True)
+        assert done.returncode == 0 and b"cp:" not in done.stderr, done.stderr[-2000:]
+        assert (work / "runs" / ".jax_cache" / "entry").read_text() == ("carried" if call == 0 else "compiled")
+        (work / "runs" / ".jax_cache" / "entry").write_text("compiled")  # the job's own entry, kept by the next call
+
+
 def test_the_walker_pixel_plan_runs_three_pebble_rebel_keys_and_one_surf_key_at_the_issues_length(tmp_path):
     work, full_env = _stubbed(tmp_path, {"SEED": "9", "ALGO": "drqv2", "STUB_SECONDS": "1"}, detach=False)
     done = subprocess.run(["bash", str(SCRIPT), "45", "walker_pixel_plan"], cwd=work, env=full_env, capture_output=True)
