@@ -65,7 +65,9 @@
 #       job on SEED=1, 2, 3 (about 24 min each on an H100, as SEED=0), GPU=3 ALGO=surf TASK=walker SEED=0 with the same
 #       ENVS, SEED_STEPS and STEPS (unmeasured; CPU estimate, benchmarks/pixel_memory.py --configs surf_walker --seeds
 #       1 --total-steps 250000 --flags="--num-envs 20 --seed-steps 10000 --drqv2.precision bf16": 5.1 GiB of state and
-#       6.2 GiB of round temp). After it, PEBBLE and REBEL have 4 walker keys and SURF 1;
+#       6.2 GiB of round temp; about 19 min on an H100 by these rows: the 20 envs' shared part 5.51 - 2 x 2.03 = 1.45 s
+#       a round, 2.03 s per walker column (the eighteenth session's second seed), 16 sessions at SURF cheetah's 1.65 +
+#       0.11 s x labels per column, a 90 s first round). After it, PEBBLE and REBEL have 4 walker keys and SURF 1;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
