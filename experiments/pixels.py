@@ -33,19 +33,20 @@ from rebel_jax.envs import make_env
 from rebel_jax.plots import per_seed, records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
+CHEETAH_PREFERENCE = [
+    "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
+    "pixels/rebel_cheetah_pixels_150000steps_seed4_seeds2_lams_0_0.001_bf16",
+    "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
+    "pixels/rebel_cheetah_pixels_150000steps_seed6_seeds2_lams_0_0.001_bf16",
+    "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
+    "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
+    "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
+    "pixels/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16",
+    "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
+]
+"""The whole pixel preference runs on cheetah_run (PEBBLE and REBEL in lam-grid programs, and SURF)."""
 RUNS: dict[str, list[str]] = {
-    "cheetah_run_pixels": [
-        "pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16",
-        "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
-        "pixels/rebel_cheetah_pixels_150000steps_seed4_seeds2_lams_0_0.001_bf16",
-        "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
-        "pixels/rebel_cheetah_pixels_150000steps_seed6_seeds2_lams_0_0.001_bf16",
-        "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
-        "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
-        "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
-        "pixels/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16",
-        "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
-    ],
+    "cheetah_run_pixels": ["pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16", *CHEETAH_PREFERENCE],
     "walker_walk_pixels": [
         "pixels/drqv2_walker_500kframes_seed0_bf16",
         "pixels/drqv2_walker_500kframes_seed20_seeds1_bf16_qf32",
@@ -68,21 +69,7 @@ STOPPED: dict[str, list[str]] = {
 """Pixel runs that the device budget stopped early: drawn in the task's figure and listed with every
 evaluation under ``pixels.json``'s ``stopped``, but not rows (their last 10 evaluations are not a final score)."""
 MATCHED: dict[str, tuple[int, list[str]]] = {
-    "cheetah_run_pixels": (
-        80_000,
-        [
-            "pixels/rebel_cheetah_pixels_150000steps_seed0_seeds2_lams_0_0.001_bf16_stopped82k",
-            "pixels/rebel_cheetah_pixels_150000steps_seed2_seeds2_lams_0_0.001_bf16",
-            "pixels/rebel_cheetah_pixels_150000steps_seed4_seeds2_lams_0_0.001_bf16",
-            "pixels/surf_cheetah_pixels_80000steps_seed0_seeds3_bf16",
-            "pixels/rebel_cheetah_pixels_150000steps_seed6_seeds2_lams_0_0.001_bf16",
-            "pixels/surf_cheetah_pixels_150000steps_seed2_seeds2_bf16",
-            "pixels/surf_cheetah_pixels_150000steps_seed4_seeds2_bf16",
-            "pixels/surf_cheetah_pixels_80000steps_seed0_seeds2_bf16_surfadam",
-            "pixels/rebel_cheetah_pixels_150000steps_seed8_seeds2_lams_0_0.001_bf16",
-            "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
-        ],
-    ),
+    "cheetah_run_pixels": (80_000, [*STOPPED["cheetah_run_pixels"], *CHEETAH_PREFERENCE]),
 }
 """Pixel task -> (agent steps, run directories): the preference methods compared where all of the runs have
 evaluated, each method's seeds pooled over the directories (:func:`matched`); ``pixels.json``'s ``matched`` and
