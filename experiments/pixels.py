@@ -45,6 +45,11 @@ CHEETAH_PREFERENCE = [
     "pixels/surf_cheetah_pixels_150000steps_seed6_seeds2_bf16",
 ]
 """The whole pixel preference runs on cheetah_run (PEBBLE and REBEL in lam-grid programs, and SURF)."""
+WALKER_PREFERENCE = [
+    *(f"pixels/rebel_walker_pixels_250000steps_seed{k}_lams_0_0.001_envs20_seedsteps10000_bf16" for k in range(4)),
+    "pixels/surf_walker_pixels_250000steps_seed0_envs20_seedsteps10000_bf16",
+]
+"""The whole pixel preference runs on walker_walk (PEBBLE and REBEL in lam-grid programs, and SURF), one key each."""
 RUNS: dict[str, list[str]] = {
     "cheetah_run_pixels": ["pixels/drqv2_cheetah_500kframes_seed0_seeds5_bf16", *CHEETAH_PREFERENCE],
     "walker_walk_pixels": [
@@ -54,7 +59,7 @@ RUNS: dict[str, list[str]] = {
         "pixels/drqv2_walker_500kframes_seed23_bf16_qf32",
         "pixels/drqv2_walker_500kframes_seed24_bf16_qf32",
         "pixels/drqv2_walker_500kframes_seed21_bf16_qf32",
-        "pixels/rebel_walker_pixels_250000steps_seed0_lams_0_0.001_envs20_seedsteps10000_bf16",
+        *WALKER_PREFERENCE,
     ],
 }
 """Pixel task (``<task>_pixels``) -> its whole run directories under ``results/runs``; runs of one method that
@@ -80,7 +85,10 @@ PEBBLE, REBEL = "pebble (rebel lam=0) 1000 labels", "rebel lam=0.001 1000 labels
 SURF = "surf 1000 labels (reward_update 20)"
 PAIRED: dict[str, list[tuple[str, str]]] = {
     "cheetah_run_pixels": [(PEBBLE, REBEL), (PEBBLE, SURF), (SURF, f"{SURF} (SURF's reward Adam)")],
-    "walker_walk_pixels": [("pebble (rebel lam=0) 200 labels", "rebel lam=0.001 200 labels")],
+    "walker_walk_pixels": [
+        ("pebble (rebel lam=0) 200 labels", "rebel lam=0.001 200 labels"),
+        ("pebble (rebel lam=0) 200 labels", "surf 200 labels (reward_update 20)"),
+    ],
 }
 """Pixel task -> (method a, method b): b against a key by key (:func:`paired`), in the rows and the matched
 entries wherever both methods have seeds of the same keys at the same frames, by their returns and by their
