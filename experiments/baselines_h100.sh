@@ -61,13 +61,16 @@
 #       walker preference job, ALGO=rebel LAMS="0 0.001" TASK=walker SEED=0 ENVS=20 SEED_STEPS=10000 STEPS=250000
 #       (5.51 s median rounds, 1,440 s in all with a 71 s first round). Its CPU memory estimate was 2.85 GiB of state
 #       and 3.6 GiB of round temp per column.
-#       SET "walker_pixel_plan" is the next four-GPU machine (the same usage; estimated, not run): GPU=0..2 that walker
-#       job on SEED=1, 2, 3 (about 24 min each on an H100, as SEED=0), GPU=3 ALGO=surf TASK=walker SEED=0 with the same
-#       ENVS, SEED_STEPS and STEPS (unmeasured; CPU estimate, benchmarks/pixel_memory.py --configs surf_walker --seeds
-#       1 --total-steps 250000 --flags="--num-envs 20 --seed-steps 10000 --drqv2.precision bf16": 5.1 GiB of state and
-#       6.2 GiB of round temp; about 19 min on an H100 by these rows: the 20 envs' shared part 5.51 - 2 x 2.03 = 1.45 s
-#       a round, 2.03 s per walker column (the eighteenth session's second seed), 16 sessions at SURF cheetah's 1.65 +
-#       0.11 s x labels per column, a 90 s first round). After it, PEBBLE and REBEL have 4 walker keys and SURF 1;
+#       SET "walker_pixel_plan" (the same usage) ran in the twenty-sixth session (code d8aeeb7, one machine of four
+#       H100s, three chained calls, LIMIT 470, 585, 585, 1,619 s held, counted in full; every job finished): GPU=0..2
+#       that walker job on SEED=1, 2, 3 (5.50-5.55 s median rounds, 1,469-1,474 s in all with 86-97 s first rounds),
+#       GPU=3 ALGO=surf TASK=walker SEED=0 with the same ENVS, SEED_STEPS and STEPS (3.22 s median rounds, 1,042 s in
+#       all with a 99 s first round; the CPU estimate had been 19 min, from benchmarks/pixel_memory.py --configs
+#       surf_walker --seeds 1 --total-steps 250000 --flags="--num-envs 20 --seed-steps 10000 --drqv2.precision bf16":
+#       5.1 GiB of state and 6.2 GiB of round temp).
+#       SET "walker_pixel_last" is the next four-GPU machine (the same usage; estimated from those rows, not run):
+#       GPU=0 the PEBBLE and REBEL walker job on SEED=4 (about 25 min), GPU=1..3 ALGO=surf on SEED=1, 2, 3 (about
+#       18 min each). After it, PEBBLE and REBEL have 5 walker keys and SURF 4; SURF's key 4 is one more job;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the issue's ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -280,9 +283,10 @@ case "${2:-shared}" in
   surf_cheetah_ru)  # SURF cheetah at 1M with reward_update RU (1000 is SURF's walker command)
     launch surf_cheetah_100_1m_bf16_ru${RU:?set RU} --preset paper --algo surf --task cheetah_run --labels 100 --seeds 5 --total-steps 1000000 --precision bf16 --surf.reward-update "$RU"
     wait; finish; exit 0 ;;
-  four_gpu_plan|walker_pixel_plan)  # one detached job per GPU of a four-GPU machine (header, drqv2_seed), each
+  four_gpu_plan|walker_pixel_plan|walker_pixel_last)  # one detached job per GPU of four (header, drqv2_seed), each
     # this script's own set in a clean environment; the last one's watch waits for all four and ships every log.
-    # four_gpu_plan ran in the twenty-fifth session; walker_pixel_plan is the next: the walker pixel preference jobs
+    # four_gpu_plan ran in the twenty-fifth session, walker_pixel_plan in the twenty-sixth; walker_pixel_last is the
+    # next: the walker pixel preference jobs, each "<algo> <key>" (rebel: PEBBLE and REBEL in one lam-grid program)
     if command -v nvidia-smi >/dev/null && [ "$(nvidia-smi -L | wc -l)" -lt 4 ]; then
       echo "$2 needs 4 GPUs, this machine has $(nvidia-smi -L | wc -l): start the jobs one by one"; exit 1
     fi
@@ -296,10 +300,15 @@ case "${2:-shared}" in
       "${clean[@]}" GPU=2 WATCH=0 ALGO=rebel LAMS="0 0.001" TASK=cheetah SEED=8 SEEDS=2 STEPS=150000 "${self[@]}" pixel_seed
       "${clean[@]}" GPU=3 ALGO=rebel LAMS="0 0.001" SEED=0 "${walker[@]}" "${self[@]}" pixel_seed
     else
-      for k in 1 2 3; do
-        "${clean[@]}" GPU=$((k - 1)) WATCH=0 ALGO=rebel LAMS="0 0.001" SEED=$k "${walker[@]}" "${self[@]}" pixel_seed
+      jobs=("rebel 1" "rebel 2" "rebel 3" "surf 0")
+      [ "$2" = walker_pixel_last ] && jobs=("rebel 4" "surf 1" "surf 2" "surf 3")
+      for gpu in 0 1 2 3; do
+        read -r algo key <<<"${jobs[gpu]}"
+        lams=() watch=(WATCH=0)
+        [ "$algo" = rebel ] && lams=(LAMS="0 0.001")
+        [ "$gpu" = 3 ] && watch=()  # the last job's watch waits for all four
+        "${clean[@]}" GPU=$gpu "${watch[@]}" ALGO="$algo" "${lams[@]}" SEED="$key" "${walker[@]}" "${self[@]}" pixel_seed
       done
-      "${clean[@]}" GPU=3 ALGO=surf SEED=0 "${walker[@]}" "${self[@]}" pixel_seed
     fi
     exit 0 ;;
   drqv2_seed)  # DrQ-v2 on pixels, SEEDS seeds per job (default 1; seed_loop runs their updates one after another)

@@ -226,13 +226,23 @@ def test_a_carried_compilation_cache_seeds_the_machines_cache_once(tmp_path):
         (work / "runs" / ".jax_cache" / "entry").write_text("compiled")  # the job's own entry, kept by the next call
 
 
-def test_the_walker_pixel_plan_runs_three_pebble_rebel_keys_and_one_surf_key_at_the_issues_length(tmp_path):
+WALKER_PLANS = {
+    "walker_pixel_plan": [("rebel", 1), ("rebel", 2), ("rebel", 3), ("surf", 0)],
+    "walker_pixel_last": [("rebel", 4), ("surf", 1), ("surf", 2), ("surf", 3)],
+}
+
+
+@pytest.mark.parametrize("plan", sorted(WALKER_PLANS))
+def test_the_walker_pixel_plans_run_their_pebble_rebel_and_surf_keys_one_per_gpu_at_the_issues_length(tmp_path, plan):
     work, full_env = _stubbed(tmp_path, {"SEED": "9", "ALGO": "drqv2", "STUB_SECONDS": "1"}, detach=False)
-    done = subprocess.run(["bash", str(SCRIPT), "45", "walker_pixel_plan"], cwd=work, env=full_env, capture_output=True)
+    done = subprocess.run(["bash", str(SCRIPT), "45", plan], cwd=work, env=full_env, capture_output=True)
     assert done.returncode == 0, done.stderr[-2000:]
     tail = "_envs20_seedsteps10000_bf16"
-    planned = {f"runs/rebel_walker_pixels_250000steps_seed{k}_lams_0_0.001{tail}": str(k - 1) for k in (1, 2, 3)}
-    planned["runs/surf_walker_pixels_250000steps_seed0" + tail] = "3"
+    names = {
+        "rebel": "runs/rebel_walker_pixels_250000steps_seed{}_lams_0_0.001" + tail,
+        "surf": "runs/surf_walker_pixels_250000steps_seed{}" + tail,
+    }
+    planned = {names[algo].format(key): str(gpu) for gpu, (algo, key) in enumerate(WALKER_PLANS[plan])}
     assert _gpus(tmp_path) == planned
     lines = (tmp_path / "calls.txt").read_text().splitlines()
     for argv in (shlex.split(line) for line in lines if "rebel_jax.train" in line):
