@@ -40,6 +40,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
+import scipy.optimize  # noqa: E402
 import scipy.stats  # noqa: E402
 from numpy.typing import ArrayLike  # noqa: E402
 from rliable import library as rly  # noqa: E402
@@ -209,6 +210,32 @@ def signed_rank_p(differences: ArrayLike) -> float | None:
         return 1.0 if d.size else None
     method = scipy.stats.PermutationMethod(n_resamples=2**16, rng=0)
     return float(scipy.stats.wilcoxon(d, zero_method="wilcox", method=method).pvalue)
+
+
+def detectable_difference(
+    differences: ArrayLike, keys: int | None = None, power: float = 0.8, alpha: float = 0.05
+) -> float | None:
+    """The smallest true mean difference that a two-sided paired t-test at level ``alpha`` over ``keys`` keys
+    (default: as many as ``differences``) finds with probability ``power``, were the per-key differences normal
+    with the standard deviation of ``differences``: what a comparison of that many keys can resolve.
+
+    Exact under those assumptions: the test statistic is non-central t with ``keys - 1`` degrees of freedom and
+    non-centrality ``delta * sqrt(keys) / sd``, solved for ``delta``. None below two differences or keys, or
+    where the differences do not vary. The rank tests beside it need about 5% more keys for normal differences
+    (the signed-rank test's efficiency 3/pi against the t-test's).
+    """
+    d = np.asarray(differences, dtype=float)
+    keys = d.size if keys is None else keys
+    sd = float(d.std(ddof=1)) if d.size > 1 else 0.0
+    if keys < 2 or sd == 0.0:
+        return None
+    df, critical = keys - 1, float(scipy.stats.t.ppf(1 - alpha / 2, keys - 1))
+
+    def short(nc: float) -> float:  # power at non-centrality nc, less the target; either tail rejects
+        return float(scipy.stats.nct.sf(critical, df, nc) + scipy.stats.nct.sf(critical, df, -nc)) - power
+
+    nc = scipy.optimize.brentq(short, 0.0, 100.0)
+    return nc * sd / math.sqrt(keys)
 
 
 def final_returns(returns: ArrayLike, last: int = 10) -> np.ndarray:

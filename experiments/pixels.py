@@ -26,7 +26,15 @@ import warnings
 from collections.abc import Iterator
 
 import numpy as np
-from analysis import bootstrap_ci, curve_figure, load_runs, log_name, sign_test_p, signed_rank_p
+from analysis import (
+    bootstrap_ci,
+    curve_figure,
+    detectable_difference,
+    load_runs,
+    log_name,
+    sign_test_p,
+    signed_rank_p,
+)
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
@@ -177,12 +185,19 @@ def seed_keys(run_dirs: list[pathlib.Path], label: str) -> list[list[int]]:
     return out
 
 
+PLANNED_KEYS = (5, 10, 20)
+"""Key counts at which :func:`paired` gives the detectable difference beside the entry's own."""
+
+
 def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     """Method ``b`` against ``a`` key by key: for each frames at which ``entries`` (rows or matched entries) hold
     both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's, their mean,
     standard error, 95% percentile bootstrap interval of the mean (at a few keys narrower than its 95%), and how
     many are positive with the two-sided sign test's p-value and the Wilcoxon signed-rank test's
-    (:func:`analysis.signed_rank_p`). No entry where the two share no key."""
+    (:func:`analysis.signed_rank_p`); ``detectable``: at these keys and at :data:`PLANNED_KEYS`, the smallest mean
+    difference a paired t-test would find with 80% power at the observed spread
+    (:func:`analysis.detectable_difference`), for planning how many keys a comparison needs. No entry where the two
+    share no key."""
     out = []
     for x in (e for e in entries if e["method"] == a):
         for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):
@@ -213,6 +228,10 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
                     "pairs": len(nonzero),
                     "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
                     "signed_rank_p": None if nonzero.size == 0 else round(signed_rank_p(nonzero), 4),
+                    "detectable": {
+                        str(n): None if (v := detectable_difference(diffs, n)) is None else round(v, digits)
+                        for n in sorted({len(diffs), *PLANNED_KEYS})
+                    },
                 }
             )
     return out
@@ -407,17 +426,18 @@ def _paired_table(entries: list[dict]) -> None:
     """Each :func:`paired` entry: method b minus method a, key by key."""
     print(
         "\n| task | frames | scores | b minus a | keys | per key | mean +- s.e. [95% CI] | positive | sign test p "
-        "| signed-rank p |"
+        "| signed-rank p | detectable at 80% power (keys: difference) |"
     )
-    print("|---|---:|---|---|---:|---|---:|---:|---:|---:|")
+    print("|---|---:|---|---|---:|---|---:|---:|---:|---:|---|")
     for e in entries:
         low, high = e["mean_ci"]
         digits = 3 if e["scores"] in REWARD_METRICS else 1
         diffs = ", ".join(f"{d:+.{digits}f}" for d in e["differences"])
+        detectable = ", ".join(f"{n}: {v}" for n, v in e["detectable"].items())
         print(
             f"| {e['task']} | {e['frames']:,} | {e['scores']} | {e['b']} minus {e['a']} | {len(e['keys'])} | {diffs} "
             f"| {e['mean']:+.{digits}f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} "
-            f"| {e['sign_test_p']} | {e['signed_rank_p']} |"
+            f"| {e['sign_test_p']} | {e['signed_rank_p']} | {detectable} |"
         )
 
 

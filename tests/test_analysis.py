@@ -367,6 +367,24 @@ def test_signed_rank_p_equals_an_enumeration_of_every_sign_pattern():
     assert analysis.signed_rank_p([]) is None
 
 
+def test_a_t_test_on_the_detectable_difference_rejects_at_the_asked_power():
+    """Monte Carlo: normal per-key differences whose mean is the detectable difference, at the spread of the given
+    differences, are found by scipy's paired (one-sample) t-test in 80% (90%) of 100,000 draws (standard error
+    0.0013; the tolerance catches a non-central t with one degree of freedom too many at 3 keys, 0.794)."""
+    rng = np.random.default_rng(1)
+    observed = [-3.0, -82.0, 8.5, 121.0, 27.0, -127.0]  # the spread only matters
+    sd = np.std(observed, ddof=1)
+    for keys, power in ((3, 0.8), (6, 0.8), (10, 0.9)):
+        delta = analysis.detectable_difference(observed, keys, power=power)
+        draws = rng.normal(delta, sd, size=(100_000, keys))
+        rejected = scipy.stats.ttest_1samp(draws, 0.0, axis=1).pvalue < 0.05
+        assert rejected.mean() == pytest.approx(power, abs=0.004), (keys, power)
+        assert analysis.detectable_difference(observed, keys, power=power - 0.2) < delta  # less power, less needed
+    assert analysis.detectable_difference(observed, 20) < analysis.detectable_difference(observed)  # more keys
+    assert analysis.detectable_difference([5.0]) is None and analysis.detectable_difference([2.0, 2.0]) is None
+    assert analysis.detectable_difference(observed, keys=1) is None
+
+
 def _experiment(monkeypatch, name: str):
     """``experiments/<name>.py``, importable with its siblings."""
     monkeypatch.syspath_prepend(str(_PATH.parent))
@@ -796,11 +814,16 @@ def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path,
     assert (rebel["positive"], rebel["pairs"], rebel["sign_test_p"]) == (3, 4, 0.625)
     # Ranks of |77.5|, |-155|, |155|, |310|: 1, 2.5, 2.5, 4; 8 of the 16 sign patterns lie as far from 5 as 7.5.
     assert rebel["signed_rank_p"] == 0.5
+    # What 4 keys, and the planned 5, 10 and 20, can resolve at this spread, fewer keys needing a larger difference.
+    detectable = {str(n): analysis.detectable_difference(expected, n) for n in (4, 5, 10, 20)}
+    assert rebel["detectable"] == pytest.approx(detectable, abs=0.01)
+    assert rebel["detectable"]["4"] > rebel["detectable"]["5"] > rebel["detectable"]["10"] > rebel["detectable"]["20"]
     low, high = rebel["mean_ci"]
     assert min(expected) <= low <= rebel["mean"] <= high <= max(expected)
     (surf,) = pixels.paired(entries, "pebble (rebel lam=0)", "surf", "final_returns")
     assert surf["keys"] == [[0, 0], [0, 1]] and surf["differences"] == pytest.approx([155.0, 0.0])
     assert (surf["positive"], surf["pairs"]) == (1, 1)  # a zero difference is no pair of the sign test
+    assert surf["detectable"]["2"] is not None and surf["detectable"]["5"] < surf["detectable"]["2"]
     assert pixels.paired(entries, "surf", "drqv2", "final_returns") == []  # no such method: no entry
     json.dumps(rebel, allow_nan=False)
     # A learned-reward measure that a seed lacks (null) leaves that key out; such measures keep 3 decimals.
