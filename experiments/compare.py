@@ -17,12 +17,12 @@ in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that variants ne
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
 different lengths at equal steps).
 Run directories of the same method (e.g. seeds split over several GPU calls with different
-``--seed``) are merged. Writes ``DIR/NAME.json`` (per method: final returns per seed, mean,
-std, IQM with its 95% percentile-bootstrap interval, mean curve, and the sample-efficiency
-ratio against ``--reference``: env steps the other method needs to reach a common return over
-the steps the reference needs; and what the numbers are: task, algo, preset, labels,
-teacher, lambda, num_envs, utd, device, date, command) and ``DIR/NAME.png`` (mean +- std curves and IQM bars), and
-prints a Markdown table for RESULTS.md.
+``--seed``) are merged; they must share task, algo, preset, labels, teacher, lambda, num_envs and utd (``SHARED``).
+Writes ``DIR/NAME.json`` (per method: final returns per seed, mean, std, IQM with its 95% percentile-bootstrap
+interval, mean curve, and the sample-efficiency ratio against ``--reference``: env steps the other method needs to
+reach a common return over the steps the reference needs; and what the numbers are: those shared settings, and
+every merged run's device and date (sorted, each once), command and ``train_seed`` (per run)) and
+``DIR/NAME.png`` (mean +- std curves and IQM bars), and prints a Markdown table for RESULTS.md.
 """
 
 from __future__ import annotations
@@ -141,18 +141,42 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
     return {label: ((steps, returns[:, idx]), info | {"columns": idx}) for label, (idx, info) in out.items()}
 
 
+SHARED = ("task", "algo", "preset", "labels", "teacher", "lam", "num_envs", "utd")
+"""Settings that every run of one method label must share for ``gather`` to pool their seeds."""
+
+
+def pooled_info(infos: list[dict], run_dirs: list[pathlib.Path]) -> dict:
+    """One method's info from the infos of its runs (in ``run_dirs`` order): the :data:`SHARED` settings, which
+    must agree, and the provenance of every run: ``device`` and ``date`` (sorted, each once), ``command`` and
+    ``train_seed`` (per run, in the order of ``run_dirs``), and ``run_dirs``."""
+    for key in SHARED:
+        values = {json.dumps(info[key]) for info in infos}
+        if len(values) > 1:
+            runs = [str(d) for d in run_dirs]
+            raise ValueError(f"cannot pool {runs} as one method: their {key} values differ ({sorted(values)})")
+    first = {key: value for key, value in infos[0].items() if key != "columns"}  # columns: one run's own
+    return first | {
+        "device": sorted({info["device"] for info in infos}),
+        "date": sorted({info["date"] for info in infos}),
+        "command": [info["command"] for info in infos],
+        "train_seed": [info["train_seed"] for info in infos],
+        "run_dirs": list(run_dirs),
+    }
+
+
 def gather(run_dirs: list[pathlib.Path], max_steps: int | None = None):
     """Every method's curve (seeds of run directories with the same label merged) and its run info.
 
-    Returns ``(curves, infos)``, both keyed by label; curves stop at ``max_steps`` if given. A label's
-    info is that of its first run directory, with ``run_dirs``: every directory the label came from.
+    Returns ``(curves, infos)``, both keyed by label; curves stop at ``max_steps`` if given. A label's info is
+    :func:`pooled_info` of its runs: the settings they share, and every run's device, date, command and seed.
     """
     parts: dict[str, list] = {}
-    infos: dict[str, dict] = {}
+    found: dict[str, list[tuple[pathlib.Path, dict]]] = {}
     for run_dir in run_dirs:
         for label, (curve, info) in methods(run_dir).items():
             parts.setdefault(label, []).append(curve)
-            infos.setdefault(label, info | {"run_dirs": []})["run_dirs"].append(run_dir)
+            found.setdefault(label, []).append((run_dir, info))
+    infos = {label: pooled_info([i for _, i in runs], [d for d, _ in runs]) for label, runs in found.items()}
     curves = {label: merge_runs(*runs) for label, runs in parts.items()}
     if max_steps is not None:
         curves = {label: (steps[steps <= max_steps], r[steps <= max_steps]) for label, (steps, r) in curves.items()}
@@ -214,7 +238,7 @@ def main():
         curves = {m: curves[m] for m in args.methods}
     result = compare(curves, args.reference, args.threshold)
     for label, entry in result["methods"].items():  # What the numbers are (not gather's bookkeeping).
-        entry.update({k: v for k, v in infos[label].items() if k not in ("columns", "run_dirs")})
+        entry.update({k: v for k, v in infos[label].items() if k != "run_dirs"})
     args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))

@@ -111,19 +111,18 @@ def action_repeat(task: str) -> int:
 def _described(task: str, label: str, info: dict) -> dict:
     """What a pixels.json entry is and where it comes from: its task, method and run provenance.
 
-    A method's seeds may come from runs on different devices and days, so ``device`` and ``date`` list every
-    one of its runs' values (sorted, each once) and ``command`` each run's command, in the order of ``log``, as
-    ``experiments/baselines.py`` does; all read from the runs' ``meta.json``.
+    A method's seeds may come from runs on different devices and days, so ``device`` and ``date`` list every one
+    of its runs' values (sorted, each once) and ``command`` each run's command, in the order of ``log``, as
+    ``experiments/baselines.py`` does; all read from the runs' ``meta.json`` (``compare.pooled_info``).
     """
-    metas = [json.loads((d / "meta.json").read_text()) for d in info["run_dirs"]]
     return {
         "task": task.removesuffix("_pixels"),
         "algo": info["algo"],
         "method": label,
         "obs": "pixels",
-        "device": sorted({m["devices"][0] for m in metas}),
-        "date": sorted({m["started"][:10] for m in metas}),
-        "command": [m["command"] for m in metas],
+        "device": info["device"],
+        "date": info["date"],
+        "command": info["command"],
         "log": [log_name(d, RESULTS) for d in info["run_dirs"]],
     }
 

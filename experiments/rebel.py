@@ -20,7 +20,9 @@ row per method:
   names the PEBBLE it is against: under an imperfect teacher that teacher's PEBBLE (lambda 0 of the same
   ``--lam-grid 0 LAM`` program), else the oracle's;
 - ``efficiency_vs_surf`` and ``efficiency_vs_surf_ci``: the same against PEBBLE+SURF (``SURF``: the run that met
-  its published figure; null without one).
+  its published figure; null without one);
+- ``device`` and ``date`` (sorted, each once), ``command``, ``train_seed`` and ``log`` (per run): every run the
+  row pools (``compare.pooled_info``).
 
 Also writes ``results/rebel_<task>.png``, one figure per task: each method's mean +- std curve over seeds; and
 ``results/rebel_lambda_walker_walk.png``: the IQM with its interval per lambda of the paper's V against PEBBLE's;

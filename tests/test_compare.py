@@ -195,3 +195,37 @@ def test_compare_reports_a_faster_method_with_a_ratio_below_one():
     out = compare.compare({"slow": slow, "fast": fast}, reference="slow", threshold=2.0)
     assert out["methods"]["slow"]["steps_ratio_vs_reference"] == pytest.approx(1.0)
     assert out["methods"]["fast"]["steps_ratio_vs_reference"] == pytest.approx(20 / 30)
+
+
+def _edit(run_dir: pathlib.Path, name: str, **changes) -> None:
+    """Updates the run's ``config.json`` or ``meta.json`` (``name``) at dotted keys ("env.num_envs")."""
+    path = run_dir / name
+    data = json.loads(path.read_text())
+    for dotted, value in changes.items():
+        *parents, key = dotted.split(".")
+        node = data
+        for parent in parents:
+            node = node[parent]
+        node[key] = value
+    path.write_text(json.dumps(data))
+
+
+def test_a_pooled_method_lists_every_runs_provenance_and_refuses_runs_of_other_settings(tmp_path):
+    """Seeds of one method from runs on two devices and days, each with its command and --seed, pool into one
+    method whose info names them all; a run of the same label at another num_envs is not pooled."""
+    runs = [tmp_path / name for name in ("first", "second", "third")]
+    for run in runs:
+        write_grid_run(run, algo="pebble")
+    second = {"devices": ["gpu"], "started": "2026-11-21T09:00:00", "command": "train.py --preset tiny --seed 5"}
+    _edit(runs[1], "meta.json", **second)
+    _edit(runs[1], "config.json", **{"train.seed": 5})
+    curves, infos = compare.gather(runs[:2])
+    info = infos["pebble, noisy"]
+    assert curves["pebble, noisy"][1].shape[1] == 2 * 4  # 4 noisy columns per run
+    assert info["device"] == ["cpu", "gpu"] and info["date"] == ["2026-11-21", "2026-11-22"]
+    assert info["command"] == ["train.py --preset tiny", "train.py --preset tiny --seed 5"]
+    assert info["train_seed"] == [PRESETS["tiny"].train.seed, 5] and info["run_dirs"] == runs[:2]
+    assert "columns" not in info  # one run's own columns
+    _edit(runs[2], "config.json", **{"env.num_envs": 7})
+    with pytest.raises(ValueError, match="num_envs values differ"):
+        compare.gather(runs)
