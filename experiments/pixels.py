@@ -14,7 +14,8 @@ seeds), ``device``, ``date``, ``command`` and ``log``; for a preference method a
 ``reward_correlation``, per seed the mean over its sessions (``REWARD_METRICS``). Also writes
 ``results/pixels_<task>.png``: each method's mean +- std evaluation return against frames. ``stopped`` lists the
 runs the device budget stopped, ``matched`` the preference methods at the agent steps all of their runs reached
-(``MATCHED``), drawn in ``results/pixels_<task>_matched.png``.
+(``MATCHED``), drawn in ``results/pixels_<task>_matched.png``; ``results/pixels_paper.png`` draws the paper's pixel
+panels (``PAPER_FIGURE``): PEBBLE, PEBBLE+SURF and REBEL at their longest whole runs beside DrQ-v2 on the true reward.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import re
 import warnings
 from collections.abc import Iterator
 
@@ -38,7 +40,7 @@ from analysis import (
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
-from rebel_jax.plots import per_seed, records
+from rebel_jax.plots import per_seed, plot_curves, records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 CHEETAH_PREFERENCE = [
@@ -357,10 +359,63 @@ def matched(task: str, agent_steps: int, run_dirs: list[pathlib.Path]) -> tuple[
     }
 
 
+PAPER_FIGURE: dict[str, tuple[str, dict[str, str]]] = {
+    "walker_walk_pixels": (
+        "Visual Walker (walker_walk)",
+        {
+            "drqv2 (float32 critic output)": "DrQ-v2, true reward",
+            "pebble (rebel lam=0) 200 labels": "PEBBLE",
+            "surf 200 labels (reward_update 20)": "PEBBLE+SURF",
+            "rebel lam=0.001 200 labels": "REBEL, lambda 0.001",
+        },
+    ),
+    "cheetah_run_pixels": (
+        "Visual Cheetah (cheetah_run)",
+        {
+            "drqv2": "DrQ-v2, true reward",
+            "pebble (rebel lam=0) 1000 labels": "PEBBLE",
+            "surf 1000 labels (reward_update 20) (to 300k)": "PEBBLE+SURF",
+            "rebel lam=0.001 1000 labels": "REBEL, lambda 0.001",
+        },
+    ),
+}
+"""Pixel task -> (panel title, {curve label of :func:`rows`: legend name}): the paper's pixel panels, each method
+at its longest whole runs, beside DrQ-v2 on the true reward (:func:`paper_figure`)."""
+
+
+def paper_figure(curves: dict[str, dict], table: list[dict], path: pathlib.Path) -> None:
+    """Writes ``path``: one panel per task of :data:`PAPER_FIGURE`, each method's mean +- std evaluation return
+    over its seeds against frames (``curves[task]``, as :func:`rows` names them), the preference methods' legend
+    naming the labels their seeds got (the ``table`` row of that method and length). A curve missing is an
+    error."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(PAPER_FIGURE), figsize=(6 * len(PAPER_FIGURE), 4.2))
+    for ax, (task, (title, names)) in zip(np.atleast_1d(axes), PAPER_FIGURE.items(), strict=True):
+        missing = [label for label in names if label not in curves.get(task, {})]
+        if missing:
+            raise ValueError(f"{task}: no curves {missing} among {sorted(curves.get(task, {}))}")
+        for label, name in names.items():
+            frames, returns = curves[task][label]
+            method = re.sub(r" \(to \d+k\)$", "", label)
+            same = (task.removesuffix("_pixels"), method, int(frames[-1]))
+            (row,) = (r for r in table if (r["task"], r["method"], r["frames"]) == same)
+            name += f", {row['labels']} labels" if row["labels"] is not None else ""
+            plot_curves(ax, {name: (frames, returns)})
+        ax.set_xlabel("frames (agent steps x action repeat)")
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> None:
     table, early, same, pairs = [], [], [], []
+    whole: dict[str, dict] = {}  # task -> the whole runs' curves, for the paper's figure
     for task in sorted(set(RUNS) | set(STOPPED)):
         task_rows, curves = rows(task, [RESULTS / "runs" / log for log in RUNS[task]]) if task in RUNS else ([], {})
+        whole[task] = curves
         task_stopped, stopped_curves = stopped(task, [RESULTS / "runs" / log for log in STOPPED.get(task, [])])
         short = task.removesuffix("_pixels")
         figure(task, curves | stopped_curves, RESULTS / f"pixels_{short}.png")
@@ -377,6 +432,7 @@ def main() -> None:
             pairs += paired(task_rows, a, b, "final_returns") + paired(task_matched, a, b, "matched_returns")
             for name in REWARD_METRICS:  # Whether b's learned reward is better than a's on the same keys.
                 pairs += paired(task_rows, a, b, name) + paired(task_matched, a, b, name)
+    paper_figure(whole, table, RESULTS / "pixels_paper.png")
     (RESULTS / "pixels.json").write_text(
         json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs}, indent=1) + "\n"
     )

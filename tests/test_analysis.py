@@ -833,6 +833,28 @@ def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path,
     assert correlation["keys"] == [[0, 0], [2, 0]] and correlation["differences"] == [0.023, 0.05]
 
 
+def test_the_pixel_paper_figure_draws_its_panels_methods_and_refuses_a_missing_one(tmp_path, monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(pixels, "RESULTS", tmp_path)
+    task = "cheetah_run_pixels"
+    _fake_curve_run(tmp_path / "runs" / "grid", "rebel", [1.0, 2.0], 2, lams=[0, 0.001], task=task)
+    table, curves = pixels.rows(task, [tmp_path / "runs" / "grid"])
+    names = {"pebble (rebel lam=0)": "PEBBLE", "rebel lam=0.001": "REBEL"}
+    monkeypatch.setattr(pixels, "PAPER_FIGURE", {task: ("Visual Cheetah", names)})
+    drawn = []
+    monkeypatch.setattr(pixels, "plot_curves", lambda ax, runs: drawn.append(runs) or analysis.plot_curves(ax, runs))
+    pixels.paper_figure({task: curves}, table, tmp_path / "paper.png")
+    assert (tmp_path / "paper.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [list(runs) for runs in drawn] == [["PEBBLE"], ["REBEL"]]  # the fakes log no labels_used: none named
+    for runs, label in zip(drawn, names, strict=True):
+        frames, returns = next(iter(runs.values()))
+        np.testing.assert_array_equal(frames, curves[label][0])
+        np.testing.assert_array_equal(returns, curves[label][1])
+    monkeypatch.setattr(pixels, "PAPER_FIGURE", {task: ("Visual Cheetah", {"surf": "PEBBLE+SURF"})})
+    with pytest.raises(ValueError, match=r"no curves \['surf'\]"):
+        pixels.paper_figure({task: curves}, table, tmp_path / "paper.png")
+
+
 def test_rebel_chosen_lambda_is_the_highest_iqm_of_the_papers_v_at_500k(monkeypatch):
     rebel = _experiment(monkeypatch, "rebel")
     paper = {"algo": "rebel", "estimator": "onpolicy", "variant": rebel.PAPER_VARIANT, "task": "walker_walk"}
