@@ -212,6 +212,31 @@ def signed_rank_p(differences: ArrayLike) -> float | None:
     return float(scipy.stats.wilcoxon(d, zero_method="wilcox", method=method).pvalue)
 
 
+def rank_correlation(x: ArrayLike, y: ArrayLike) -> tuple[float, float] | None:
+    """Spearman's rank correlation of paired ``x`` and ``y`` (ties at mid-ranks) and its two-sided permutation
+    p-value over the pairings of x with y, all of them up to 8 pairs (scipy's exact version), a fixed-seed sample of
+    2**16 beyond: twice the share of the smaller tail (pairings whose correlation is at most, or at least, the
+    observed one), at most 1. None below 3 pairs or where either does not vary."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    if x.size < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
+        return None
+
+    rx = scipy.stats.rankdata(x)
+    rx -= rx.mean()
+
+    def rho(b: np.ndarray, axis: int = -1) -> np.ndarray:  # Pearson's correlation of the ranks, x's held fixed
+        rb = scipy.stats.rankdata(b, axis=axis)
+        rb -= rb.mean(axis=axis, keepdims=True)
+        return (rx * rb).sum(axis=axis) / np.sqrt((rx**2).sum() * (rb**2).sum(axis=axis))
+
+    # One sample: "pairings" reorders y alone, so each resample is one pairing of x with y (n! in all).
+    resamples = math.inf if x.size <= 8 else 2**16
+    test = scipy.stats.permutation_test(
+        (y,), rho, permutation_type="pairings", vectorized=True, n_resamples=resamples, rng=0
+    )
+    return float(test.statistic), float(test.pvalue)
+
+
 def detectable_difference(
     differences: ArrayLike, keys: int | None = None, power: float = 0.8, alpha: float = 0.05
 ) -> float | None:

@@ -14,7 +14,8 @@ seeds), ``device``, ``date``, ``command`` and ``log``; for a preference method a
 ``reward_correlation``, per seed the mean over its sessions (``REWARD_METRICS``). Also writes
 ``results/pixels_<task>.png``: each method's mean +- std evaluation return against frames. ``stopped`` lists the
 runs the device budget stopped, ``matched`` the preference methods at the agent steps all of their runs reached
-(``MATCHED``), drawn in ``results/pixels_<task>_matched.png``; ``results/pixels_paper.png`` draws the paper's pixel
+(``MATCHED``), drawn in ``results/pixels_<task>_matched.png``; ``coupling`` whether a key's return difference between
+two methods follows its learned reward's (:func:`coupling`); ``results/pixels_paper.png`` draws the paper's pixel
 panels (``PAPER_FIGURE``): PEBBLE, PEBBLE+SURF and REBEL at their longest whole runs beside DrQ-v2 on the true reward.
 """
 
@@ -34,6 +35,7 @@ from analysis import (
     detectable_difference,
     load_runs,
     log_name,
+    rank_correlation,
     sign_test_p,
     signed_rank_p,
 )
@@ -238,6 +240,29 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     return out
 
 
+def coupling(pairs: list[dict], measure: str = "reward_correlation") -> list[dict]:
+    """Whether a key's return difference follows its learned reward's: for each :func:`paired` entry of
+    ``final_returns``, Spearman's correlation over the keys of its differences with those of the entry of
+    ``measure`` for the same task, frames and methods, and its permutation p (:func:`analysis.rank_correlation`).
+    No entry below 3 shared keys. The reward measures are taken over each seed's own replay, which its policy
+    fills, so a correlation here does not say which way the effect runs."""
+    out = []
+    for e in (e for e in pairs if e["scores"] == "final_returns"):
+        same = ("task", "frames", "a", "b")
+        found = [m for m in pairs if m["scores"] == measure and all(m[k] == e[k] for k in same)]
+        if not found:
+            continue
+        by_key = {tuple(k): d for k, d in zip(found[0]["keys"], found[0]["differences"], strict=True)}
+        keys = [k for k in map(tuple, e["keys"]) if k in by_key]
+        returns = [d for k, d in zip(map(tuple, e["keys"]), e["differences"], strict=True) if k in by_key]
+        tested = rank_correlation(returns, [by_key[k] for k in keys])
+        if tested is not None:
+            rho, p = tested
+            entry = {"measure": measure, "keys": len(keys), "spearman": round(rho, 3), "permutation_p": round(p, 4)}
+            out.append({k: e[k] for k in same} | entry)
+    return out
+
+
 def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "final_returns") -> dict:
     """A method's numbers from ``compare``'s entry ``m``: the labels its seeds got by its last evaluation (one
     number if they all got the same) and the budget they asked, seeds, frames, per-seed scores (under the key
@@ -433,8 +458,10 @@ def main() -> None:
             for name in REWARD_METRICS:  # Whether b's learned reward is better than a's on the same keys.
                 pairs += paired(task_rows, a, b, name) + paired(task_matched, a, b, name)
     paper_figure(whole, table, RESULTS / "pixels_paper.png")
+    coupled = coupling(pairs)
     (RESULTS / "pixels.json").write_text(
-        json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs}, indent=1) + "\n"
+        json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs, "coupling": coupled}, indent=1)
+        + "\n"
     )
     print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
     print("|---|---|---:|---:|---:|---:|")
@@ -465,6 +492,11 @@ def main() -> None:
         )
     _quality_table(table + same)
     _paired_table(pairs)
+    print("\n| task | frames | b minus a | keys | Spearman: return against reward-correlation differences | p |")
+    print("|---|---:|---|---:|---:|---:|")
+    for c in coupled:
+        print(f"| {c['task']} | {c['frames']:,} | {c['b']} minus {c['a']} | {c['keys']} | {c['spearman']} "
+              f"| {c['permutation_p']} |")  # fmt: skip
 
 
 def _quality_table(entries: list[dict]) -> None:

@@ -367,6 +367,20 @@ def test_signed_rank_p_equals_an_enumeration_of_every_sign_pattern():
     assert analysis.signed_rank_p([]) is None
 
 
+def test_rank_correlation_equals_spearman_and_an_enumeration_of_every_pairing():
+    rng = np.random.default_rng(2)
+    for n in (3, 5, 7):
+        x = np.round(rng.normal(size=n), 0)  # rounded: ties at mid-ranks
+        y = x + rng.normal(size=n)
+        rho, p = analysis.rank_correlation(x, y)
+        assert rho == pytest.approx(scipy.stats.spearmanr(x, y).statistic, abs=1e-12)
+        others = [scipy.stats.spearmanr(x, y[list(order)]).statistic for order in itertools.permutations(range(n))]
+        tails = np.mean(np.array(others) <= rho + 1e-12), np.mean(np.array(others) >= rho - 1e-12)
+        assert p == pytest.approx(min(1.0, 2 * min(tails)), rel=1e-9), (x, y)
+    assert analysis.rank_correlation([1.0, 2.0], [2.0, 1.0]) is None  # below 3 pairs
+    assert analysis.rank_correlation([1.0, 1.0, 1.0], [1.0, 2.0, 3.0]) is None  # x does not vary
+
+
 def test_a_t_test_on_the_detectable_difference_rejects_at_the_asked_power():
     """Monte Carlo: normal per-key differences whose mean is the detectable difference, at the spread of the given
     differences, are found by scipy's paired (one-sample) t-test in 80% (90%) of 100,000 draws (standard error
@@ -831,6 +845,24 @@ def test_pixel_paired_compares_two_methods_on_the_seed_keys_they_share(tmp_path,
     by["rebel lam=0.001"]["reward_correlation"] = [0.1234, 0.5, 0.25, None]
     (correlation,) = pixels.paired(entries, "pebble (rebel lam=0)", "rebel lam=0.001", "reward_correlation")
     assert correlation["keys"] == [[0, 0], [2, 0]] and correlation["differences"] == [0.023, 0.05]
+
+
+def test_pixel_coupling_ranks_return_differences_against_reward_differences_on_shared_keys(monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    base = {"task": "cheetah_run", "frames": 300_000, "a": "pebble", "b": "rebel"}
+    keys = [[0, 0], [0, 1], [2, 0], [2, 1], [4, 0]]
+    returns = base | {"scores": "final_returns", "keys": keys, "differences": [-3.0, -82.0, 8.5, 121.0, 27.0]}
+    # The learned-reward entry lacks key (4, 0) (a seed without the measure), and lists its keys in another order.
+    reward = base | {"scores": "reward_correlation", "keys": [keys[i] for i in (3, 0, 2, 1)]}
+    reward["differences"] = [0.03, -0.04, 0.07, -0.1]
+    other = base | {"frames": 160_000, "scores": "final_returns", "keys": keys[:2], "differences": [1.0, 2.0]}
+    (entry,) = pixels.coupling([returns, reward, other])  # 160k has no reward entry: none
+    rho, p = analysis.rank_correlation([-3.0, -82.0, 8.5, 121.0], [-0.04, -0.1, 0.07, 0.03])
+    assert entry == base | {"measure": "reward_correlation", "keys": 4, "spearman": round(rho, 3),
+                            "permutation_p": round(p, 4)}  # fmt: skip
+    assert rho == 0.8  # ranks 2, 1, 3, 4 against 2, 1, 4, 3
+    few = reward | {"keys": keys[:2], "differences": [0.1, 0.2]}
+    assert pixels.coupling([returns, few]) == []  # 2 shared keys: no rank correlation
 
 
 def test_the_pixel_paper_figure_draws_its_panels_methods_and_refuses_a_missing_one(tmp_path, monkeypatch):
