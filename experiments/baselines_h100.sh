@@ -204,16 +204,24 @@ detach() {  # name, then the training flags: one process for the machine's whole
   [ -f "runs/$name/final.json" ] && return
   pgrep -f -- "--run-dir runs/$name " >/dev/null && return
   ${GPU:+env CUDA_VISIBLE_DEVICES=$GPU} setsid python3 -m rebel_jax.train "$@" --run-dir "runs/$name" --no-progress --no-tensorboard --video-steps 0 --checkpoint-every 0 >"runs/$name.log" 2>&1 </dev/null &
+  started+=($!)
+}
+started=()  # this call's detached jobs: until a job's process has exec'd, pgrep cannot see it by its command line
+running() {  # whether a training process is left: any on the machine (pgrep), or one this call started
+  pgrep -f rebel_jax.train >/dev/null && return 0
+  local pid
+  for pid in "${started[@]}"; do kill -0 "$pid" 2>/dev/null && return 0; done
+  return 1
 }
 watch() {  # wait until no training process is left or the call's limit is near, then ship the logs; meanwhile
   # ship them every SHIP_EVERY seconds (default 60): a call the device ends at its limit_s (what the device time
   # left, which may be below LIMIT) returns what $OUT holds, and the twenty-fourth session lost a whole job's log so
   local shipped=$SECONDS
-  while [ $SECONDS -lt $((call_limit - 20)) ] && pgrep -f rebel_jax.train >/dev/null; do
+  while [ $SECONDS -lt $((call_limit - 20)) ] && running; do
     sleep 5
     [ $((SECONDS - shipped)) -ge "${SHIP_EVERY:-60}" ] && { ship; shipped=$SECONDS; }
   done
-  pgrep -f rebel_jax.train >/dev/null && echo "still running after ${SECONDS}s"
+  running && echo "still running after ${SECONDS}s"
   finish
 }
 start() {  # name, then the training flags: detached under DETACH=1, else time-limited calls with resume

@@ -256,11 +256,17 @@ def test_the_walker_pixel_plans_run_their_pebble_rebel_and_surf_keys_one_per_gpu
     assert {name for name in listed.stdout.split() if name.endswith(".log")} == {f"{run}.log" for run in planned}
 
 
-def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path):
+@pytest.mark.parametrize("pgrep", ["real", "blind"])
+def test_a_watching_call_ships_the_logs_while_its_job_runs_so_a_call_ended_early_keeps_them(tmp_path, pgrep):
     """The device ends a call at its ``limit_s``, which the device time left may put below the script's LIMIT:
-    the logs shipped during the watch come back even though ``finish`` never ran."""
+    the logs shipped during the watch come back even though ``finish`` never ran. With pgrep blind (as it is to a
+    job forked but not yet exec'd, whose command line is still the script's), the watch follows the job it started
+    by its PID."""
     job = {"TASK": "walker", "SEED": "21", "PRECISION": "bf16", "SHIP_EVERY": "1", "STUB_SECONDS": "60"}
     work, env = _stubbed(tmp_path, job, detach=True)
+    if pgrep == "blind":
+        (tmp_path / "bin" / "pgrep").write_text("#!/usr/bin/env bash\nexit 1\n")
+        (tmp_path / "bin" / "pgrep").chmod(0o755)
     call = subprocess.Popen(["bash", str(SCRIPT), "300", "drqv2_seed"], cwd=work, env=env, start_new_session=True)
     shipped = tmp_path / "runs.tar.gz"
     try:
