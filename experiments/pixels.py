@@ -246,19 +246,17 @@ def coupling(pairs: list[dict], measure: str = "reward_correlation") -> list[dic
     ``measure`` for the same task, frames and methods, and its permutation p (:func:`analysis.rank_correlation`).
     No entry below 3 shared keys. The reward measures are taken over each seed's own replay, which its policy
     fills, so a correlation here does not say which way the effect runs."""
-    out = []
+    same, out = ("task", "frames", "a", "b"), []
     for e in (e for e in pairs if e["scores"] == "final_returns"):
-        same = ("task", "frames", "a", "b")
-        found = [m for m in pairs if m["scores"] == measure and all(m[k] == e[k] for k in same)]
-        if not found:
+        found = next((m for m in pairs if m["scores"] == measure and all(m[k] == e[k] for k in same)), None)
+        if found is None:
             continue
-        by_key = {tuple(k): d for k, d in zip(found[0]["keys"], found[0]["differences"], strict=True)}
-        keys = [k for k in map(tuple, e["keys"]) if k in by_key]
-        returns = [d for k, d in zip(map(tuple, e["keys"]), e["differences"], strict=True) if k in by_key]
-        tested = rank_correlation(returns, [by_key[k] for k in keys])
+        by_key = {tuple(k): d for k, d in zip(found["keys"], found["differences"], strict=True)}
+        shared = [(d, by_key[tuple(k)]) for k, d in zip(e["keys"], e["differences"], strict=True) if tuple(k) in by_key]
+        tested = rank_correlation(*zip(*shared, strict=True)) if shared else None
         if tested is not None:
             rho, p = tested
-            entry = {"measure": measure, "keys": len(keys), "spearman": round(rho, 3), "permutation_p": round(p, 4)}
+            entry = {"measure": measure, "keys": len(shared), "spearman": round(rho, 3), "permutation_p": round(p, 4)}
             out.append({k: e[k] for k in same} | entry)
     return out
 
