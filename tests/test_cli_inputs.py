@@ -6,13 +6,18 @@ the CPU-deadlock flag, the label-budget warning, and strict JSON records.
 
 from __future__ import annotations
 
+import ast
+import contextlib
+import gc
 import json
 import math
 import pathlib
+import sys
 
 import jax
 import numpy as np
 import pytest
+from tyro import _unsafe_cache as tyro_cache
 
 from rebel_jax import cli
 from rebel_jax.config import PRESETS
@@ -273,3 +278,46 @@ def test_recorded_commands_are_portable():
     for command in commands:
         assert command.startswith("python "), command  # as typed, not the absolute path of a file
     assert cli.command_line(["--run-dir", "a b"]) == "python -m rebel_jax.train --run-dir 'a b'"
+
+
+class _ParsesWhenCollected:
+    """Cyclic garbage whose finalizer parses source (as the traceback of an asyncio Task orbax leaves behind after
+    a failed restore does when it is logged) and leaves another one behind, so that one is always pending."""
+
+    live = True
+
+    def __init__(self):
+        self.cycle = self
+
+    def __del__(self):
+        if _ParsesWhenCollected.live:
+            ast.parse("x = (1 + 2) * 3")
+            _ParsesWhenCollected()
+
+
+@contextlib.contextmanager
+def _collections_that_parse_source():
+    """Every allocation collects the youngest generation, and each collection runs a finalizer that parses source.
+    (A context, not a fixture: a failure inside is reported after it ends, when reporting can parse source.)"""
+    threshold = gc.get_threshold()
+    _ParsesWhenCollected.live = True
+    _ParsesWhenCollected()
+    gc.set_threshold(1)
+    try:
+        yield
+    finally:
+        gc.set_threshold(*threshold)
+        _ParsesWhenCollected.live = False
+        gc.collect()
+
+
+def test_parse_survives_collections_whose_finalizers_parse_source():
+    """CI failed once in ``parse`` with CPython 3.11's "AST constructor recursion depth mismatch" (gh-106905):
+    tyro reads docstrings with ``ast.parse``, and a finalizer run in the middle parsed source too."""
+    tyro_cache.clear_cache()  # tyro caches the parsed docstrings; parse them again
+    with _collections_that_parse_source():
+        if sys.version_info[:2] == (3, 11):  # The hazard guarded against is real on this interpreter.
+            with pytest.raises(SystemError, match="recursion depth mismatch"):
+                ast.parse(pathlib.Path(cli.__file__).read_text())
+        args = cli.parse(["--preset", "demo", "--seed", "3"])
+    assert args.config.train.seed == 3

@@ -14,6 +14,8 @@ import pathlib
 
 import pytest
 
+from rebel_jax.cli import collector_paused
+
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src"
 
 
@@ -38,19 +40,10 @@ def _resolve(module: str, is_package: bool, level: int, target: str | None) -> s
 
 
 def _parse(path: pathlib.Path) -> ast.Module:
-    """``ast.parse``, tried again after CPython 3.11's "AST constructor recursion depth mismatch".
-
-    That SystemError comes from a recursion counter CPython 3.11 shares between threads
-    (python/cpython gh-106905); in the test workers other threads (orbax's, asyncio's) are alive.
-    It says nothing about the file, so a second parse is the fair answer.
-    """
-    for attempt in range(3):
-        try:
-            return ast.parse(path.read_text(), str(path))
-        except SystemError:
-            if attempt == 2:
-                raise
-    raise AssertionError("unreachable")
+    """``ast.parse`` with the collector paused: a finalizer that parses source during the parse breaks it on
+    CPython 3.11 (``cli.collector_paused``; gh-106905), and the test workers hold such garbage."""
+    with collector_paused():
+        return ast.parse(path.read_text(), str(path))
 
 
 def import_graph(root: pathlib.Path, package: str) -> dict[str, set[str]]:

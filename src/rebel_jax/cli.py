@@ -28,9 +28,11 @@ human run's answers from its ``labels.jsonl`` (:mod:`rebel_jax.human`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import functools
+import gc
 import importlib.metadata
 import importlib.util
 import json
@@ -824,6 +826,27 @@ def default_preset(task: str) -> str:
     return pixel_preset if task.endswith(PIXEL_SUFFIX) and pixel_preset in PRESETS else "paper"
 
 
+@contextlib.contextmanager
+def collector_paused():
+    """No cyclic garbage collection inside the block (it runs before and after as usual).
+
+    CPython 3.11 keeps the AST constructor's recursion count in state that every ``ast.parse`` shares
+    (python/cpython gh-106905): a parse nested inside another one, from a finalizer that a collection in the middle
+    of the outer parse runs, leaves the outer one failing with "SystemError: AST constructor recursion depth
+    mismatch". tyro parses the config classes' source for their docstrings, and such finalizers exist: an asyncio
+    Task that orbax leaves behind after a failed restore logs "Task exception was never retrieved" when collected,
+    and formatting that traceback parses source (CPython 3.11's caret anchors). It broke ``parse`` once in CI, in a
+    test process that had restored a damaged checkpoint earlier.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def parse(argv: list[str] | None = None) -> Args:
     """Reads ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag as an override of
     the preset."""
@@ -850,7 +873,8 @@ def parse(argv: list[str] | None = None) -> Args:
         " re-runs a human run's answers."
     )
     config = dataclasses.replace(PRESETS[preset], teacher=teachers.PRESETS[scripted])
-    args = tyro.cli(Args, prog=pre.prog, default=Args(config=config), args=rest, description=description)
+    with collector_paused():
+        args = tyro.cli(Args, prog=pre.prog, default=Args(config=config), args=rest, description=description)
     args = dataclasses.replace(args, host_teacher=host_teacher)
     try:
         args.config.validate()
