@@ -1,6 +1,11 @@
-"""``Checkpointer.restore_leaves``: a part of a saved state (a policy's parameters) read without the rest."""
+"""``Checkpointer.restore_leaves``: a part of a saved state (a policy's parameters) read without the rest; the
+checksums that catch a step's damaged files before orbax reads them."""
 
 from __future__ import annotations
+
+import json
+import shutil
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +13,8 @@ import numpy as np
 import pytest
 from test_pixel_train import MICRO as PIXEL  # the tiny pixel run: 16x16 probe frames, 2 envs
 
-from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
+from rebel_jax import checkpoint
+from rebel_jax.checkpoint import CHECKSUMS, CheckpointDamaged, Checkpointer, CheckpointMismatch
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import seed_keys
 
@@ -55,11 +61,8 @@ def test_the_other_leaves_are_not_read(tmp_path):
     ckpt = Checkpointer(tmp_path / "checkpoints")
     state = _state()
     ckpt.save(1, state)
-    # OCDBT packs the leaves into data files; the replay leaf (1 MiB, incompressible) is the largest one. Delete it.
-    files = [p for p in (tmp_path / "checkpoints" / "1").rglob("*") if p.is_file()]
-    largest = max(files, key=lambda p: p.stat().st_size)
-    assert largest.stat().st_size > 2**19
-    largest.unlink()
+    (tmp_path / "checkpoints" / "1" / CHECKSUMS).unlink()  # unchecked (as older code wrote it): orbax reads alone
+    _largest_data_file(tmp_path / "checkpoints" / "1").unlink()
     with pytest.raises(Exception):  # noqa: B017 - whichever tensorstore raises: the buffer is gone
         ckpt.restore(state, step=1)
     step, policy = ckpt.restore_leaves(state, _policy)  # the newest readable step: this one, kept in place
@@ -68,6 +71,89 @@ def test_the_other_leaves_are_not_read(tmp_path):
     for got, saved in zip(jax.tree.leaves(policy), jax.tree.leaves(state["policy"]), strict=True):
         assert got.dtype == saved.dtype
         np.testing.assert_array_equal(got, saved)
+    ckpt.close()
+
+
+def _largest_data_file(step_dir):
+    """OCDBT packs the leaves into data files; the replay leaf (1 MiB, incompressible) is in the largest one."""
+    largest = max((p for p in step_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    assert largest.stat().st_size > 2**19
+    return largest
+
+
+def _flip_a_bit(path):
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def test_checksums_are_each_file_s_size_and_crc32_read_in_chunks(tmp_path, monkeypatch):
+    monkeypatch.setattr(checkpoint, "_CHUNK", 4096)  # the 1 MiB data file in 256 chunks
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, _state())
+    ckpt.close()
+    step_dir = tmp_path / "checkpoints" / "1"
+    files = sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != CHECKSUMS)
+    expected = {p.relative_to(step_dir).as_posix(): [p.stat().st_size, zlib.crc32(p.read_bytes())] for p in files}
+    assert len(expected) > 3 and json.loads((step_dir / CHECKSUMS).read_text()) == expected
+    assert checkpoint.file_checksums(step_dir) == expected and checkpoint.checksum_differences(step_dir) == []
+
+
+def test_a_flipped_bit_that_orbax_would_read_silently_is_caught_and_the_step_before_restored(tmp_path, capsys):
+    state = _state()
+    later = {**state, "policy": {**state["policy"], "b": state["policy"]["b"] + 1}}
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, state)
+    ckpt.save(2, later)
+    step_dir = tmp_path / "checkpoints" / "2"
+    damaged = _largest_data_file(step_dir)
+    _flip_a_bit(damaged)
+    name = damaged.relative_to(step_dir).as_posix()
+    with pytest.raises(CheckpointDamaged, match=f"{name}: CRC-32 [0-9a-f]{{8}} saved, [0-9a-f]{{8}} now"):
+        ckpt.restore(state, step=2)
+    # Unchecked, orbax restores the step with wrong values in the replay leaf, and no error.
+    unchecked = tmp_path / "unchecked"
+    shutil.copytree(tmp_path / "checkpoints", unchecked)
+    (unchecked / "2" / CHECKSUMS).unlink()
+    plain = Checkpointer(unchecked)
+    _, silent = plain.restore(state, step=2)
+    plain.close()
+    assert np.any(np.asarray(silent["buffer"]) != np.asarray(later["buffer"]))
+    np.testing.assert_array_equal(silent["policy"]["b"], later["policy"]["b"])
+
+    step, restored = ckpt.restore(state)
+    assert step == 1 and ckpt.steps() == [1]
+    for got, saved in zip(jax.tree.leaves(restored), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(got, saved)
+    assert [p.name.split("-")[0] for p in (tmp_path / "checkpoints_damaged").iterdir()] == ["2"]
+    err = capsys.readouterr().err
+    assert "checkpoint 2 in" in err and "CheckpointDamaged: files differ from their checksums" in err, err
+    ckpt.close()
+
+
+def test_checksums_name_missing_cut_and_added_files_and_a_step_without_them_reads(tmp_path):
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, _state())
+    ckpt.close()
+    step_dir = tmp_path / "checkpoints" / "1"
+    largest = _largest_data_file(step_dir)
+    size = largest.stat().st_size
+    largest.write_bytes(largest.read_bytes()[: size // 2])
+    metadata = step_dir / "_CHECKPOINT_METADATA"
+    metadata.rename(step_dir / "moved")
+    assert checkpoint.checksum_differences(step_dir) == [
+        "_CHECKPOINT_METADATA: missing",
+        f"{largest.relative_to(step_dir).as_posix()}: {size} bytes saved, {size // 2} now",
+        "moved: not saved",
+    ]
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    with pytest.raises(CheckpointDamaged, match=r"\(_CHECKPOINT_METADATA: missing; .*; moved: not saved\)"):
+        ckpt.restore_leaves(_state(), _policy, step=1)  # all the files are checked, not only the policy's
+    (step_dir / "moved").rename(metadata)
+    largest.unlink()
+    (step_dir / CHECKSUMS).unlink()
+    _, policy = ckpt.restore_leaves(_state(), _policy, step=1)  # unchecked, as older code wrote it
+    np.testing.assert_array_equal(policy["w"], _state()["policy"]["w"])
     ckpt.close()
 
 

@@ -1,10 +1,14 @@
 """Checkpoints of the full train state (networks, optimisers, buffer, env, PRNG key) with orbax.
 
 Orbax writes each checkpoint into a temporary directory and renames it only once every
-array is on disk, so a save interrupted by a kill never appears as a valid step. A step
-that is on disk but cannot be read back (a file truncated or deleted afterwards) is moved
-aside to ``<directory>_damaged/`` by :meth:`Checkpointer.restore`, which then falls back to
-the previous step. A step that reads but holds a state of other leaves or shapes than asked for
+array is on disk, so a save interrupted by a kill never appears as a valid step. Then
+:meth:`Checkpointer.save` writes ``checksums.json`` into the step: each file's size and CRC-32
+(orbax keeps none: a data file with one bit flipped restores silently with wrong values). A step
+whose files differ from their checksums (:class:`CheckpointDamaged`, found before orbax reads
+anything) or that cannot be read back is moved aside to ``<directory>_damaged/`` by
+:meth:`Checkpointer.restore`, which then falls back to the previous step. A step without
+``checksums.json`` (from older code, or a kill just after orbax's rename) is read unchecked.
+A step that reads but holds a state of other leaves or shapes than asked for
 (written by other code) is neither: :class:`CheckpointMismatch` says so, and nothing is moved.
 :meth:`Checkpointer.restore_leaves` reads only some leaves of a step (a policy's parameters, say,
 without the replay buffer saved beside them).
@@ -18,9 +22,12 @@ devices (tested: saved from 2 processes, resumed in 1, and back).
 
 from __future__ import annotations
 
+import json
+import os
 import pathlib
 import sys
 import time
+import zlib
 from collections.abc import Callable
 
 import jax
@@ -35,6 +42,44 @@ def _nonempty_leaves(tree) -> dict[str, jax.Array]:
 
 class CheckpointMismatch(ValueError):
     """A checkpoint's saved leaves differ in number or shape from the state it is restored into."""
+
+
+class CheckpointDamaged(OSError):
+    """A checkpoint's files differ from the sizes and CRC-32s written when it was saved."""
+
+
+CHECKSUMS = "checksums.json"
+_CHUNK = 1 << 24  # bytes read at a time (CRC-32 runs at several GB/s, so a 2 GB pixel replay takes about a second)
+
+
+def file_checksums(step_dir: pathlib.Path) -> dict[str, list[int]]:
+    """``{path relative to step_dir: [size, CRC-32]}`` of every file of a step but :data:`CHECKSUMS`."""
+    sums = {}
+    for path in sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != CHECKSUMS):
+        crc, size = 0, 0
+        with path.open("rb") as f:
+            while chunk := f.read(_CHUNK):
+                crc, size = zlib.crc32(chunk, crc), size + len(chunk)
+        sums[path.relative_to(step_dir).as_posix()] = [size, crc]
+    return sums
+
+
+def checksum_differences(step_dir: pathlib.Path) -> list[str]:
+    """How a step's files differ from its :data:`CHECKSUMS` (empty if they match or it has none)."""
+    written = step_dir / CHECKSUMS
+    if not written.is_file():
+        return []
+    saved, now = json.loads(written.read_text()), file_checksums(step_dir)
+    missing = [f"{name}: missing" for name in saved if name not in now]
+    added = [f"{name}: not saved" for name in now if name not in saved]
+    changed = [
+        f"{name}: {saved[name][0]} bytes saved, {now[name][0]} now"
+        if saved[name][0] != now[name][0]
+        else f"{name}: CRC-32 {saved[name][1]:08x} saved, {now[name][1]:08x} now"
+        for name in saved.keys() & now.keys()
+        if saved[name] != now[name]
+    ]
+    return missing + sorted(changed) + added
 
 
 def mismatch(stored: dict[str, tuple[int, ...]], like, only: set[str] | None = None) -> list[str]:
@@ -85,9 +130,19 @@ class Checkpointer:
         self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handler)
 
     def save(self, step: int, state) -> None:
-        """Saves ``state`` as ``step`` and waits until it is complete on disk."""
-        self.manager.save(step, args=ocp.args.StandardSave(_nonempty_leaves(state)))
+        """Saves ``state`` as ``step``, waits until it is complete on disk, then writes its checksums.
+
+        A step already on disk is left as it is (orbax skips it).
+        """
+        saved = self.manager.save(step, args=ocp.args.StandardSave(_nonempty_leaves(state)))
         self.manager.wait_until_finished()
+        if saved and jax.process_index() == 0:  # Every process's files are in the step once orbax has renamed it.
+            step_dir = self.directory / str(step)
+            partial = step_dir / (CHECKSUMS + ".part")
+            partial.write_text(json.dumps(file_checksums(step_dir)))
+            os.replace(partial, step_dir / CHECKSUMS)
+        if saved and jax.process_count() > 1:
+            multihost_utils.sync_global_devices(f"checkpoint {step} checksummed")
 
     def latest(self) -> int | None:
         """The newest complete step, or None."""
@@ -170,7 +225,15 @@ class Checkpointer:
                     )
         raise FileNotFoundError(f"no readable checkpoint in {self.directory}")
 
+    def _check_files(self, step: int) -> None:
+        """Raises :class:`CheckpointDamaged` naming the first few files of ``step`` that differ from its checksums."""
+        differences = checksum_differences(self.directory / str(step))
+        if differences:
+            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
+            raise CheckpointDamaged(f"files differ from their checksums ({shown})")
+
     def _restore(self, like, step: int, adapt: Callable | None):
+        self._check_files(step)
         stored = self.stored_shapes(step)
         if adapt is not None and stored.keys() == _nonempty_leaves(like).keys():  # The same leaves: adapt shapes.
             like = adapt(like, stored)
@@ -182,6 +245,7 @@ class Checkpointer:
 
     def _restore_leaves(self, like, indices, step: int):
         """The leaves at flat ``indices`` (a tree of ints) of ``step``, read with orbax's partial restore."""
+        self._check_files(step)  # all of them: OCDBT packs leaves into shared data files
         leaves = jax.tree.leaves(like)
         keys = {str(i) for i in jax.tree.leaves(indices) if leaves[i].size}
         self._refuse_mismatch(step, mismatch(self.stored_shapes(step), like, only=keys))
