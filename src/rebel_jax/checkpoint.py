@@ -116,6 +116,12 @@ def leaf_indices(like, select: Callable):
     return indices
 
 
+def _first_few(differences: list[str]) -> str:
+    """The first three of ``differences`` and how many more there are."""
+    more = len(differences) - 3
+    return "; ".join(differences[:3]) + (f"; {more} more" if more > 0 else "")
+
+
 def _restore_target(x) -> jax.ShapeDtypeStruct:
     """A leaf like ``x`` as orbax is to restore it: on ``x``'s sharding, else on this process's first device."""
     sharding = getattr(x, "sharding", None) or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
@@ -231,8 +237,7 @@ class Checkpointer:
         """Raises :class:`CheckpointDamaged` naming the first few files of ``step`` that differ from its checksums."""
         differences = checksum_differences(self.directory / str(step))
         if differences:
-            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
-            raise CheckpointDamaged(f"files differ from their checksums ({shown})")
+            raise CheckpointDamaged(f"files differ from their checksums ({_first_few(differences)})")
 
     def _restore(self, like, step: int, adapt: Callable | None):
         self._check_files(step)
@@ -267,7 +272,7 @@ class Checkpointer:
     def _refuse_mismatch(self, step: int, differences: list[str]) -> None:
         """Raises :class:`CheckpointMismatch` naming the first few of a step's ``differences``, if any."""
         if differences:
-            shown = "; ".join(differences[:3]) + (f"; {len(differences) - 3} more" if len(differences) > 3 else "")
+            shown = _first_few(differences)
             raise CheckpointMismatch(f"checkpoint {step} in {self.directory} holds another state ({shown})")
 
     def _set_aside(self, step: int) -> pathlib.Path:
