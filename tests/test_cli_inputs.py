@@ -316,7 +316,7 @@ def test_parse_survives_collections_whose_finalizers_parse_source():
     tyro reads docstrings with ``ast.parse``, and a finalizer run in the middle parsed source too."""
     tyro_cache.clear_cache()  # tyro caches the parsed docstrings; parse them again
     with _collections_that_parse_source():
-        if sys.version_info[:2] == (3, 11):  # The hazard guarded against is real on this interpreter.
+        if (3, 11) <= sys.version_info[:3] <= (3, 11, 7):  # where the hazard was seen (CI's Python, this one)
             with pytest.raises(SystemError, match="recursion depth mismatch"):
                 ast.parse(pathlib.Path(cli.__file__).read_text())
         args = cli.parse(["--preset", "demo", "--seed", "3"])
