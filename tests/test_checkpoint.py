@@ -150,6 +150,10 @@ def test_checksums_name_missing_cut_and_added_files_and_a_step_without_them_read
     with pytest.raises(CheckpointDamaged, match=r"\(_CHECKPOINT_METADATA: missing; .*; moved: not saved\)"):
         ckpt.restore_leaves(_state(), _policy, step=1)  # all the files are checked, not only the policy's
     (step_dir / "moved").rename(metadata)
+    sums = (step_dir / CHECKSUMS).read_bytes()
+    (step_dir / CHECKSUMS).write_bytes(sums[:-10])
+    [unreadable] = checkpoint.checksum_differences(step_dir)  # cut mid-write by hand: one difference, naming it
+    assert unreadable.startswith(f"{CHECKSUMS}: unreadable (") and "char" in unreadable, unreadable
     largest.unlink()
     (step_dir / CHECKSUMS).unlink()
     _, policy = ckpt.restore_leaves(_state(), _policy, step=1)  # unchecked, as older code wrote it

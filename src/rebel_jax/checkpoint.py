@@ -71,7 +71,11 @@ def checksum_differences(step_dir: pathlib.Path) -> list[str]:
     written = step_dir / CHECKSUMS
     if not written.is_file():
         return []
-    saved, now = json.loads(written.read_text()), file_checksums(step_dir)
+    try:
+        saved = json.loads(written.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        return [f"{CHECKSUMS}: unreadable ({err})"]
+    now = file_checksums(step_dir)
     missing = [f"{name}: missing" for name in saved if name not in now]
     added = [f"{name}: not saved" for name in now if name not in saved]
     changed = [
