@@ -5,33 +5,16 @@ from __future__ import annotations
 import collections
 import dataclasses
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import queries
+from rebel_jax import queries, replay
 
 EPISODE_LENGTH, NUM_ENVS, CAPACITY, H = 12, 3, 60, 5
 _sample_pairs = jax.jit(queries.sample_pairs, static_argnums=(2, 3, 4, 5))
 _select = jax.jit(queries.select_queries, static_argnums=(0, 3, 4, 5))
-
-
-@flax.struct.dataclass
-class FakeBuffer:
-    """Stand-in for replay.py's buffer: fields (T, E, ...), ring ``ptr`` and ``size``."""
-
-    obs: jax.Array
-    action: jax.Array
-    next_obs: jax.Array
-    reward: jax.Array
-    learned_reward: jax.Array
-    terminal: jax.Array
-    truncated: jax.Array
-    episode_step: jax.Array
-    ptr: jax.Array
-    size: jax.Array
 
 
 def _fill(num_writes, seed=0):
@@ -59,7 +42,7 @@ def _fill(num_writes, seed=0):
             if step[env] == EPISODE_LENGTH or early:
                 step[env], episode[env] = 0, episode[env] + 1
     action = obs[..., :2] * 10.0
-    buffer = FakeBuffer(
+    buffer = replay.Buffer(
         obs=jnp.asarray(obs),
         action=jnp.asarray(action),
         next_obs=jnp.asarray(obs),
