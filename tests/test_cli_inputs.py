@@ -12,6 +12,8 @@ import gc
 import json
 import math
 import pathlib
+import re
+import shlex
 import sys
 
 import jax
@@ -321,3 +323,35 @@ def test_parse_survives_collections_whose_finalizers_parse_source():
                 ast.parse(pathlib.Path(cli.__file__).read_text())
         args = cli.parse(["--preset", "demo", "--seed", "3"])
     assert args.config.train.seed == 3
+
+
+def readme_train_commands(text: str) -> list[str]:
+    """The flags of every ``python -m rebel_jax.train`` command in ``text``: in indented blocks (backslash
+    continuations joined, environment variables before it and a trailing ``&`` or comment left out) and in inline
+    code. Commands with ``...`` in place of flags are left out."""
+    joined = re.sub(r"\\\n\s*", " ", text)
+    pattern = r"(?:^ {4,}|`)(?:[A-Z_]+=\S+\s+)*python -m rebel_jax\.train((?: [^`#&\n]*)?)"
+    found = [" ".join(m.group(1).split()) for m in re.finditer(pattern, joined, re.M)]
+    return [flags for flags in found if "..." not in flags]
+
+
+def test_readme_train_commands_are_found_in_blocks_and_inline_code():
+    text = (
+        "Run `python -m rebel_jax.train --preset demo`, or\n\n"
+        "    CUDA_VISIBLE_DEVICES=0 python -m rebel_jax.train --algo sac \\\n        --seeds 2   # two seeds\n"
+        "    for i in 0 1; do\n      A=1 B=$i \\\n"
+        "        python -m rebel_jax.train --seeds 2 --distributed &\n    done\n"
+        "not code: python -m rebel_jax.train --nothing; `python -m rebel_jax.train ... --distributed`\n"
+    )
+    assert readme_train_commands(text) == ["--preset demo", "--algo sac --seeds 2", "--seeds 2 --distributed"]
+
+
+def test_every_train_command_the_readme_shows_parses(capsys):
+    """The README's commands stay valid as flags change (each one is parsed as the CLI would)."""
+    commands = readme_train_commands((pathlib.Path(__file__).parents[1] / "README.md").read_text())
+    assert len(commands) >= 10, commands
+    for flags in commands:
+        try:
+            cli.parse(shlex.split(flags))
+        except SystemExit as err:
+            pytest.fail(f"README's `python -m rebel_jax.train {flags}` is refused: {capsys.readouterr().err}{err}")
