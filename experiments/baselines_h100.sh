@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The faithful-baseline runs of issue 9 on one lent H100. Each call runs for at most $1 seconds
 # (--time-limit), checkpoints, and the next call (on the same warm machine) resumes; the logs (no
-# checkpoints) go to $OUT/runs.tar.gz. A persistent compilation cache under runs/ spares the resumed
+# checkpoints) go to $OUT/runs.tar.gz (`python experiments/collect.py <files_at>/runs.tar.gz pixels` copies the
+# finished runs into results/runs/pixels/). A persistent compilation cache under runs/ spares the resumed
 # calls the ~90 s compile.
 # Usage (device tool, carrying .whl): REBEL_JAX_GIT_COMMIT=<sha> bash experiments/baselines_h100.sh LIMIT SET
 # The device image has no mujoco, mujoco-mjx or brax; fetch the wheels once here (.whl/ is git-ignored), from the

@@ -48,7 +48,7 @@ def _command(job: dict, run_dir: pathlib.Path, seconds: float, state: str) -> li
     return cmd + (["--resume"] if state == "resume" else [])
 
 
-def _summary(run_dir: pathlib.Path) -> tuple[int, str]:
+def run_summary(run_dir: pathlib.Path) -> tuple[int, str]:
     """(env steps reached, mean of the last logged evaluation) from a run's metrics."""
     metrics = run_dir / "metrics.jsonl"
     if not metrics.exists():
@@ -99,7 +99,7 @@ def main() -> None:
     print(f"\n{'job':36s} {'state':7s} {'env steps':>10s} {'last eval':>10s}")
     for job in jobs:
         run_dir = args.runs_dir / job["name"]
-        steps, last = _summary(run_dir)
+        steps, last = run_summary(run_dir)
         print(f"{job['name']:36s} {_state(run_dir):7s} {steps:>10d} {last:>10s}")
         if args.out is not None:
             (args.out / job["name"]).mkdir(parents=True, exist_ok=True)
