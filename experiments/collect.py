@@ -117,10 +117,11 @@ def main(argv: list[str] | None = None) -> int:
         except (FileExistsError, FileNotFoundError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
-        print(f"{'run':72s} {'':24s} {'env steps':>10s} {'last eval':>10s}")
+        width = max(len(name) for name, _ in outcome)
+        print(f"{'run':{width}s} {'':24s} {'env steps':>10s} {'last eval':>10s}")
         for name, what in outcome:
             steps, last = run_summary(runs / name)
-            print(f"{name:72s} {what:24s} {steps:>10d} {last:>10s}")
+            print(f"{name:{width}s} {what:24s} {steps:>10d} {last:>10s}")
     return 0
 
 
