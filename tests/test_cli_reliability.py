@@ -179,7 +179,7 @@ def test_resume_with_checkpoint_every_0_extends_a_run_to_more_steps(whole, tmp_p
     _main(damaged, "--resume", "--total-steps", str(40 * ROUNDS))
     err = capsys.readouterr().err
     assert f"checkpoint {ROUNDS - 1} in" in err and "unreadable" in err and "cut mid-write" in err, err
-    assert "differ from their checksums" in err and "Event loop is closed" not in err, err  # orbax read none of it
+    assert "differ from their checksums" in err, err  # found before orbax read anything of it
     _same_run(whole, damaged)
     assert [p.name.split("-")[0] for p in (damaged / "checkpoints_damaged").iterdir()] == [str(ROUNDS - 1)]
 
