@@ -19,11 +19,13 @@ evaluation's mean return.
 from __future__ import annotations
 
 import argparse
+import gzip
 import pathlib
 import shutil
 import sys
 import tarfile
 import tempfile
+import zlib
 
 from gpu_batch import LOGS, run_summary
 
@@ -93,11 +95,18 @@ def collect(runs: pathlib.Path, dest_root: pathlib.Path, only: list[str] | None 
 
 
 def _runs_dir(source: pathlib.Path, scratch: pathlib.Path) -> pathlib.Path:
-    """SOURCE's ``runs/`` directory, extracted into ``scratch`` when SOURCE is an archive."""
+    """SOURCE's ``runs/`` directory, extracted into ``scratch`` when SOURCE is an archive.
+
+    Raises:
+      ValueError: if SOURCE is a file but no readable archive.
+    """
     if source.is_dir():
         return source
-    with tarfile.open(source) as archive:
-        archive.extractall(scratch, filter="data")
+    try:
+        with tarfile.open(source) as archive:
+            archive.extractall(scratch, filter="data")
+    except (tarfile.TarError, EOFError, zlib.error, gzip.BadGzipFile) as err:  # not an archive, or one cut short
+        raise ValueError(f"{source} is no readable archive ({type(err).__name__}: {err})") from err
     return scratch / "runs" if (scratch / "runs").is_dir() else scratch
 
 
@@ -111,10 +120,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.source.exists():
         p.error(f"{args.source} does not exist")
     with tempfile.TemporaryDirectory() as scratch:
-        runs = _runs_dir(args.source, pathlib.Path(scratch))
         try:
+            runs = _runs_dir(args.source, pathlib.Path(scratch))
             outcome = collect(runs, args.results / args.group, args.only)
-        except (FileExistsError, FileNotFoundError) as err:
+        except (ValueError, FileExistsError, FileNotFoundError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
         width = max(len(name) for name, _ in outcome)

@@ -94,4 +94,8 @@ def test_bad_sources_and_names_are_refused(tmp_path):
     assert "no run at all in" in _main(empty, "g", "--results", tmp_path / "r").stderr
     absent = _main(tmp_path / "absent.tar.gz", "g")
     assert absent.returncode == 2 and "does not exist" in absent.stderr
+    cut = tmp_path / "cut.tar.gz"
+    cut.write_bytes(_archive(runs, tmp_path / "whole.tar.gz").read_bytes()[:100])  # a download cut short
+    refused = _main(cut, "g", "--results", tmp_path / "r")
+    assert refused.returncode == 2 and "is no readable archive" in refused.stderr, refused.stderr
     assert not (tmp_path / "r").exists()
