@@ -56,12 +56,13 @@ _CHUNK = 1 << 24
 
 def file_checksums(step_dir: pathlib.Path) -> dict[str, list[int]]:
     """``{path relative to step_dir: [size, CRC-32]}`` of every file of a step but :data:`CHECKSUMS`."""
-    sums = {}
+    sums, buffer = {}, bytearray(_CHUNK)  # one buffer read into, not a new bytes object per chunk
+    view = memoryview(buffer)
     for path in sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != CHECKSUMS):
         crc, size = 0, 0
-        with path.open("rb") as f:
-            while chunk := f.read(_CHUNK):
-                crc, size = zlib.crc32(chunk, crc), size + len(chunk)
+        with path.open("rb", buffering=0) as f:
+            while read := f.readinto(view):
+                crc, size = zlib.crc32(view[:read], crc), size + read
         sums[path.relative_to(step_dir).as_posix()] = [size, crc]
     return sums
 
