@@ -23,3 +23,13 @@ def test_a_measurement_replaces_its_own_commits_row_and_keeps_other_commits_rows
     again = {**newer, "ms": 11.9}  # the same code measured again: its row is replaced
     merge_rows(out, [again], FIELDS)
     assert json.loads(out.read_text())["rows"] == [first, other_batch, again]
+
+
+def test_the_checkpoint_checksum_benchmark_measures_a_small_state(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    bench = importlib.import_module("checkpoint_checksums")
+    row = bench.row(1 / 1024, repeats=2, scratch=tmp_path / "scratch")  # a 1 MiB leaf
+    assert row["step_bytes"] > 2**20 and row["gib"] == 1 / 1024 and row["commit"] and row["device"]
+    timings = ("save_s", "checksums_s", "restore_checked_s", "restore_unchecked_s")
+    assert row["save_s"] > 0 and all(isinstance(row[name], float) and row[name] >= 0 for name in timings), row
+    assert not (tmp_path / "scratch").exists()  # its checkpoints are removed
