@@ -3,7 +3,7 @@
 Orbax writes each checkpoint into a temporary directory and renames it only once every
 array is on disk, so a save interrupted by a kill never appears as a valid step. Then
 :meth:`Checkpointer.save` writes ``checksums.json`` into the step: each file's size and CRC-32
-(orbax keeps none: a data file with one bit flipped restores silently with wrong values). A step
+(orbax keeps none: a data file with one bit flipped can restore silently with wrong values). A step
 whose files differ from their checksums (:class:`CheckpointDamaged`, found before orbax reads
 anything) or that cannot be read back is moved aside to ``<directory>_damaged/`` by
 :meth:`Checkpointer.restore`, which then falls back to the previous step. A step without
