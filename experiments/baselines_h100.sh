@@ -69,9 +69,12 @@
 #       all with a 99 s first round; the CPU estimate had been 19 min, from benchmarks/pixel_memory.py --configs
 #       surf_walker --seeds 1 --total-steps 250000 --flags="--num-envs 20 --seed-steps 10000 --drqv2.precision bf16":
 #       5.1 GiB of state and 6.2 GiB of round temp).
-#       SET "walker_pixel_last" is the next four-GPU machine (the same usage; estimated from those rows, not run):
-#       GPU=0 the PEBBLE and REBEL walker job on SEED=4 (about 25 min), GPU=1..3 ALGO=surf on SEED=1, 2, 3 (about
-#       18 min each). After it, PEBBLE and REBEL have 5 walker keys and SURF 4; SURF's key 4 is one more job;
+#       SET "walker_pixel_last" (the same usage) ran in the twenty-eighth session (code df8af23, one machine of four
+#       H100s, three chained calls, LIMIT 470, 585, 560, 1,567 s held, counted in full; every job finished): GPU=0 the
+#       PEBBLE and REBEL walker job on SEED=4 (5.45 s median rounds, 1,441 s), GPU=1..3 ALGO=surf on SEED=1, 2, 3
+#       (3.13-3.16 s, 992-1,009 s). PEBBLE and REBEL have 5 walker keys and SURF 4. SURF's key 4 is one more job,
+#       for a one-GPU machine: DETACH=1 PRECISION=bf16 ALGO=surf TASK=walker SEED=4 ENVS=20 SEED_STEPS=10000
+#       STEPS=250000 bash experiments/baselines_h100.sh L pixel_seed (about 17 min held);
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,
@@ -294,8 +297,8 @@ case "${2:-shared}" in
     wait; finish; exit 0 ;;
   four_gpu_plan|walker_pixel_plan|walker_pixel_last)  # one detached job per GPU of four (header, drqv2_seed), each
     # this script's own set in a clean environment; the last one's watch waits for all four and ships every log.
-    # four_gpu_plan ran in the twenty-fifth session, walker_pixel_plan in the twenty-sixth; walker_pixel_last is the
-    # next: the walker pixel preference jobs, each "<algo> <key>" (rebel: PEBBLE and REBEL in one lam-grid program)
+    # four_gpu_plan ran in the twenty-fifth session, walker_pixel_plan in the twenty-sixth, walker_pixel_last in the
+    # twenty-eighth: the walker pixel preference jobs, each "<algo> <key>" (rebel: PEBBLE and REBEL in one lam-grid program)
     if command -v nvidia-smi >/dev/null && [ "$(nvidia-smi -L | wc -l)" -lt 4 ]; then
       echo "$2 needs 4 GPUs, this machine has $(nvidia-smi -L | wc -l): start the jobs one by one"; exit 1
     fi
