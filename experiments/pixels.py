@@ -15,7 +15,8 @@ seeds), ``device``, ``date``, ``command`` and ``log``; for a preference method a
 ``results/pixels_<task>.png``: each method's mean +- std evaluation return against frames. ``stopped`` lists the
 runs the device budget stopped, ``matched`` the preference methods at the agent steps all of their runs reached
 (``MATCHED``), drawn in ``results/pixels_<task>_matched.png``; ``coupling`` whether a key's return difference between
-two methods follows its learned reward's (:func:`coupling`); ``results/pixels_paper.png`` draws the paper's pixel
+two methods follows its learned reward's (:func:`coupling`); ``pooled`` a comparison over both tasks at once, in
+units of each task's DrQ-v2 score (:func:`pooled`); ``results/pixels_paper.png`` draws the paper's pixel
 panels (``PAPER_FIGURE``): PEBBLE, PEBBLE+SURF and REBEL at their longest whole runs beside DrQ-v2 on the true reward.
 """
 
@@ -105,6 +106,15 @@ PAIRED: dict[str, list[tuple[str, str]]] = {
 """Pixel task -> (method a, method b): b against a key by key (:func:`paired`), in the rows and the matched
 entries wherever both methods have seeds of the same keys at the same frames, by their returns and by their
 learned rewards' measures (:data:`REWARD_METRICS`); ``pixels.json``'s ``paired``."""
+POOLED: dict[str, dict[str, tuple[str, str]]] = {
+    "REBEL minus PEBBLE": {task: PAIRED[task][0] for task in PAIRED},
+    "SURF minus PEBBLE": {task: PAIRED[task][1] for task in PAIRED},
+}
+"""Comparison -> pixel task -> its :data:`PAIRED` methods: the comparisons :func:`pooled` reads over both tasks;
+``pixels.json``'s ``pooled``."""
+REFERENCE = {"cheetah_run_pixels": "drqv2", "walker_walk_pixels": "drqv2 (float32 critic output)"}
+"""Pixel task -> the row whose mean scales its differences in :func:`pooled`: DrQ-v2 on the true reward, 5 seeds
+at 500k frames (the float32 critic output on walker, the arm that met the issue's target)."""
 
 
 def action_repeat(task: str) -> int:
@@ -194,13 +204,9 @@ PLANNED_KEYS = (5, 10, 20)
 
 def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
     """Method ``b`` against ``a`` key by key: for each frames at which ``entries`` (rows or matched entries) hold
-    both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's, their mean,
-    standard error, 95% percentile bootstrap interval of the mean (at a few keys narrower than its 95%), and how
-    many are positive with the two-sided sign test's p-value and the Wilcoxon signed-rank test's
-    (:func:`analysis.signed_rank_p`); ``detectable``: at these keys and at :data:`PLANNED_KEYS`, the smallest mean
-    difference a paired t-test would find with 80% power at the observed spread
-    (:func:`analysis.detectable_difference`), for planning how many keys a comparison needs. No entry where the two
-    share no key."""
+    both, over the seed keys both have (:func:`seed_keys`), the per-key ``scores`` of b minus a's and their
+    statistics (:func:`differences`; ``detectable`` is for planning how many keys a comparison needs). No entry
+    where the two share no key."""
     out = []
     for x in (e for e in entries if e["method"] == a):
         for y in (e for e in entries if e["method"] == b and e["frames"] == x["frames"]):
@@ -210,33 +216,63 @@ def paired(entries: list[dict], a: str, b: str, scores: str) -> list[dict]:
             if not keys:
                 continue
             diffs = np.array([theirs[k] - mine[k] for k in keys])
-            nonzero = diffs[diffs != 0]
-            positive = int(np.sum(nonzero > 0))
-            low, high = bootstrap_ci(diffs, np.mean)
-            sem = float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else math.nan
             digits = 3 if scores in REWARD_METRICS else 2  # returns, or the rewards' accuracies and correlations
-            out.append(
-                {
-                    "task": x["task"],
-                    "frames": x["frames"],
-                    "scores": scores,
-                    "a": a,
-                    "b": b,
-                    "keys": [list(k) for k in keys],
-                    "differences": [round(float(d), digits) for d in diffs],
-                    "mean": round(float(diffs.mean()), digits),
-                    "sem": round(sem, digits) if math.isfinite(sem) else None,
-                    "mean_ci": [round(v, digits) if math.isfinite(v) else None for v in (low, high)],
-                    "positive": positive,
-                    "pairs": len(nonzero),
-                    "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
-                    "signed_rank_p": None if nonzero.size == 0 else round(signed_rank_p(nonzero), 4),
-                    "detectable": {
-                        str(n): None if (v := detectable_difference(diffs, n)) is None else round(v, digits)
-                        for n in sorted({len(diffs), *PLANNED_KEYS})
-                    },
-                }
-            )
+            described = {"task": x["task"], "frames": x["frames"], "scores": scores, "a": a, "b": b}
+            out.append(described | {"keys": [list(k) for k in keys]} | differences(diffs, digits))
+    return out
+
+
+def differences(diffs: np.ndarray, digits: int) -> dict:
+    """Paired differences (b minus a, one per key) and what they say, each rounded to ``digits``: the mean, its
+    standard error and 95% percentile bootstrap interval (at a few keys narrower than its 95%), how many are
+    positive with the two-sided sign test's p-value and the Wilcoxon signed-rank test's
+    (:func:`analysis.signed_rank_p`), zeros being no pair of either; ``detectable``: at these keys and at
+    :data:`PLANNED_KEYS`, the smallest mean difference a paired t-test would find with 80% power at the observed
+    spread (:func:`analysis.detectable_difference`)."""
+    nonzero = diffs[diffs != 0]
+    positive = int(np.sum(nonzero > 0))
+    low, high = bootstrap_ci(diffs, np.mean)
+    sem = float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else math.nan
+    return {
+        "differences": [round(float(d), digits) for d in diffs],
+        "mean": round(float(diffs.mean()), digits),
+        "sem": round(sem, digits) if math.isfinite(sem) else None,
+        "mean_ci": [round(v, digits) if math.isfinite(v) else None for v in (low, high)],
+        "positive": positive,
+        "pairs": len(nonzero),
+        "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
+        "signed_rank_p": None if nonzero.size == 0 else round(signed_rank_p(nonzero), 4),
+        "detectable": {
+            str(n): None if (v := detectable_difference(diffs, n)) is None else round(v, digits)
+            for n in sorted({len(diffs), *PLANNED_KEYS})
+        },
+    }
+
+
+def pooled(pairs: list[dict], table: list[dict]) -> list[dict]:
+    """Each comparison of :data:`POOLED` over both pixel tasks: per task its :func:`paired` entry of final returns
+    at the longest frames, each key's difference divided by the mean of the task's reference row
+    (:data:`REFERENCE`, DrQ-v2 on the true reward at 500k frames), the tasks' keys together (:func:`differences`,
+    in units of that mean). ``tasks`` says which entry and reference each task gave. No entry where fewer than two
+    tasks have one. Chosen after the per-task entries were seen (twenty-eighth session), to read both panels at
+    once with more keys than either; RESULTS.md says so."""
+    out = []
+    for name, by_task in POOLED.items():
+        parts, diffs = [], []
+        for task, (a, b) in by_task.items():
+            short = task.removesuffix("_pixels")
+            found = [e for e in pairs if (e["task"], e["scores"], e["a"], e["b"]) == (short, "final_returns", a, b)]
+            if not found:
+                continue
+            entry = max(found, key=lambda e: e["frames"])
+            (ref,) = [r for r in table if r["task"] == short and r["method"] == REFERENCE[task]]
+            diffs += [d / ref["mean"] for d in entry["differences"]]
+            parts.append(
+                {"task": short, "frames": entry["frames"], "a": a, "b": b, "keys": len(entry["keys"]),
+                 "reference": ref["method"], "reference_frames": ref["frames"], "reference_mean": ref["mean"]}
+            )  # fmt: skip
+        if len(parts) > 1:
+            out.append({"comparison": name, "tasks": parts} | differences(np.array(diffs), 3))
     return out
 
 
@@ -456,11 +492,9 @@ def main() -> None:
             for name in REWARD_METRICS:  # Whether b's learned reward is better than a's on the same keys.
                 pairs += paired(task_rows, a, b, name) + paired(task_matched, a, b, name)
     paper_figure(whole, table, RESULTS / "pixels_paper.png")
-    coupled = coupling(pairs)
-    (RESULTS / "pixels.json").write_text(
-        json.dumps({"rows": table, "stopped": early, "matched": same, "paired": pairs, "coupling": coupled}, indent=1)
-        + "\n"
-    )
+    coupled, both = coupling(pairs), pooled(pairs, table)
+    out = {"rows": table, "stopped": early, "matched": same, "paired": pairs, "coupling": coupled, "pooled": both}
+    (RESULTS / "pixels.json").write_text(json.dumps(out, indent=1) + "\n")
     print("| task | method | seeds | frames | mean +- std | IQM [95% CI] |")
     print("|---|---|---:|---:|---:|---:|")
     for r in table:
@@ -495,6 +529,7 @@ def main() -> None:
     for c in coupled:
         print(f"| {c['task']} | {c['frames']:,} | {c['b']} minus {c['a']} | {c['keys']} | {c['spearman']} "
               f"| {c['permutation_p']} |")  # fmt: skip
+    _pooled_table(both)
 
 
 def _quality_table(entries: list[dict]) -> None:
@@ -523,6 +558,24 @@ def _paired_table(entries: list[dict]) -> None:
             f"| {e['task']} | {e['frames']:,} | {e['scores']} | {e['b']} minus {e['a']} | {len(e['keys'])} | {diffs} "
             f"| {e['mean']:+.{digits}f} +- {e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} "
             f"| {e['sign_test_p']} | {e['signed_rank_p']} | {detectable} |"
+        )
+
+
+def _pooled_table(entries: list[dict]) -> None:
+    """Each :func:`pooled` entry: the tasks' keys together, in units of each task's DrQ-v2 mean."""
+    print("\n| comparison | tasks: frames, keys, divided by | per key | mean +- s.e. [95% CI] | positive ", end="")
+    print("| sign test p | signed-rank p | detectable at 80% power (keys: difference) |")
+    print("|---|---|---|---:|---:|---:|---:|---|")
+    for e in entries:
+        tasks = "; ".join(
+            f"{t['task']} {t['frames'] // 1000}k, {t['keys']}, {t['reference_mean']:.1f}" for t in e["tasks"]
+        )
+        low, high = e["mean_ci"]
+        detectable = ", ".join(f"{n}: {v}" for n, v in e["detectable"].items())
+        print(
+            f"| {e['comparison']} | {tasks} | {', '.join(f'{d:+.3f}' for d in e['differences'])} | {e['mean']:+.3f} +- "
+            f"{e['sem']} [{low}, {high}] | {e['positive']} of {e['pairs']} | {e['sign_test_p']} | {e['signed_rank_p']} "
+            f"| {detectable} |"
         )
 
 

@@ -865,6 +865,46 @@ def test_pixel_coupling_ranks_return_differences_against_reward_differences_on_s
     assert pixels.coupling([returns, few]) == []  # 2 shared keys: no rank correlation
 
 
+def test_pixel_pooled_scales_each_tasks_key_differences_by_its_reference_and_pools_the_keys(monkeypatch):
+    pixels = _experiment(monkeypatch, "pixels")
+    monkeypatch.setattr(
+        pixels, "POOLED", {"b minus a": {"cheetah_run_pixels": ("a", "b"), "walker_walk_pixels": ("p", "q")}}
+    )
+    monkeypatch.setattr(pixels, "REFERENCE", {"cheetah_run_pixels": "drqv2", "walker_walk_pixels": "drqv2 f32"})
+    table = [
+        {"task": "cheetah_run", "method": "drqv2", "frames": 1_000_000, "mean": 500.0},
+        {"task": "walker_walk", "method": "drqv2", "frames": 1_000_000, "mean": 1.0},  # not walker's reference
+        {"task": "walker_walk", "method": "drqv2 f32", "frames": 1_000_000, "mean": 800.0},
+    ]
+    entry = {"scores": "final_returns", "keys": [[0, 0], [1, 0]]}
+    pairs = [
+        entry | {"task": "cheetah_run", "frames": 300_000, "a": "a", "b": "b", "differences": [100.0, -50.0]},
+        entry | {"task": "cheetah_run", "frames": 160_000, "a": "a", "b": "b", "differences": [9.0, 9.0]},  # shorter
+        entry | {"task": "cheetah_run", "frames": 300_000, "a": "b", "b": "a", "differences": [-100.0, 50.0]},
+        entry | {"task": "cheetah_run", "frames": 300_000, "scores": "reward_correlation", "a": "a", "b": "b",
+                 "differences": [0.5, 0.5]},
+        entry | {"task": "walker_walk", "frames": 500_000, "a": "p", "b": "q", "keys": [[0, 0], [1, 0], [2, 0]],
+                 "differences": [400.0, 0.0, -80.0]},
+    ]  # fmt: skip
+    (out,) = pixels.pooled(pairs, table)
+    expected = np.array([100 / 500, -50 / 500, 400 / 800, 0.0, -80 / 800])
+    assert out["comparison"] == "b minus a" and out["differences"] == pytest.approx(expected)
+    assert out["mean"] == pytest.approx(expected.mean(), abs=1e-3)
+    assert out["sem"] == pytest.approx(expected.std(ddof=1) / np.sqrt(5), abs=1e-3)
+    assert (out["positive"], out["pairs"]) == (2, 4)  # the zero is no pair
+    assert out["detectable"] == pytest.approx(
+        {str(n): analysis.detectable_difference(expected, n) for n in (5, 10, 20)}, abs=1e-3
+    )
+    assert out["tasks"] == [
+        {"task": "cheetah_run", "frames": 300_000, "a": "a", "b": "b", "keys": 2, "reference": "drqv2",
+         "reference_frames": 1_000_000, "reference_mean": 500.0},
+        {"task": "walker_walk", "frames": 500_000, "a": "p", "b": "q", "keys": 3, "reference": "drqv2 f32",
+         "reference_frames": 1_000_000, "reference_mean": 800.0},
+    ]  # fmt: skip
+    json.dumps(out, allow_nan=False)
+    assert pixels.pooled(pairs[:4], table) == []  # one task alone is no pooled entry
+
+
 def test_the_pixel_paper_figure_draws_its_panels_methods_and_refuses_a_missing_one(tmp_path, monkeypatch):
     pixels = _experiment(monkeypatch, "pixels")
     monkeypatch.setattr(pixels, "RESULTS", tmp_path)
