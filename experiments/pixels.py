@@ -265,7 +265,10 @@ def pooled(pairs: list[dict], table: list[dict]) -> list[dict]:
             if not found:
                 continue
             entry = max(found, key=lambda e: e["frames"])
-            (ref,) = [r for r in table if r["task"] == short and r["method"] == REFERENCE[task]]
+            refs = [r for r in table if r["task"] == short and r["method"] == REFERENCE[task]]
+            if len(refs) != 1:
+                raise ValueError(f"{task}: {len(refs)} rows of the reference {REFERENCE[task]!r}, not one")
+            ref = refs[0]
             diffs += [d / ref["mean"] for d in entry["differences"]]
             parts.append(
                 {"task": short, "frames": entry["frames"], "a": a, "b": b, "keys": len(entry["keys"]),

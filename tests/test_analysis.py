@@ -903,6 +903,8 @@ def test_pixel_pooled_scales_each_tasks_key_differences_by_its_reference_and_poo
     ]  # fmt: skip
     json.dumps(out, allow_nan=False)
     assert pixels.pooled(pairs[:4], table) == []  # one task alone is no pooled entry
+    with pytest.raises(ValueError, match="walker_walk_pixels: 0 rows of the reference 'drqv2 f32', not one"):
+        pixels.pooled(pairs, table[:2])
 
 
 def test_the_pixel_paper_figure_draws_its_panels_methods_and_refuses_a_missing_one(tmp_path, monkeypatch):
