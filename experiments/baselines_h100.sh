@@ -72,9 +72,12 @@
 #       SET "walker_pixel_last" (the same usage) ran in the twenty-eighth session (code df8af23, one machine of four
 #       H100s, three chained calls, LIMIT 470, 585, 560, 1,567 s held, counted in full; every job finished): GPU=0 the
 #       PEBBLE and REBEL walker job on SEED=4 (5.45 s median rounds, 1,441 s), GPU=1..3 ALGO=surf on SEED=1, 2, 3
-#       (3.13-3.16 s, 992-1,009 s). PEBBLE and REBEL have 5 walker keys and SURF 4. SURF's key 4 is one more job,
-#       for a one-GPU machine: DETACH=1 PRECISION=bf16 ALGO=surf TASK=walker SEED=4 ENVS=20 SEED_STEPS=10000
-#       STEPS=250000 bash experiments/baselines_h100.sh L pixel_seed (about 17 min held);
+#       (3.13-3.16 s, 992-1,009 s). PEBBLE and REBEL had 5 walker keys and SURF 4. Twenty-ninth session (code d6a47af,
+#       two one-GPU machines, each counting half its held time): DETACH=1 PRECISION=bf16 ALGO=surf TASK=walker SEED=4
+#       ENVS=20 SEED_STEPS=10000 STEPS=250000 bash experiments/baselines_h100.sh L pixel_seed (three chained calls,
+#       LIMIT 470, 585, 150; 3.16 s median rounds, 1,013 s, 1,146 s held), then the same with ALGO=rebel LAMS="0 0.001"
+#       SEED=5 (four chained calls, LIMIT 470, 585, 570, 150; 5.57 s median rounds, 1,483 s, about 1,646 s held):
+#       6, 6 and 5 walker keys;
 #   SET "ladder" with RUNG=0|1|2|3 (planned): the ladder re-run on today's code in bf16 with the
 #       seeds of the rung-4 bf16 run (--seed 1), so that every rung has a log, its 200k and 500k returns and
 #       the frozen evaluation: 0 = the earlier protocol (uniform, lecun init, rows pool, 40 envs, utd 0.25,

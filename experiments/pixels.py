@@ -59,8 +59,8 @@ CHEETAH_PREFERENCE = [
 ]
 """The whole pixel preference runs on cheetah_run (PEBBLE and REBEL in lam-grid programs, and SURF)."""
 WALKER_PREFERENCE = [
-    *(f"pixels/rebel_walker_pixels_250000steps_seed{k}_lams_0_0.001_envs20_seedsteps10000_bf16" for k in range(5)),
-    *(f"pixels/surf_walker_pixels_250000steps_seed{k}_envs20_seedsteps10000_bf16" for k in range(4)),
+    *(f"pixels/rebel_walker_pixels_250000steps_seed{k}_lams_0_0.001_envs20_seedsteps10000_bf16" for k in range(6)),
+    *(f"pixels/surf_walker_pixels_250000steps_seed{k}_envs20_seedsteps10000_bf16" for k in range(5)),
 ]
 """The whole pixel preference runs on walker_walk (PEBBLE and REBEL in lam-grid programs, and SURF), one key each."""
 RUNS: dict[str, list[str]] = {
