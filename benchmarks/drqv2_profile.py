@@ -10,7 +10,9 @@ summed per HLO instruction, and each instruction is put in a category read from 
 (:func:`categories`): the cuDNN convolutions by direction, matrix products, fusions by kind, and the rest by opcode.
 The row (merged into ``benchmarks/results/drqv2_profile.json``) gives milliseconds per update of every seed, per
 category and for the ``--top`` instructions, beside the wall time of the same calls: what the trace's kernels leave
-of the wall time is launch gaps and the host.
+of the wall time is launch gaps and the host. XLA's command buffers (CUDA graphs) are traced as one event each,
+named ``command_buffer_<n>`` and counted as "not in the HLO"; ``--xla-flags=--xla_gpu_enable_command_buffer=``
+turns them off, so that their kernels are traced one by one.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import time
 
 import jax
 from drqv2_update import update_scan
-from timing import merge_rows, provenance
+from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 
 from rebel_jax.drqv2 import DrQV2Config, task_config
 
@@ -173,6 +175,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=5, help="traced calls")
     p.add_argument("--top", type=int, default=20, help="instructions listed by time")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    add_xla_flags_argument(p)
     return p
 
 
@@ -180,9 +183,11 @@ def main(argv=None):
     args = parser().parse_args(argv)
     if args.repeats < 1 or args.updates_per_call < 1:
         raise SystemExit("--repeats and --updates-per-call must be at least 1")
+    use_xla_flags(args.xla_flags)
     result = row(args)
     print(json.dumps(result, indent=1), flush=True)
-    merge_rows(args.out, [result], ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop"))
+    key = ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "xla_flags")
+    merge_rows(args.out, [result], key)
 
 
 if __name__ == "__main__":
