@@ -1,4 +1,5 @@
-"""``benchmarks/drqv2_profile.py``: the HLO categories, the per-update sums, and a traced run on the CPU."""
+"""``benchmarks/drqv2_profile.py`` (the HLO categories, the per-update sums, a traced run on the CPU) and
+``benchmarks/shift_bench.py`` (the select-based shift against ``drqv2.shift_images``, a run on the CPU)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,14 @@ def profile(monkeypatch):
     import drqv2_profile
 
     return drqv2_profile
+
+
+@pytest.fixture
+def shift_bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import shift_bench
+
+    return shift_bench
 
 
 HLO = """
@@ -106,3 +115,27 @@ def test_a_traced_cpu_run_finds_every_instruction_in_the_compiled_program(profil
 def test_bad_counts_are_refused(profile):
     with pytest.raises(SystemExit, match="at least 1"):
         profile.main(["--repeats", "0"])
+
+
+@pytest.mark.parametrize("pad", [1, 4])
+def test_shift_by_selects_takes_the_same_window_as_shift_images_at_every_shift(shift_bench, pad):
+    import jax.numpy as jnp
+
+    from rebel_jax.drqv2 import shift_images
+
+    rng = np.random.default_rng(pad)
+    shifts = np.array([(sx, sy) for sx in range(2 * pad + 1) for sy in range(2 * pad + 1)])
+    obs = jnp.asarray(rng.integers(0, 256, (len(shifts), 10, 12, 9), dtype=np.uint8))
+    ours = np.asarray(shift_bench.shift_by_selects(obs, jnp.asarray(shifts), pad))
+    assert ours.dtype == np.uint8
+    np.testing.assert_array_equal(ours, np.asarray(shift_images(obs, jnp.asarray(shifts), pad)))
+
+
+def test_a_shift_bench_cpu_run_writes_a_row_per_way_and_output(shift_bench, tmp_path):
+    out = tmp_path / "shift.json"
+    shift_bench.main(["--batch-size", "4", "--size", "12", "--per-call", "2", "--repeats", "1", "--out", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    assert sorted((row["way"], row["output"]) for row in rows) == sorted(
+        (way, output) for way in shift_bench.WAYS for output in ("u8", "scaled")
+    )
+    assert all(row["ms"] > 0 and row["batch_size"] == 4 for row in rows)
