@@ -27,7 +27,7 @@ import tempfile
 import time
 
 import jax
-from drqv2_update import update_scan
+from drqv2_update import program_fields, update_scan
 from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 
 from rebel_jax.drqv2 import DrQV2Config, task_config
@@ -151,12 +151,7 @@ def row(args) -> dict:
     updates = args.repeats * args.updates_per_call
     return {
         **provenance(),
-        "seeds": args.seeds,
-        "size": args.size,
-        "batch_size": cfg.batch_size,
-        "nstep": cfg.nstep,
-        "precision": cfg.precision,
-        "seed_loop": cfg.seed_loop,
+        **program_fields(args, cfg),
         "updates": updates,
         "wall_ms_per_update": round(wall * 1e3 / updates, 4),
         "lines": lines,

@@ -69,6 +69,18 @@ def update_scan(cfg: DrQV2Config, size: int, seeds: int, per_call: int):
     return jax.jit(many, donate_argnums=0), state
 
 
+def program_fields(args, cfg: DrQV2Config) -> dict:
+    """The fields of a result row that name the update's program."""
+    return {
+        "seeds": args.seeds,
+        "size": args.size,
+        "batch_size": cfg.batch_size,
+        "nstep": cfg.nstep,
+        "precision": cfg.precision,
+        "seed_loop": cfg.seed_loop,
+    }
+
+
 def rows(args):
     base = task_config("walker_walk", DrQV2Config(precision=args.precision))
     base = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
@@ -80,12 +92,7 @@ def rows(args):
         sec = median_seconds(compiled, state, args.updates_per_call, args.repeats)
         row = {
             **provenance(),
-            "seeds": args.seeds,
-            "size": args.size,
-            "batch_size": cfg.batch_size,
-            "nstep": cfg.nstep,
-            "precision": cfg.precision,
-            "seed_loop": cfg.seed_loop,
+            **program_fields(args, cfg),
             "kernel_grad": cfg.kernel_grad,
             "ms_per_update": sec * 1e3,
             "ms_per_seed_update": sec * 1e3 / args.seeds,
