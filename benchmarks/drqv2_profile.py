@@ -63,7 +63,7 @@ def category(rest: str) -> str:
     if opcode in ("dot", "cublas-gemm"):
         return "matrix product"
     if opcode == "fusion":
-        if "__triton_gemm" in rest or "triton_gemm" in rest:
+        if "triton_gemm" in rest:
             return "matrix product"
         kind = _KIND.search(rest)
         return f"fusion {kind.group(1) if kind else ''}".strip()

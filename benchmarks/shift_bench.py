@@ -23,6 +23,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+from drqv2_update import update_scan
 from timing import merge_rows, provenance
 
 from rebel_jax.drqv2 import DrQV2Config, draw_shifts, shift_images, task_config
@@ -49,6 +50,7 @@ WAYS = {"gather": shift_images, "selects": shift_by_selects}
 
 
 def scaled(images: jax.Array) -> jax.Array:
+    """The encoder's input scaling (networks.py, ``Encoder``), cast to bf16 as its convolutions take it."""
     return (images.astype(jnp.float32) / 255.0 - 0.5).astype(jnp.bfloat16)
 
 
@@ -96,8 +98,6 @@ def rows(args):
 
 
 def write_hlo(path: pathlib.Path) -> None:
-    from drqv2_update import update_scan
-
     cfg = dataclasses.replace(task_config("walker_walk", DrQV2Config(precision="bf16")), seed_loop=True)
     run, state = update_scan(cfg, 84, 5, 2)
     path.write_text(run.lower(state, jax.random.PRNGKey(1)).compile().as_text())
