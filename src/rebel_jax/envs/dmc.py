@@ -92,6 +92,11 @@ class TaskSpec:
     randomize_rotational: bool
 
 
+def _traced_constant(leaf):
+    """A host array as a JAX array (a constant of the program being traced); other leaves unchanged."""
+    return jnp.asarray(leaf) if isinstance(leaf, np.ndarray) else leaf
+
+
 def _observed(d: mjx.Data, m: mjx.Model) -> mjx.Data:
     """Position and velocity quantities of ``d``'s current qpos/qvel.
 
@@ -225,6 +230,11 @@ class DMCEnv(Env):
         self.unroll_substeps = unroll_substeps
         self.mj_model = mj_model(task, solver)
         self.sys = mjx.put_model(self.mj_model)
+        # ``mjx.make_data`` ends in ``jax.device_put(data, jax.devices()[0])``
+        # (mujoco 3.17, mjx/_src/io.py:771): traced inside ``shard_map`` over several GPUs that pins
+        # every device's part to the first GPU and crashes XLA (a segfault on 2 GPUs). The template
+        # is made once here, on the host, and ``reset`` builds on it with no device placement.
+        self._data0 = jax.device_get(mjx.make_data(self.sys))
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
         # [-pi, pi] where the task says so (walker; dm_control's cheetah leaves its root
@@ -286,7 +296,7 @@ class DMCEnv(Env):
         """Samples an initial state from dm_control's reset distribution."""
         u = jax.random.uniform(rng, self._reset_low.shape)
         qpos = self._reset_low + u * (self._reset_high - self._reset_low)
-        d = mjx.make_data(self.sys).replace(qpos=qpos)
+        d = jax.tree.map(_traced_constant, self._data0).replace(qpos=qpos)
         if self.spec.settle_steps:
             d = self._physics_steps(d, self.spec.settle_steps).replace(time=jnp.zeros(()))
         zero = jnp.zeros(())
