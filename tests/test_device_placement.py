@@ -1,11 +1,12 @@
-"""Nothing traced into the run's programs pins data to one device.
+"""Nothing traced into the run's programs is tied to one device.
 
-``jax.device_put(x, device)`` inside a traced function places its result on that one device. In the
-programs that ``train.compiled`` runs per device under ``shard_map`` (several GPUs, one seed block
-each), such a placement asks every device's block to live on the first device: on two GPUs XLA
-crashed with a segmentation fault in the first ``init``. ``mjx.make_data`` ends in such a call
-(mujoco 3.17, ``mjx/_src/io.py:771``), so the tasks' ``reset`` must not trace it. On CPU the crash
-does not show, but the placement is visible in the traced program: these tests read it there.
+``train.compiled`` runs the seed-vmapped programs on every device under ``shard_map`` (several GPUs,
+one block of seeds each). A program that places data on one device (``jax.device_put(x, device)``
+traced inside it), or that closes over an array committed to one device, asks every device's block
+to live on that device: on two GPUs XLA crashed with a segmentation fault in the first ``init``.
+MJX does both by default: ``mjx.put_model`` and ``mjx.make_data`` commit their arrays to the first
+device (mujoco 3.17, ``mjx/_src/io.py:463`` and ``:771``). On CPU the crash does not show, but both
+are visible in the traced programs: these tests read them there.
 """
 
 from __future__ import annotations
@@ -13,47 +14,59 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import pytest
 from jax.extend import core
 from mujoco import mjx
 
-from rebel_jax import config, train
+from rebel_jax import config, pixel_train, train
 from rebel_jax.envs import make_env
 
 
-def _pinned_placements(jaxpr: core.Jaxpr) -> list[str]:
-    """Every ``device_put`` of ``jaxpr`` (sub-programs included) whose target is a concrete device."""
-    found = []
-    for eqn in jaxpr.eqns:
+def _device_ties(closed: core.ClosedJaxpr) -> list[str]:
+    """What in ``closed`` (sub-programs included) is tied to one device: pinned placements and committed constants."""
+    found = [f"constant committed to {c.sharding}" for c in closed.consts if isinstance(c, jax.Array) and c.committed]
+    for eqn in closed.jaxpr.eqns:
         if eqn.primitive.name == "device_put" and any(d is not None for d in eqn.params["devices"]):
-            found.append(str(eqn.params["devices"][0]))
-        for sub in core.jaxprs_in_params(eqn.params):
-            found += _pinned_placements(sub)
+            found.append(f"device_put to {eqn.params['devices'][0]}")
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple | list) else (value,):
+                if isinstance(sub, core.ClosedJaxpr):
+                    found += _device_ties(sub)
+                elif isinstance(sub, core.Jaxpr):
+                    found += _device_ties(core.ClosedJaxpr(sub, []))
     return found
 
 
-def test_the_check_sees_the_placement_of_mjx_make_data():
+def test_the_check_sees_what_mjx_ties_to_a_device():
     env = make_env("walker_walk", episode_length=10)
-    jaxpr = jax.make_jaxpr(lambda key: mjx.make_data(env.sys))(jax.random.PRNGKey(0)).jaxpr
-    assert _pinned_placements(jaxpr)
+    committed = mjx.put_model(env.mj_model)
+    placed = jax.make_jaxpr(lambda key: mjx.make_data(env.sys))(jax.random.PRNGKey(0))
+    closed_over = jax.make_jaxpr(lambda key: mjx.forward(committed, env.reset(key).pipeline_state))(
+        jax.random.PRNGKey(0)
+    )
+    assert any(tie.startswith("device_put") for tie in _device_ties(placed))
+    assert any(tie.startswith("constant") for tie in _device_ties(closed_over))
 
 
 @pytest.mark.parametrize("task", ["walker_walk", "cheetah_run", "probe_point", "walker_walk_pixels"])
-def test_reset_and_step_place_nothing(task):
+def test_reset_and_step_are_tied_to_no_device(task):
     env = make_env(task, episode_length=10)
-    reset = jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0))
-    assert _pinned_placements(reset.jaxpr) == []
-    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
-    step = jax.make_jaxpr(env.step)(state, jax.numpy.zeros(env.action_size))
-    assert _pinned_placements(step.jaxpr) == []
+    key = jax.random.PRNGKey(0)
+    assert _device_ties(jax.make_jaxpr(env.reset)(key)) == []
+    state = jax.eval_shape(env.reset, key)
+    assert _device_ties(jax.make_jaxpr(env.step)(state, jnp.zeros(env.action_size))) == []
 
 
-@pytest.mark.parametrize("algo", ["sac", "pebble"])
-def test_the_run_programs_place_nothing(algo):
-    cfg = dataclasses.replace(config.PRESETS["tiny"], algo=algo)
-    trainer = train.Trainer(cfg)
+@pytest.mark.parametrize(
+    ("algo", "task"), [("sac", "walker_walk"), ("pebble", "walker_walk"), ("drqv2", "walker_walk_pixels")]
+)
+def test_the_run_programs_are_tied_to_no_device(algo, task):
+    tiny = config.PRESETS["tiny"]
+    cfg = dataclasses.replace(tiny, algo=algo, env=dataclasses.replace(tiny.env, task=task))
+    trainer = pixel_train.PixelTrainer(cfg) if cfg.pixels else train.Trainer(cfg)
     keys = train.seed_keys(0, 2)
     init, round_fn, _ = train.compiled(trainer)
-    assert _pinned_placements(jax.make_jaxpr(init)(keys).jaxpr) == []
+    assert _device_ties(jax.make_jaxpr(init)(keys)) == []
     states = jax.eval_shape(init, keys)
-    assert _pinned_placements(jax.make_jaxpr(round_fn)(states, jax.numpy.int32(1)).jaxpr) == []
+    assert _device_ties(jax.make_jaxpr(round_fn)(states, jnp.int32(1))) == []

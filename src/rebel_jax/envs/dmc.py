@@ -92,6 +92,11 @@ class TaskSpec:
     randomize_rotational: bool
 
 
+def _uncommitted(leaf):
+    """A JAX array as an uncommitted copy (placed wherever the program using it runs); other leaves unchanged."""
+    return jnp.asarray(jax.device_get(leaf)) if isinstance(leaf, jax.Array) else leaf
+
+
 def _traced_constant(leaf):
     """A host array as a JAX array (a constant of the program being traced); other leaves unchanged."""
     return jnp.asarray(leaf) if isinstance(leaf, np.ndarray) else leaf
@@ -229,11 +234,12 @@ class DMCEnv(Env):
         self.episode_length = episode_length
         self.unroll_substeps = unroll_substeps
         self.mj_model = mj_model(task, solver)
-        self.sys = mjx.put_model(self.mj_model)
-        # ``mjx.make_data`` ends in ``jax.device_put(data, jax.devices()[0])``
-        # (mujoco 3.17, mjx/_src/io.py:771): traced inside ``shard_map`` over several GPUs that pins
-        # every device's part to the first GPU and crashes XLA (a segfault on 2 GPUs). The template
-        # is made once here, on the host, and ``reset`` builds on it with no device placement.
+        # ``mjx.put_model`` and ``mjx.make_data`` commit their arrays to the first device
+        # (``jax.device_put(..., jax.devices()[0])``, mujoco 3.17 mjx/_src/io.py:463 and :771). Traced into
+        # the programs that ``shard_map`` runs on every GPU, such arrays pin each device's part to the
+        # first GPU, and XLA crashed (a segfault on 2 GPUs). The model's arrays are kept uncommitted (they
+        # follow the program to every device), and ``reset`` builds on a host template of the data.
+        self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model))
         self._data0 = jax.device_get(mjx.make_data(self.sys))
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
