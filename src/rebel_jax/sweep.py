@@ -17,8 +17,10 @@ are used only by these helpers (on CPU through gloo, JAX's default CPU collectiv
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -64,6 +66,51 @@ def seed_sharding(num_seeds: int, devices: list | None = None) -> NamedSharding 
     if num_seeds % len(devices):
         raise ValueError(f"--seeds={num_seeds} must be a multiple of the {len(devices)} devices to shard over")
     return NamedSharding(Mesh(np.array(devices), ("seeds",)), PartitionSpec("seeds"))
+
+
+def per_device(fn: Callable, sharding: NamedSharding, batched: tuple[bool, ...]) -> Callable:
+    """``fn`` (a seed-vmapped function) run by ``shard_map`` on each device's block of seeds, with no communication.
+
+    Zero-size arrays (MJX's data holds several, e.g. the constraint rows of a model without
+    constraints) stay outside the ``shard_map``: they are passed in and returned as new empty
+    arrays. XLA's GPU compiler (JAX 0.11.2) crashed with a segmentation fault on a ``shard_map``
+    whose outputs mixed zero-size and other arrays (an MJX reset's ``State``, on 2 GPUs).
+
+    Args:
+      fn: the function; its outputs carry the seed axis first.
+      sharding: the seed axis's sharding (:func:`seed_sharding`).
+      batched: for each positional argument of ``fn``, whether it carries the seed axis (else it is
+        the same on every device).
+    """
+    mesh, seeds, same = sharding.mesh, sharding.spec, PartitionSpec()
+    blocks = mesh.size
+
+    def run(*args):
+        leaves, treedef = jax.tree.flatten(args)
+        per_arg = [len(jax.tree.leaves(a)) for a in args]
+        split = np.repeat(np.asarray(batched, bool), per_arg)
+        kept = [i for i, x in enumerate(leaves) if x.size]
+        outputs, out_treedef = jax.tree.flatten(jax.eval_shape(fn, *args))
+        kept_out = [i for i, x in enumerate(outputs) if x.size]
+
+        def block(*kept_leaves):
+            full = [
+                jnp.zeros((x.shape[0] // blocks, *x.shape[1:]) if split[i] else x.shape, x.dtype)
+                for i, x in enumerate(leaves)
+            ]
+            for i, x in zip(kept, kept_leaves, strict=True):
+                full[i] = x
+            out = jax.tree.leaves(fn(*jax.tree.unflatten(treedef, full)))
+            return [out[i] for i in kept_out]
+
+        in_specs = tuple(seeds if split[i] else same for i in kept)
+        mapped = jax.shard_map(block, mesh=mesh, in_specs=in_specs, out_specs=[seeds] * len(kept_out), check_vma=False)
+        result = [jnp.zeros(x.shape, x.dtype) for x in outputs]
+        for i, x in zip(kept_out, mapped(*[leaves[i] for i in kept]), strict=True):
+            result[i] = x
+        return jax.tree.unflatten(out_treedef, result)
+
+    return run
 
 
 def shard_seeds(tree, sharding: NamedSharding | None):

@@ -37,16 +37,15 @@ of a given policy (used for the final evaluation).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
-from jax.sharding import NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding
 
-from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, teachers
+from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, sweep, teachers
 from rebel_jax.config import Config, FeedbackConfig
 from rebel_jax.envs import DMCEnv, PointProbe, State, VmapWrapper, make_env
 from rebel_jax.queries import Segments
@@ -800,11 +799,9 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     round_fn = jax.vmap(trainer.round, in_axes=(0, None))
     evaluate_seeds = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))
     if sharding is not None:
-        seeds, same = sharding.spec, PartitionSpec()
-        per_device = functools.partial(jax.shard_map, mesh=sharding.mesh, out_specs=seeds, check_vma=False)
-        init = per_device(init, in_specs=seeds)
-        round_fn = per_device(round_fn, in_specs=(seeds, same))
-        evaluate_seeds = per_device(evaluate_seeds, in_specs=(seeds, seeds, same))
+        init = sweep.per_device(init, sharding, batched=(True,))
+        round_fn = sweep.per_device(round_fn, sharding, batched=(True, False))
+        evaluate_seeds = sweep.per_device(evaluate_seeds, sharding, batched=(True, True, False))
     evaluate_seeds = jax.jit(evaluate_seeds)
 
     def evaluate(actor_params, keys: jax.Array, random_actions: bool = False) -> jax.Array:
