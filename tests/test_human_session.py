@@ -460,7 +460,7 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
     final = json.loads((run_dir / "final.json").read_text())
     shown = re.match(r"Run finished: final evaluation return (-?[0-9.]+) ± [0-9.]+\. Thank you!$", finished)
     assert shown and abs(float(shown.group(1)) - final["mean"]) <= 0.05 + 1e-9, finished
-    # The token is in the console only: in no file of the run (logs, metrics, TensorBoard, labels, meta).
+    # The token is in the console only: in no file of the run (metrics, labels, meta, config, checkpoints, ...).
     files = [f for f in run_dir.rglob("*") if f.is_file()]
     assert {"metrics.jsonl", "meta.json", "labels.jsonl", "final.json"} <= {f.name for f in files}
     assert not [f for f in files if token.encode() in f.read_bytes()]

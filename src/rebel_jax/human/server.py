@@ -510,6 +510,7 @@ def _handler(labelling: Labelling, access: Access) -> type[BaseHTTPRequestHandle
 
         def _route(self, method: str) -> None:
             path = urllib.parse.urlsplit(self.path).path
+            self.body_read = False
             try:
                 self._guard(method, path)
                 if method == "GET":
@@ -525,6 +526,7 @@ def _handler(labelling: Labelling, access: Access) -> type[BaseHTTPRequestHandle
                 actions[path](parse_body(self._body()))
                 return self._json(200, labelling.state())
             except RequestError as err:
+                self._discard_body()
                 return self._json(err.status, {"error": str(err)})
             except LabelError as err:
                 return self._json(HTTPStatus.BAD_REQUEST, {"error": " ".join(str(err).split())})
@@ -551,7 +553,19 @@ def _handler(labelling: Labelling, access: Access) -> type[BaseHTTPRequestHandle
                 return self._send(200, image, mime)
             raise RequestError(HTTPStatus.NOT_FOUND, f"no page {_short(path)}")
 
+        def _discard_body(self) -> None:
+            """Reads a refused POST's body, so that closing the connection does not reset it before the reply."""
+            if self.command != "POST" or self.body_read:
+                return
+            try:
+                length = int(self.headers.get("Content-Length", "0"))
+                if 0 < length <= _MAX_BODY:
+                    self.rfile.read(length)
+            except (ValueError, OSError):
+                pass
+
         def _body(self) -> bytes:
+            self.body_read = True
             try:
                 length = int(self.headers.get("Content-Length", "0"))
             except ValueError as err:
@@ -575,6 +589,7 @@ def _handler(labelling: Labelling, access: Access) -> type[BaseHTTPRequestHandle
 
 class _HTTPServer(ThreadingHTTPServer):
     daemon_threads = True
+    request_queue_size = 64  # socketserver's 5 resets connections when a few tabs and clients ask at once
 
     def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]):
         if ":" in address[0]:

@@ -257,7 +257,7 @@ def page_lines(urls: list[str], given: bool, loopback: bool) -> list[str]:
     if given and any("?token=" in url for url in urls):
         lines.append("    (?token=...: the token you gave with --human.token)")
     if not any("?token=" in url for url in urls):
-        where = "any program or web page on this machine" if loopback else "anyone who reaches this machine"
+        where = "any program on this machine" if loopback else "anyone who reaches this machine"
         lines.append(f"warning: the labelling page has no token (--human.token ''): {where} can label")
     return lines
 

@@ -102,10 +102,12 @@ function renderAlert() {
   let text = "";
   if (contact.refused && !TOKEN) {
     text = "This page needs the run's token: open the URL the trainer printed (…/?token=…), or enter the token below.";
-  } else if (contact.refused) {
+  } else if (contact.refused && /token/.test(contact.refused)) {
     text =
-      `The trainer refuses this page: ${contact.refused}. A run started again without --human.token has a ` +
-      "new token: open the URL it printed, or enter the token below.";
+      "The trainer does not accept this page's token. A run started again without --human.token has a new " +
+      "one: open the URL it printed, or enter the token below.";
+  } else if (contact.refused) {
+    text = `The trainer refuses this page: ${contact.refused}.`;
   } else if (contact.lost && !finished()) {
     const last = contact.last
       ? `last contact ${ago(Date.now() - contact.last)} ago, at ${new Date(contact.last).toLocaleTimeString()}`
@@ -258,6 +260,7 @@ async function report(entry) {
   try {
     await request("/api/shown", { query: entry.id });
     entry.reported = true;
+    if ($("message").textContent.startsWith("could not report")) say("");
   } catch (err) {
     say(`could not report ${entry.id} as shown: ${err.message}`, true);
   } finally {
