@@ -12,6 +12,7 @@ import functools
 import json
 import os
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
@@ -64,7 +65,9 @@ class Robot(threading.Thread):
         self.skip = skip  # Queries it skips instead.
 
     def post(self, path: str, body: dict) -> None:
-        request = urllib.request.Request(self.host.server.url + path, data=json.dumps(body).encode(), method="POST")
+        headers = {"Content-Type": "application/json", "Authorization": f"token {self.host.server.token}"}
+        data = json.dumps(body).encode()
+        request = urllib.request.Request(self.host.server.url + path, data=data, headers=headers, method="POST")
         with urllib.request.urlopen(request, timeout=10) as response:
             assert response.status == 200
 
@@ -79,6 +82,7 @@ class Robot(threading.Thread):
                 if self.stop_after is not None and len(self.asked) == self.stop_after:
                     return  # The labeller's tab is closed; the trainer "crashes".
                 self.asked.append(pending[0].id)
+                self.post("api/shown", {"query": pending[0].id})  # As the page does once both clips are on screen.
                 answer = "skip" if pending[0].id in self.skip else _scripted_answer(pending[0])
                 self.post("api/answer", {"query": pending[0].id, "answer": answer})
             time.sleep(0.01)
@@ -168,6 +172,16 @@ def test_label_file_holds_every_answer(human_run):
         for seg in ("seg_a", "seg_b"):
             assert 0 <= r[seg]["env"] < 2 and r[seg]["length"] == 8 and 0 <= r[seg]["row"] < 80
     assert {r["left"] for r in answers} == {"a", "b"}  # The order is randomised.
+
+
+def test_the_token_is_written_nowhere_in_the_run_directory(human_run):
+    run_dir, _, _, robot = human_run
+    token = robot.host.server.token
+    assert len(token) == 48 and int(token, 16) >= 0  # 24 random bytes in hex, as Jupyter's.
+    files = [f for f in run_dir.rglob("*") if f.is_file()]
+    assert {f.name for f in files} >= {"labels.jsonl", "human_url.txt"}
+    assert not [f for f in files if token.encode() in f.read_bytes()]
+    assert (run_dir / "human_url.txt").read_text().strip() == robot.host.server.url
 
 
 def test_replay_reruns_the_human_run(human_run, tmp_path):
@@ -363,15 +377,21 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
     cmd = [sys.executable, "-m", "rebel_jax.train", *FLAGS, "--teacher", "human", "--human.port", "0"]
     cmd += ["--human.labeller", "browser-test", "--run-dir", str(run_dir), "--no-progress", "--no-tensorboard"]
     log = open(tmp_path / "train.log", "w")  # noqa: SIM115 - closed below
+
+    def log_text() -> str:
+        return (tmp_path / "train.log").read_text()
+
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
-        url_file = run_dir / "human_url.txt"
-        deadline = time.monotonic() + 300
-        while not url_file.exists():
+        # The URL with its token, as a person copies it from the console.
+        deadline, found = time.monotonic() + 300, None
+        while found is None:
             assert proc.poll() is None, (tmp_path / "train.log").read_text()[-3000:]
             assert time.monotonic() < deadline, "the page never started"
             time.sleep(0.1)
-        url = url_file.read_text().strip()
+            found = re.search(r"label the queries at (http://127\.0\.0\.1:\d+/)\?token=([0-9a-f]+)\n", log_text())
+        url, token = found.group(1) + "?token=" + found.group(2), found.group(2)
+        assert (run_dir / "human_url.txt").read_text() == found.group(1) + "\n"  # The file has no token.
         with sync_playwright() as pw:
             context = pw.chromium.launch_persistent_context(
                 str(tmp_path / "profile"),  # A fresh, empty profile.
@@ -382,6 +402,9 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
             )
             page = context.pages[0] if context.pages else context.new_page()
             page.add_init_script(GATE_WATCH)
+            page.goto(url.split("?")[0])  # Without its token the page is refused, and says what to open.
+            page.wait_for_function("document.body.dataset.contact === 'refused'", timeout=60_000)
+            assert page.is_visible("#login") and "needs the run's token" in page.text_content("#alert")
             page.goto(url)
             page.wait_for_function("document.body.dataset.query === 'r2-q0'", timeout=120_000)
             assert (
@@ -398,6 +421,11 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
             _label_session(page, 2, SESSION_ROUND_2, ("key", "Enter"))
             _label_session(page, 3, SESSION_ROUND_3, ("click", "#finish-button"))
             gate = page.evaluate("window.__gate")
+            # The run ends while the page is open: it says so, with the final return and where the files are.
+            page.wait_for_selector("#finished:visible", timeout=300_000)
+            finished = page.text_content("#finished-text")
+            assert finished.startswith("Run finished: final evaluation return"), finished
+            assert str(run_dir.resolve()) in page.text_content("#finished-files")
             context.close()
         assert proc.wait(timeout=300) == 0, (tmp_path / "train.log").read_text()[-3000:]
     finally:
@@ -429,3 +457,74 @@ def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
     assert by_round[3]["labels_used"] == [7.0]
     assert all(0.0 <= by_round[r]["human_agreement"][0] <= 1.0 for r in SESSIONS)
     assert (run_dir / "final.json").exists()
+    final = json.loads((run_dir / "final.json").read_text())
+    shown = re.match(r"Run finished: final evaluation return (-?[0-9.]+) ± [0-9.]+\. Thank you!$", finished)
+    assert shown and abs(float(shown.group(1)) - final["mean"]) <= 0.05 + 1e-9, finished
+    # The token is in the console only: in no file of the run (metrics, labels, meta, config, checkpoints, ...).
+    files = [f for f in run_dir.rglob("*") if f.is_file()]
+    assert {"metrics.jsonl", "meta.json", "labels.jsonl", "final.json"} <= {f.name for f in files}
+    assert not [f for f in files if token.encode() in f.read_bytes()]
+    assert "Traceback" not in log_text()
+
+
+@pytest.mark.browser
+def test_the_page_says_when_the_trainer_is_away_and_when_the_run_is_over(tmp_path):
+    """The page alone (no trainer): the token form, answers disabled while the trainer does not answer,
+    answers again once it is back (the same --human.token), and the run's end with its return and files."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"Debian's Chromium is not at {CHROMIUM}: apt-get install chromium chromium-driver")
+    from playwright.sync_api import sync_playwright
+
+    from rebel_jax.human.clips import sheet
+    from rebel_jax.human.labels import LabelFile, SessionAnswers
+    from rebel_jax.human.server import Labelling, Query, Server, Session
+
+    token = "page-test-token"
+    labelling = Labelling(LabelFile(tmp_path / "labels.jsonl"), "tester", "Which is better?", 10, 5)
+    server = Server(labelling, "127.0.0.1", 0, token=token)
+    port = server.port
+    frames = np.zeros((3, 16, 16, 3), np.uint8)  # 3 frames at 10 fps: answers unlock after 0.3 s.
+    queries = [Query(f"r2-q{i}", i, "a", {"round": 2, "query": f"r2-q{i}", "index": i}) for i in range(2)]
+    labelling.open_session(Session(2, queries, SessionAnswers(), 10, fps=10.0, frames=3), used=0)
+    for q in queries:
+        labelling.add_clips(q, {side: (sheet(frames, "PNG"), "image/png") for side in ("left", "right")})
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_FLAGS)
+            page = browser.new_page()
+            page.goto(server.url)
+            page.wait_for_function("document.body.dataset.contact === 'refused'", timeout=30_000)
+            page.fill("#token", token)
+            page.press("#token", "Enter")  # The form opens /?token=...
+            page.wait_for_function("document.body.dataset.query === 'r2-q0'", timeout=30_000)
+            page.wait_for_selector("#answer-left:enabled", timeout=30_000)
+            assert queries[0].shown  # The page reported it before its answers unlocked.
+            page.keyboard.press("ArrowLeft")
+            page.wait_for_function("document.body.dataset.query === 'r2-q1'", timeout=30_000)
+            page.wait_for_selector("#answer-left:enabled", timeout=30_000)
+            server.close()  # The trainer goes away (killed, or its machine unreachable).
+            page.wait_for_function("document.body.dataset.contact === 'lost'", timeout=30_000)
+            assert "Trainer not answering (last contact" in page.text_content("#alert")
+            assert page.text_content("#training") == "trainer not answering"
+            assert page.is_disabled("#answer-left") and page.is_disabled("#answer-right")
+            page.keyboard.press("ArrowRight")  # Does nothing.
+            queries[1].shown = False  # The trainer started again: it has not seen the query shown.
+            server = Server(labelling, "127.0.0.1", port, token=token)
+            page.wait_for_function("document.body.dataset.contact === 'ok'", timeout=30_000)
+            page.wait_for_selector("#answer-right:enabled", timeout=30_000)
+            assert queries[1].shown and page.is_hidden("#alert")  # Reported again.
+            page.keyboard.press("ArrowRight")
+            page.wait_for_selector("#finish-button:visible", timeout=30_000)
+            labelling.set_done({"status": "completed", "mean": 12.34, "std": 0.5}, str(tmp_path))
+            page.wait_for_selector("#finished:visible", timeout=30_000)
+            assert page.text_content("#finished-text") == "Run finished: final evaluation return 12.3 ± 0.5. Thank you!"
+            assert page.text_content("#finished-files") == f"Its files are in {tmp_path}"
+            assert labelling.farewell(timeout=5)
+            server.close()
+            page.wait_for_selector("#finished-exit:visible", timeout=30_000)
+            assert page.is_hidden("#alert")  # A finished run is not "not answering".
+            browser.close()
+    finally:
+        server.close()
+    answers = [json.loads(line) for line in (tmp_path / "labels.jsonl").read_text().splitlines()]
+    assert [(r["query"], r["answer"]) for r in answers] == [("r2-q0", "left"), ("r2-q1", "right")]

@@ -58,7 +58,7 @@ from rebel_jax import plots, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
-from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions
+from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions, is_loopback, redact_token
 from rebel_jax.logging import RunLogger, write_json
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import Trainer, compiled, seed_keys, session_due
@@ -220,8 +220,9 @@ def _git_commit() -> str | None:
 
 
 def command_line(argv: list[str]) -> str:
-    """The command as typed, independent of where the package lives: ``python -m rebel_jax.train ARGS``."""
-    return shlex.join(["python", "-m", "rebel_jax.train", *argv])
+    """The command as typed, independent of where the package lives: ``python -m rebel_jax.train ARGS``
+    (the labelling page's token, a secret, written ``...``)."""
+    return shlex.join(["python", "-m", "rebel_jax.train", *redact_token(argv)])
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
@@ -694,6 +695,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         files = []
         if primary:
             write_json(run_dir / "final.json", result)
+            if host is not None:
+                host.finish(result)  # The labelling page says the run has finished, and where its files are.
             files.append(_learning_curve(args, run_dir, random))
         if args.video_steps > 0 and hasattr(trainer.env, "mj_model"):
             policy = sweep.to_host(policy)  # Every process: a collective with several.
@@ -906,6 +909,11 @@ def _check_host_teacher(args: Args) -> None:
         raise ConfigError(f"human.labels={args.human.labels!r} is invalid: --teacher replay needs an existing file")
     if args.host_teacher == "human" and args.human.labels is not None:
         raise ConfigError("human.labels is only for --teacher replay (a human run writes RUN_DIR/labels.jsonl)")
+    if args.host_teacher == "human" and args.human.token == "" and not is_loopback(args.human.host):
+        raise ConfigError(
+            f"human.token='' is invalid with --human.host {args.human.host} (not loopback): anyone on the network "
+            "could label; leave --human.token out for a random one, or give one"
+        )
 
 
 def main(argv: list[str] | None = None) -> dict:

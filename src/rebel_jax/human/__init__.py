@@ -8,7 +8,8 @@ feedback session's queries between jitted rounds; the answers go to ``RUN_DIR/la
 
 from rebel_jax.human.clips import ClipError
 from rebel_jax.human.labels import LabelError
-from rebel_jax.human.session import HostTeacher, HumanOptions
+from rebel_jax.human.server import is_loopback
+from rebel_jax.human.session import HostTeacher, HumanOptions, redact_token
 
 HOST_TEACHERS = ("human", "replay")
 """Teachers whose sessions the host runs between rounds."""
@@ -16,4 +17,13 @@ HOST_TEACHERS = ("human", "replay")
 HumanError = (ClipError, LabelError)
 """What a human or replay run stops on, with a message for the person."""
 
-__all__ = ["HOST_TEACHERS", "ClipError", "HostTeacher", "HumanError", "HumanOptions", "LabelError"]
+__all__ = [
+    "HOST_TEACHERS",
+    "ClipError",
+    "HostTeacher",
+    "HumanError",
+    "HumanOptions",
+    "LabelError",
+    "is_loopback",
+    "redact_token",
+]

@@ -18,8 +18,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import getpass
+import math
 import pathlib
 import random
+import secrets
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +40,11 @@ class HumanOptions:
     host: str = "127.0.0.1"
     """Address the labelling page binds to (loopback by default; 0.0.0.0 exposes it to the network)."""
     port: int = 8765
-    """Port of the labelling page (0: any free port; the URL is printed and written to RUN_DIR/human_url.txt)."""
+    """Port of the labelling page (0: any free port; the URL is printed, and without its token written to
+    RUN_DIR/human_url.txt)."""
+    token: str | None = None
+    """Token the page's requests must carry (default: a random one per run, printed in the page's URL and
+    written nowhere); '' for none, allowed only on a loopback --human.host."""
     timeout: float = 0.0
     """Seconds a session waits for answers before training goes on without the missing ones; 0: no limit."""
     labeller: str = ""
@@ -78,7 +84,8 @@ class HostTeacher:
     def __init__(self, trainer, mode: str, run_dir: pathlib.Path, options: HumanOptions, resume: bool):
         if mode not in ("human", "replay"):
             raise ValueError(f"mode={mode!r} is invalid: allowed human, replay")
-        self.trainer, self.mode, self.options = trainer, mode, options
+        self.trainer, self.mode, self.options, self.run_dir = trainer, mode, options, pathlib.Path(run_dir)
+        self.final = None  # the run's result, for the page's last word (see finish)
         cfg = trainer.cfg
         self.seed = cfg.train.seed
         self.crop, self.horizon = trainer.crop, trainer.horizon
@@ -97,9 +104,13 @@ class HostTeacher:
         instruction = clips_lib.INSTRUCTIONS.get(cfg.env.task, "Which clip shows the better behaviour?")
         labeller = options.labeller or getpass.getuser()
         self.labelling = Labelling(self.labels, labeller, instruction, cfg.feedback.labels, cfg.train.num_rounds)
-        self.server = Server(self.labelling, options.host, options.port)
-        (run_dir / "human_url.txt").write_text(self.server.url + "\n")
-        print(f"human feedback: label the queries at {self.server.url}", flush=True)
+        # As Jupyter's ServerApp.token (jupyter-server/jupyter_server@9a4d6eea2b16815a493b11fffe0b51b1fe55a81b:
+        # jupyter_server/auth/identity.py:224): 24 random bytes in hex, made anew for each start of the run.
+        token = secrets.token_hex(24) if options.token is None else options.token
+        self.server = Server(self.labelling, options.host, options.port, token)
+        (run_dir / "human_url.txt").write_text(self.server.url + "\n")  # No token: it stays in memory.
+        for line in page_lines(self.server.urls(), given=options.token is not None, loopback=self.server.loopback):
+            print(line, flush=True)
 
     def before_round(self, state, round_index: int):
         """Runs round ``round_index``'s feedback session if it has one; returns the state and its metrics."""
@@ -186,7 +197,7 @@ class HostTeacher:
             queries.append(Query(rec["query"], rec["index"], left, rec))
         session = Session(round_index, queries, journal, remaining, self.renderer.fps, self.horizon)
         self.labelling.open_session(session, self.trainer.cfg.feedback.labels - remaining)
-        print(f"human feedback: round {round_index}'s session is waiting at {self.server.url}", flush=True)
+        print(f"human feedback: round {round_index}'s session is waiting at {self._shown_url()}", flush=True)
         image_format = self.renderer.image_format
         mime = f"image/{image_format.lower()}"
         for query in queries:  # The page can start on the first query while the others render.
@@ -207,10 +218,59 @@ class HostTeacher:
         env = np.asarray(seg.env[0, :, self.crop : self.crop + self.horizon])
         return np.asarray(buffer.qpos[0][row, env])
 
+    def _shown_url(self) -> str:
+        """The page's first URL as the console shows it (a token given on the command line is not repeated)."""
+        return hide_token(self.server.urls()[0]) if self.options.token else self.server.urls()[0]
+
+    def finish(self, result: dict) -> None:
+        """The run has finished with ``result`` (``final.json``'s): the page says so when the host closes."""
+        mean, std = (result.get(k) for k in ("mean", "std"))
+        self.final = {
+            "status": result.get("status"),
+            "mean": mean if isinstance(mean, float) and math.isfinite(mean) else None,
+            "std": std if isinstance(std, float) and math.isfinite(std) else None,
+        }
+
     def close(self) -> None:
         if self.labelling is not None:
-            self.labelling.set_done()
+            self.labelling.set_done(self.final, str(self.run_dir.resolve()))
+            self.labelling.farewell()  # An open page reads that the run is over before the server goes.
         if self.server is not None:
             self.server.close()
         if self.renderer is not None and hasattr(self.renderer, "close"):
             self.renderer.close()
+
+
+def hide_token(url: str) -> str:
+    """``url`` with its token's value replaced by ``...`` (as Jupyter prints a token it did not generate)."""
+    return url.split("?token=", 1)[0] + "?token=..." if "?token=" in url else url
+
+
+def page_lines(urls: list[str], given: bool, loopback: bool) -> list[str]:
+    """What the console says about the page: its URLs, token included unless the user gave it (then ``...``,
+    as ``jupyter_server/serverapp.py:2381`` hides a configured token), and a warning for no token."""
+    shown = [hide_token(url) for url in urls] if given else urls
+    lines = [f"human feedback: label the queries at {shown[0]}"]
+    if len(shown) > 1:
+        lines = ["human feedback: label the queries at one of (the page listens on every interface):"]
+        lines += [f"    {url}" for url in shown]
+    if given and any("?token=" in url for url in urls):
+        lines.append("    (?token=...: the token you gave with --human.token)")
+    if not any("?token=" in url for url in urls):
+        where = "any program on this machine" if loopback else "anyone who reaches this machine"
+        lines.append(f"warning: the labelling page has no token (--human.token ''): {where} can label")
+    return lines
+
+
+def redact_token(argv: list[str]) -> list[str]:
+    """``argv`` with the value of ``--human.token`` replaced by ``...`` (so that no run file records it)."""
+    out, hide = [], False
+    for arg in argv:
+        if hide:
+            out.append("...")
+        elif arg.startswith("--human.token="):
+            out.append("--human.token=...")
+        else:
+            out.append(arg)
+        hide = not hide and arg == "--human.token"
+    return out

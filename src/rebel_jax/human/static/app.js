@@ -1,13 +1,18 @@
 // The labelling page: polls /api/state, plays both clips of the current query off one clock,
-// and posts answers. No build step, no dependencies.
+// and posts answers. No build step, no dependencies. Every API call carries the run's token, read
+// from the address the trainer printed (?token=...).
 "use strict";
 
 const COLUMNS = 10; // frames per row of a clip's sheet (rebel_jax.human.clips.COLUMNS)
+const TIMEOUT_MS = 5000; // a request the trainer has not answered by then counts as not answered
 const $ = (id) => document.getElementById(id);
 const answerButtons = Array.from(document.querySelectorAll(".answer"));
+const TOKEN = new URLSearchParams(window.location.search).get("token") || "";
 
 let server = null; // the last /api/state
-let current = null; // {id, images: {left, right}, shownAt}
+let current = null; // {id, images: {left, right}, shownAt, reported}
+// The trainer: when it last answered (Date.now()), since when it has not, and why it refuses us (403).
+const contact = { last: null, lost: null, refused: null };
 let loading = null; // id of the query whose clips are loading
 let busy = false; // an answer, undo or finish is in flight
 let actions = 0; // actions sent so far: a poll that started before the latest one is stale
@@ -18,15 +23,46 @@ function say(text, error = false) {
   $("message").className = error ? "error" : "";
 }
 
+class HttpError extends Error {
+  constructor(status, message) {
+    super(message);
+    this.status = status;
+  }
+}
+
+async function send(path, options = {}) {
+  // fetch with the token, a time limit, and the trainer's contact kept up to date.
+  const headers = TOKEN ? { Authorization: `token ${TOKEN}` } : {};
+  if (options.body !== undefined) headers["Content-Type"] = "application/json";
+  const abort = new AbortController();
+  const timer = setTimeout(() => abort.abort(), TIMEOUT_MS);
+  let response;
+  try {
+    response = await fetch(path, { ...options, headers, cache: "no-store", signal: abort.signal });
+  } catch (err) {
+    contact.lost = contact.lost || Date.now();
+    throw new HttpError(0, "the trainer is not answering");
+  } finally {
+    clearTimeout(timer);
+  }
+  contact.last = Date.now();
+  contact.lost = response.status >= 500 ? contact.lost || Date.now() : null;
+  contact.refused = response.status === 403 ? await errorOf(response) : null;
+  if (!response.ok) throw new HttpError(response.status, contact.refused || (await errorOf(response)));
+  return response;
+}
+
+async function errorOf(response) {
+  try {
+    return (await response.clone().json()).error || response.statusText;
+  } catch (err) {
+    return response.statusText;
+  }
+}
+
 async function request(path, body) {
-  const response = await fetch(path, {
-    method: body === undefined ? "GET" : "POST",
-    headers: { "Content-Type": "application/json" },
-    body: body === undefined ? undefined : JSON.stringify(body),
-  });
-  const data = await response.json();
-  if (!response.ok) throw new Error(data.error || response.statusText);
-  return data;
+  const options = body === undefined ? {} : { method: "POST", body: JSON.stringify(body) };
+  return (await send(path, options)).json();
 }
 
 async function call(path, body) {
@@ -51,13 +87,75 @@ function pending() {
   return s.queries.find((q) => q.answer === null) || null;
 }
 
+function finished() {
+  return Boolean(server && (server.status === "done" || server.status === "stopped"));
+}
+
+function ago(ms) {
+  const s = Math.max(0, Math.round(ms / 1000));
+  return s < 120 ? `${s} s` : `${Math.floor(s / 60)} min ${s % 60} s`;
+}
+
+function renderAlert() {
+  // What keeps the page from labelling: a refused token, or a trainer that does not answer.
+  const alert = $("alert");
+  let text = "";
+  if (contact.refused && !TOKEN) {
+    text = "This page needs the run's token: open the URL the trainer printed (…/?token=…), or enter the token below.";
+  } else if (contact.refused && /token/.test(contact.refused)) {
+    text =
+      "The trainer does not accept this page's token. A run started again without --human.token has a new " +
+      "one: open the URL it printed, or enter the token below.";
+  } else if (contact.refused) {
+    text = `The trainer refuses this page: ${contact.refused}.`;
+  } else if (contact.lost && !finished()) {
+    const last = contact.last
+      ? `last contact ${ago(Date.now() - contact.last)} ago, at ${new Date(contact.last).toLocaleTimeString()}`
+      : "no contact yet";
+    text = `Trainer not answering (${last}); retrying… Answers are disabled until it is back.`;
+  }
+  alert.textContent = text;
+  alert.hidden = !text;
+  $("login").hidden = !contact.refused;
+  document.body.dataset.contact = contact.refused ? "refused" : contact.lost ? "lost" : contact.last ? "ok" : "";
+}
+
+function renderFinished() {
+  const done = finished();
+  $("finished").hidden = !done;
+  if (!done) return;
+  const final = server.final;
+  let text;
+  if (server.status === "done" && final) {
+    const value = final.mean === null ? "not a number (a seed diverged)" : final.mean.toFixed(1);
+    const spread = final.std === null || final.mean === null ? "" : ` ± ${final.std.toFixed(1)}`;
+    text = `Run finished: final evaluation return ${value}${spread}. Thank you!`;
+  } else {
+    text = "The run stopped before its end (an error or an interrupt): see the trainer's console.";
+  }
+  $("finished-text").textContent = text;
+  $("finished-files").textContent = server.run_dir ? `Its files are in ${server.run_dir}` : "";
+  $("finished-exit").hidden = !contact.lost;
+}
+
 function render() {
   const s = session();
   const training = $("training");
+  renderAlert();
+  renderFinished();
   $("instruction").textContent = server ? server.instruction : "";
   $("labeller").textContent = server ? `labeller: ${server.labeller}` : "";
   if (server) $("budget").textContent = `labels used: ${server.used} of ${server.budget}`;
-  if (!server) {
+  if (contact.refused) {
+    training.textContent = "token refused";
+    training.className = "pill stopped";
+  } else if (finished()) {
+    training.textContent = server.status === "done" ? "run finished" : "run stopped";
+    training.className = "pill";
+  } else if (contact.lost) {
+    training.textContent = "trainer not answering";
+    training.className = "pill stopped";
+  } else if (!server) {
     training.textContent = "connecting…";
   } else if (server.status === "labelling" && !(s && s.closed)) {
     training.textContent = "training paused: waiting for your answers";
@@ -65,9 +163,6 @@ function render() {
   } else if (server.status === "labelling") {
     training.textContent = "training resumes: learning from your answers";
     training.className = "pill running";
-  } else if (server.status === "done") {
-    training.textContent = "training finished";
-    training.className = "pill";
   } else {
     training.textContent = `training running (round ${server.round + 1} of ${server.num_rounds})`;
     training.className = "pill running";
@@ -89,15 +184,18 @@ function render() {
         ? `The label budget is spent (${answered} of ${s.queries.length} queries answered).`
         : `All ${s.queries.length} queries of this session are answered.`;
   }
-  if (next && next.ready && (!current || current.id !== next.id) && loading !== next.id) load(next);
+  const reachable = !contact.refused && !contact.lost;
+  if (reachable && next && next.ready && (!current || current.id !== next.id) && loading !== next.id) load(next);
   if (!next && current) current = null;
+  // A trainer started again (--resume) has not seen the query shown: report it again.
+  if (current && next && current.id === next.id && !next.shown && !current.reporting) current.reported = false;
+  if (current && !current.reported && !current.reporting && reachable) report(current);
   $("query").hidden = !(next && current && current.id === next.id);
-  $("waiting").hidden = !$("query").hidden || finishing;
-  if (!s) {
-    $("waiting-text").textContent =
-      server && server.status === "done"
-        ? "Training has finished. Thank you!"
-        : "Training is running; the next feedback session will appear here.";
+  $("waiting").hidden = !$("query").hidden || finishing || finished() || Boolean(contact.refused);
+  if (!server) {
+    $("waiting-text").textContent = "Waiting for the trainer…";
+  } else if (!s) {
+    $("waiting-text").textContent = "Training is running; the next feedback session will appear here.";
   } else if (s.closed) {
     $("waiting-text").textContent = "Answers sent: training goes on. The next session will appear here.";
   } else if (next) {
@@ -112,38 +210,63 @@ function render() {
 function updateButtons() {
   const s = session();
   const open = Boolean(s && !s.closed);
-  const ready = Boolean(current && clock.played && !busy && open && !$("query").hidden);
-  answerButtons.forEach((b) => (b.disabled = !ready));
-  $("undo").disabled = !(open && s.last) || busy;
-  $("finish-button").disabled = busy;
+  const reachable = !contact.refused && !contact.lost;
+  const ready = Boolean(current && current.reported && clock.played && !busy && open && reachable);
+  answerButtons.forEach((b) => (b.disabled = !(ready && !$("query").hidden)));
+  $("undo").disabled = !(open && s.last && reachable) || busy;
+  $("finish-button").disabled = busy || !reachable;
   $("gate").textContent = current && !clock.played ? "Watch both clips to the end once, then answer." : "";
   document.body.dataset.played = clock.played ? "1" : "0";
   document.body.dataset.busy = busy ? "1" : "0";
 }
 
-function load(query) {
-  loading = query.id;
-  const images = {};
-  const sides = ["left", "right"];
-  let count = 0;
-  for (const side of sides) {
+async function image(path) {
+  // A clip's sheet, fetched with the token (an <img src> could not send it in a header).
+  const blob = await (await send(path)).blob();
+  const url = URL.createObjectURL(blob);
+  try {
     const img = new Image();
-    img.onload = () => {
-      count += 1;
-      if (count === sides.length && loading === query.id) {
-        loading = null;
-        current = { id: query.id, images, shownAt: Date.now() };
-        restart();
-        render();
-      }
-    };
-    img.onerror = () => {
-      loading = null;
-      say(`could not load the ${side} clip of ${query.id}`, true);
-    };
-    img.src = `/clips/${encodeURIComponent(query.id)}/${side}`;
-    images[side] = img;
+    await new Promise((resolve, reject) => {
+      img.onload = resolve;
+      img.onerror = () => reject(new Error("not an image"));
+      img.src = url;
+    });
+    return img;
+  } finally {
+    URL.revokeObjectURL(url);
   }
+}
+
+async function load(query) {
+  loading = query.id;
+  try {
+    const base = `/clips/${encodeURIComponent(query.id)}`;
+    const [left, right] = await Promise.all([image(`${base}/left`), image(`${base}/right`)]);
+    if (loading !== query.id) return;
+    loading = null;
+    current = { id: query.id, images: { left, right }, shownAt: Date.now(), reported: false };
+    restart();
+    render();
+  } catch (err) {
+    if (loading === query.id) loading = null;
+    say(`could not load the clips of ${query.id}: ${err.message}`, true);
+  }
+}
+
+async function report(entry) {
+  // Tells the trainer the query is on screen: it takes answers only for queries shown.
+  entry.reporting = true;
+  actions += 1; // A poll started before the report would show the query as not shown.
+  try {
+    await request("/api/shown", { query: entry.id });
+    entry.reported = true;
+    if ($("message").textContent.startsWith("could not report")) say("");
+  } catch (err) {
+    say(`could not report ${entry.id} as shown: ${err.message}`, true);
+  } finally {
+    entry.reporting = false;
+  }
+  updateButtons();
 }
 
 function restart() {
@@ -231,15 +354,13 @@ async function poll() {
   const before = actions;
   try {
     const state = await request("/api/state");
-    if (!busy && before === actions) {
-      server = state;
-      if ($("message").className === "error" && /does not answer/.test($("message").textContent)) say("");
-    }
+    if (!busy && before === actions) server = state;
   } catch (err) {
-    say(`the trainer does not answer (${err.message}); retrying…`, true);
+    // Said by the alert (renderAlert): a refused token, or a trainer not answering.
   }
   render();
-  setTimeout(poll, 500);
+  // Once the run is over, a slow poll: a run resumed with the same --human.token is picked up again.
+  setTimeout(poll, finished() ? 5000 : 500);
 }
 
 answerButtons.forEach((b) => b.addEventListener("click", () => answer(b.dataset.answer)));
@@ -267,6 +388,7 @@ function restartPlayback() {
 const KEYS = { ArrowLeft: "left", ArrowRight: "right", ArrowUp: "equal", ArrowDown: "skip" };
 document.addEventListener("keydown", (event) => {
   if (event.altKey || event.ctrlKey || event.metaKey) return;
+  if (event.target instanceof HTMLInputElement) return; // Typing the token.
   if (event.key in KEYS) {
     event.preventDefault();
     answer(KEYS[event.key]);
@@ -284,6 +406,7 @@ document.addEventListener("keydown", (event) => {
 
 poll();
 requestAnimationFrame(tick);
+setInterval(renderAlert, 1000); // The time since the last contact goes on while a request hangs.
 
 // A clicked button loses focus, so that Enter or space later act as shortcuts, not as a second click.
 document.addEventListener("click", (event) => {
