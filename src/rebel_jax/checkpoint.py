@@ -35,6 +35,7 @@ import pathlib
 import re
 import sys
 import time
+import traceback
 import zlib
 from collections.abc import Callable
 
@@ -73,16 +74,22 @@ def save_error(step: int, step_dir: pathlib.Path, err: Exception) -> CheckpointS
 
 
 class _OrbaxTracebacks(logging.Filter):
-    """Drops the tracebacks orbax logs from its threads when a save or restore fails (the caller gets the error)."""
+    """Drops the tracebacks of a failed save or restore that orbax logs from its threads, and that asyncio logs for
+    orbax's tasks whose exception nobody read (the caller gets the error)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not (record.exc_info and f"{os.sep}orbax{os.sep}" in record.pathname)
+        orbax = f"{os.sep}orbax{os.sep}"
+        if not record.exc_info or not record.exc_info[2]:
+            return True
+        frames = traceback.extract_tb(record.exc_info[2])
+        return not (orbax in record.pathname or any(orbax in frame.filename for frame in frames))
 
 
 def _quiet_orbax_failures() -> None:
-    logger = logging.getLogger("absl")
-    if not any(isinstance(f, _OrbaxTracebacks) for f in logger.filters):
-        logger.addFilter(_OrbaxTracebacks())
+    for name in ("absl", "asyncio"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _OrbaxTracebacks) for f in logger.filters):
+            logger.addFilter(_OrbaxTracebacks())
 
 
 CHECKSUMS = "checksums.json"

@@ -734,10 +734,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
             if primary:
                 files.append(_eval_clip(args, trainer, policy, run_dir))
     finally:
-        with contextlib.ExitStack() as closing:  # each one is closed (orbax's threads ended) even if another fails
-            for part in (ckpt, logger, host):
-                if part is not None:
-                    closing.callback(part.close)
+        rundir.close_all((ckpt, logger, host))  # each one, even if another fails: orbax's threads end
     if not primary:
         return result
     print(

@@ -240,8 +240,18 @@ def check_resumable(run_dir: pathlib.Path) -> None:
 
 
 # -- failures during the run ----------------------------------------------------------------------------------------
+def first_failure(err: OSError) -> OSError:
+    """The ``OSError`` that ``err`` was raised while handling, and so on back (closing files after a failed write
+    fails again): the first failure, which names what failed."""
+    while isinstance(err.__context__, OSError) and not err.__suppress_context__:
+        err = err.__context__
+    return err
+
+
 def io_error_line(err: OSError) -> str:
-    """``err`` (disk full, permission denied, a failed checkpoint save) as one line naming the path and the cause."""
+    """``err`` (disk full, permission denied, a failed checkpoint save; its :func:`first_failure`) as one line
+    naming the path and the cause."""
+    err = first_failure(err)
     text = str(err).strip()
     cause = err.strerror or (text.splitlines()[0] if text else type(err).__name__)
     where = f"{err.filename}: " if err.filename else ""
@@ -252,6 +262,24 @@ def io_error_line(err: OSError) -> str:
     else:
         advice = "fix the cause"
     return f"error: {where}{cause}; the run stopped (its last complete checkpoint is kept): {advice}, then --resume"
+
+
+def close_all(parts) -> None:
+    """Closes each of ``parts`` (None left out) in turn, even when one fails; then raises the first failure.
+
+    For a ``finally`` clause: each ``close`` runs (orbax's threads end, files are closed), and the error that
+    stopped the run stays the first one in the chain (:func:`first_failure`).
+    """
+    failure = None
+    for part in parts:
+        if part is None:
+            continue
+        try:
+            part.close()
+        except Exception as err:  # noqa: BLE001 - raised below, once the others are closed
+            failure = failure or err
+    if failure is not None:
+        raise failure
 
 
 def interrupted_line(run_dir: pathlib.Path | None) -> str:
