@@ -23,7 +23,8 @@ A save that fails (disk full, a directory made read-only) raises :class:`Checkpo
 naming the step and the cause, once orbax's threads have ended: the steps already on disk are untouched, and the
 process can exit. Orbax creates a step's directory in the calling thread (not in a background thread, whose
 failure left the threads waiting for it forever), and its own tracebacks of a failure, logged from its threads, are
-left out (:class:`_OrbaxTracebacks`): the error raised says it once.
+left out (:class:`_OrbaxTracebacks`), as are tensorstore's reports of writes that end after orbax closed the failed
+save's event loop (:func:`_closed_loop_callbacks`): the error raised says it once.
 """
 
 from __future__ import annotations
@@ -85,7 +86,24 @@ class _OrbaxTracebacks(logging.Filter):
         return not (orbax in record.pathname or any(orbax in frame.filename for frame in frames))
 
 
+def _closed_loop_callbacks(hook: Callable) -> Callable:
+    """``sys.unraisablehook`` without the "Event loop is closed" errors of tensorstore writes that end after orbax
+    closed the event loop of a failed save (each one a traceback, dozens per failed save)."""
+
+    def unraisablehook(unraisable) -> None:
+        value = unraisable.exc_value
+        frames = traceback.extract_tb(unraisable.exc_traceback) if unraisable.exc_traceback else []
+        closed = isinstance(value, RuntimeError) and str(value) == "Event loop is closed"
+        if not (closed and frames and f"{os.sep}asyncio{os.sep}" in frames[-1].filename):
+            hook(unraisable)
+
+    unraisablehook.quiet_closed_loops = True
+    return unraisablehook
+
+
 def _quiet_orbax_failures() -> None:
+    if not getattr(sys.unraisablehook, "quiet_closed_loops", False):
+        sys.unraisablehook = _closed_loop_callbacks(sys.unraisablehook)
     for name in ("absl", "asyncio"):
         logger = logging.getLogger(name)
         if not any(isinstance(f, _OrbaxTracebacks) for f in logger.filters):
