@@ -18,15 +18,25 @@ With several processes (``--distributed``) every process calls :meth:`Checkpoint
 the arrays, and orbax's primary process (process 0) writes the metadata and commits the step.
 The saved arrays are whole arrays, so a checkpoint restores on any number of processes and
 devices (tested: saved from 2 processes, resumed in 1, and back).
+
+A save that fails (disk full, a directory made read-only) raises :class:`CheckpointSaveError`, an ``OSError``
+naming the step and the cause, once orbax's threads have ended: the steps already on disk are untouched, and the
+process can exit. Orbax creates a step's directory in the calling thread (not in a background thread, whose
+failure left the threads waiting for it forever), and its own tracebacks of a failure, logged from its threads, are
+left out (:class:`_OrbaxTracebacks`), as are tensorstore's reports of writes that end after orbax closed the failed
+save's event loop (:func:`_closed_loop_callbacks`): the error raised says it once.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import pathlib
+import re
 import sys
 import time
+import traceback
 import zlib
 from collections.abc import Callable
 
@@ -46,6 +56,58 @@ class CheckpointMismatch(ValueError):
 
 class CheckpointDamaged(OSError):
     """A checkpoint's files differ from the sizes and CRC-32s written when it was saved."""
+
+
+class CheckpointSaveError(OSError):
+    """A checkpoint could not be written: ``errno``, ``strerror`` (the cause) and ``filename`` (the step)."""
+
+
+def save_error(step: int, step_dir: pathlib.Path, err: Exception) -> CheckpointSaveError:
+    """``err`` (an ``OSError``, or tensorstore's ``ValueError`` that carries an ``os_error_code``) as one
+    :class:`CheckpointSaveError`: the errno, its text, and the path that failed (else the step's directory)."""
+    code = err.errno if isinstance(err, OSError) else None
+    found = re.search(r"os_error_code='?(\d+)", str(err))
+    if code is None and found:
+        code = int(found[1])
+    cause = os.strerror(code) if code else (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+    where = getattr(err, "filename", None) or step_dir
+    return CheckpointSaveError(code, f"checkpoint {step} not saved: {cause}", str(where))
+
+
+class _OrbaxTracebacks(logging.Filter):
+    """Drops the tracebacks of a failed save or restore that orbax logs from its threads, and that asyncio logs for
+    orbax's tasks whose exception nobody read (the caller gets the error)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        orbax = f"{os.sep}orbax{os.sep}"
+        if not record.exc_info or not record.exc_info[2]:
+            return True
+        frames = traceback.extract_tb(record.exc_info[2])
+        return not (orbax in record.pathname or any(orbax in frame.filename for frame in frames))
+
+
+def _closed_loop_callbacks(hook: Callable) -> Callable:
+    """``sys.unraisablehook`` without the "Event loop is closed" errors of tensorstore writes that end after orbax
+    closed the event loop of a failed save (each one a traceback, dozens per failed save)."""
+
+    def unraisablehook(unraisable) -> None:
+        value = unraisable.exc_value
+        frames = traceback.extract_tb(unraisable.exc_traceback) if unraisable.exc_traceback else []
+        closed = isinstance(value, RuntimeError) and str(value) == "Event loop is closed"
+        if not (closed and frames and f"{os.sep}asyncio{os.sep}" in frames[-1].filename):
+            hook(unraisable)
+
+    unraisablehook.quiet_closed_loops = True
+    return unraisablehook
+
+
+def _quiet_orbax_failures() -> None:
+    if not getattr(sys.unraisablehook, "quiet_closed_loops", False):
+        sys.unraisablehook = _closed_loop_callbacks(sys.unraisablehook)
+    for name in ("absl", "asyncio"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _OrbaxTracebacks) for f in logger.filters):
+            logger.addFilter(_OrbaxTracebacks())
 
 
 CHECKSUMS = "checksums.json"
@@ -138,7 +200,9 @@ class Checkpointer:
 
     def __init__(self, directory: pathlib.Path, max_to_keep: int = 2):
         self.directory = pathlib.Path(directory).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+        _quiet_orbax_failures()
+        synchronous_dirs = ocp.AsyncOptions(create_directories_asynchronously=False)
+        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, async_options=synchronous_dirs)
         handler = ocp.StandardCheckpointHandler()
         self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handler)
 
@@ -146,14 +210,20 @@ class Checkpointer:
         """Saves ``state`` as ``step``, waits until it is complete on disk, then writes its checksums.
 
         A step already on disk is left as it is (orbax skips it).
+
+        Raises:
+          CheckpointSaveError: if the step could not be written (the steps on disk before are kept).
         """
-        saved = self.manager.save(step, args=ocp.args.StandardSave(_nonempty_leaves(state)))
-        self.manager.wait_until_finished()
-        if saved and jax.process_index() == 0:  # Every process's files are in the step once orbax has renamed it.
-            step_dir = self.directory / str(step)
-            partial = step_dir / (CHECKSUMS + ".part")
-            partial.write_text(json.dumps(file_checksums(step_dir)))
-            os.replace(partial, step_dir / CHECKSUMS)
+        step_dir = self.directory / str(step)
+        try:
+            saved = self.manager.save(step, args=ocp.args.StandardSave(_nonempty_leaves(state)))
+            self.manager.wait_until_finished()
+            if saved and jax.process_index() == 0:  # Every process's files are in the step once orbax renamed it.
+                partial = step_dir / (CHECKSUMS + ".part")
+                partial.write_text(json.dumps(file_checksums(step_dir)))
+                os.replace(partial, step_dir / CHECKSUMS)
+        except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
+            raise save_error(step, step_dir, err) from err
         if saved and jax.process_count() > 1:
             multihost_utils.sync_global_devices(f"checkpoint {step} checksummed")
 

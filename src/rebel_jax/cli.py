@@ -16,10 +16,14 @@ prints a table per column: both returns, the labels used and the learned reward'
 with the true one (:func:`summary_table`).
 
 A run directory holds one run: a new run refuses a directory that holds one (``--resume``
-continues it, ``--overwrite`` replaces it). ``--resume`` refuses a configuration that differs
-from the saved one, except a larger ``--total-steps``, which extends the run. Exit status: 0
-done (or stopped by ``--time-limit``), 2 a bad flag or run directory (nothing written),
-3 a seed diverged (see ``--on-divergence``).
+continues it, ``--overwrite`` replaces it), and one process at a time (a lock, ``RUN_DIR/.lock``).
+``--resume`` refuses a configuration that differs from the saved one, except a larger
+``--total-steps``, which extends the run, and a directory whose run it cannot continue as it is
+(``config.json`` or ``meta.json`` missing or unreadable, a run file it cannot read or write, a
+``metrics.jsonl`` without the checkpointed rounds). Exit status: 0 done (or stopped by
+``--time-limit``), 2 a bad flag or run directory (nothing written), 3 a seed diverged (see
+``--on-divergence``), 4 an I/O failure during the run (disk full, a checkpoint that could not be
+saved: the last complete one is kept; free space, then ``--resume``), 130 Ctrl-C (continue with ``--resume``).
 
 ``--teacher human`` asks a person on a web page between rounds, ``--teacher replay`` takes a
 human run's answers from its ``labels.jsonl`` (:mod:`rebel_jax.human`).
@@ -54,7 +58,7 @@ import numpy as np
 import tyro
 from jax.sharding import NamedSharding
 
-from rebel_jax import plots, sweep, teachers, video
+from rebel_jax import plots, rundir, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
@@ -75,8 +79,18 @@ RUN_FILES = (
     "eval.gif",
 )
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
-EXIT_USAGE = 2
+EXIT_USAGE = rundir.EXIT_USAGE
 EXIT_DIVERGED = 3
+STATE_FLAGS = {
+    "buffer": "--buffer-capacity (0: --total-steps)",
+    "sac": "--hidden / --depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
+    "reward": "--reward.hidden, --reward.label-capacity (pixels: --pixel-reward.*)",
+    "env": "--num-envs / --eval-episodes",
+    "eval_trajectory": "--rebel.horizon / --rebel.episodes",
+}
+"""The flags that drive the size of each part of the run's state (for ``rundir.check_memory``)."""
+MAX_STEPS = 2**31 - 1
+"""The largest ``--total-steps`` and ``--buffer-capacity``: the rounds count steps and index the buffer in int32."""
 OBS = ("state", "pixels")
 """``--obs``: what the agent observes; ``pixels`` runs the task's pixel version (``<task>_pixels``)."""
 NO_CPU_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
@@ -273,8 +287,11 @@ def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
     return changes
 
 
-def prepare_run_dir(args: Args) -> pathlib.Path:
+def prepare_run_dir(args: Args, lock: rundir.RunLock | None = None) -> pathlib.Path:
     """Checks ``args.run_dir`` for this run, then creates it; nothing is written before every check passed.
+
+    With ``lock``, the directory is created first and locked (:class:`rundir.RunLock`) before its content is read;
+    the lock stays held (the caller releases it).
 
     Raises:
       ConfigError: an empty path, a path that is not a writable directory, a directory that holds
@@ -294,12 +311,17 @@ def prepare_run_dir(args: Args) -> pathlib.Path:
         raise ConfigError("overwrite=True is invalid with --resume: allowed one of --resume (continue) or --overwrite")
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: allowed a directory (it is an existing file)")
-    existing = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if lock is not None:
+        _writable_dir(run_dir)
+        lock.acquire(run_dir)
+    existing = [name for name in RUN_FILES if (run_dir / name).exists() or (run_dir / name).is_symlink()]
     if existing and not (args.resume or args.overwrite):
         raise ConfigError(
             f"run_dir={str(run_dir)!r} is invalid: it holds a run ({', '.join(existing)}); "
             "allowed --resume to continue it, --overwrite to replace it, or a new --run-dir"
         )
+    if args.resume:
+        rundir.check_resumable(run_dir)
     if args.resume and (run_dir / "config.json").exists():
         changes = resume_changes(run_dir, args)
         if changes:
@@ -308,6 +330,22 @@ def prepare_run_dir(args: Args) -> pathlib.Path:
                 "Allowed: the saved values, except a larger --total-steps to extend the run "
                 "(or start a new run with another --run-dir)"
             )
+    _writable_dir(run_dir)
+    if args.overwrite and existing:
+        for name in existing:
+            path = run_dir / name
+            try:
+                shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+            except OSError as err:
+                raise ConfigError(
+                    f"--overwrite: cannot delete {path} ({err.strerror or err}); fix it, or remove it"
+                ) from err
+        print(f"--overwrite: deleted the previous run's {', '.join(existing)} in {run_dir}", file=sys.stderr)
+    return run_dir
+
+
+def _writable_dir(run_dir: pathlib.Path) -> None:
+    """Creates ``run_dir`` and checks that files can be written in it (raises ConfigError)."""
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         with open(run_dir / ".write-test", "w"):
@@ -315,12 +353,6 @@ def prepare_run_dir(args: Args) -> pathlib.Path:
         (run_dir / ".write-test").unlink()
     except OSError as err:
         raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: allowed a writable directory ({err})") from err
-    if args.overwrite and existing:
-        for name in existing:
-            path = run_dir / name
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-        print(f"--overwrite: deleted the previous run's {', '.join(existing)} in {run_dir}", file=sys.stderr)
-    return run_dir
 
 
 def _write_config(run_dir: pathlib.Path, args: Args) -> None:
@@ -521,7 +553,7 @@ def _eval_clip(args: Args, trainer: Trainer | PixelTrainer, policy, run_dir: pat
         print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.video {run_dir}")
         return None
     params = jax.tree.map(lambda x: jnp.asarray(x[0]), policy)
-    key = jax.random.PRNGKey(args.config.train.seed)
+    key = seed_keys(args.config.train.seed, 1)[0]  # any seed (PRNGKey keeps 32 bits)
     path = run_dir / "eval.gif"
     video.policy_video(trainer.env, functools.partial(trainer.mean_action, params), key, path, args.video_steps, 120)
     return path
@@ -608,6 +640,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     sharding = sweep.seed_sharding(args.columns)
     init, round_fn, evaluate = compiled(trainer, sharding)
     keys = column_keys(args, sharding)
+    sizes = rundir.tree_bytes(jax.eval_shape(init, keys))  # nothing allocated yet
+    rundir.check_memory(sizes, sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1], STATE_FLAGS)
     state = initial_state(args, init, keys, sharding)
     grid = args.grid()
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
@@ -703,12 +737,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
             if primary:
                 files.append(_eval_clip(args, trainer, policy, run_dir))
     finally:
-        if host is not None:
-            host.close()
-        if logger is not None:
-            logger.close()
-        if ckpt is not None:
-            ckpt.close()
+        rundir.close_all((ckpt, logger, host))  # each one, even if another fails: orbax's threads end
     if not primary:
         return result
     print(
@@ -749,6 +778,13 @@ def _check_args(args: Args, preset: Config) -> None:
         )
     if args.checkpoint_every < 0:
         raise ConfigError(f"checkpoint_every={args.checkpoint_every!r} is invalid: allowed >= 0")
+    if args.video_steps < 0:
+        raise ConfigError(f"video_steps={args.video_steps!r} is invalid: allowed >= 0 (0: no clip)")
+    for name in ("total_steps", "buffer_capacity"):  # counted in int32 by the jitted rounds
+        if getattr(cfg.train, name) > MAX_STEPS:
+            raise ConfigError(
+                f"train.{name}={getattr(cfg.train, name)!r} is invalid: allowed <= {MAX_STEPS} (2**31 - 1)"
+            )
     if not (math.isfinite(args.time_limit) and args.time_limit >= 0):
         raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed a finite number >= 0")
     if args.lam_grid and cfg.algo != "rebel":
@@ -926,22 +962,33 @@ def main(argv: list[str] | None = None) -> dict:
             sweep.initialize()
         except ValueError as err:
             raise _usage_error(err) from err
-    # Process 0 checks and prepares the run directory, then tells the others what it found.
+    # Process 0 checks, locks and prepares the run directory, then tells the others what it found.
     status, resuming = 0, 0
     run_dir = None if args.run_dir is None else pathlib.Path(args.run_dir)  # Set with --distributed.
-    if sweep.is_primary():
+    with rundir.RunLock() as lock:
         try:
-            check_devices(args, jax.device_count())
-            run_dir = prepare_run_dir(args)
-            resuming = int(args.resume and (run_dir / "config.json").exists())
-        except ConfigError as err:
+            if sweep.is_primary():
+                try:
+                    check_devices(args, jax.device_count())
+                    if args.host_teacher == "human":  # the labelling page's address, before anything is written
+                        rundir.check_listen_address(args.human.host, args.human.port)
+                    run_dir = prepare_run_dir(args, lock)
+                    resuming = int(args.resume and (run_dir / "config.json").exists())
+                except ConfigError as err:
+                    print(f"error: {err}", file=sys.stderr)
+                    status = EXIT_USAGE
+            status, resuming = sweep.from_primary((status, resuming))
+            if status:
+                raise SystemExit(status)
+            return run(args, run_dir, command_line(argv), bool(resuming))
+        except (*HumanError, ConfigError) as err:  # No OpenGL for the clips, a checkpoint of other code, ...
             print(f"error: {err}", file=sys.stderr)
-            status = EXIT_USAGE
-    status, resuming = sweep.from_primary((status, resuming))
-    if status:
-        raise SystemExit(status)
-    try:
-        return run(args, run_dir, command_line(argv), bool(resuming))
-    except (*HumanError, ConfigError) as err:  # No OpenGL for the clips, a checkpoint of other code, ...
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+            raise SystemExit(EXIT_USAGE) from None
+        except OSError as err:  # Disk full, a checkpoint that could not be saved, a permission changed meanwhile.
+            if sweep.is_primary():
+                print(rundir.io_error_line(err), file=sys.stderr)
+            raise SystemExit(rundir.EXIT_IO) from None
+        except KeyboardInterrupt:
+            if sweep.is_primary():
+                print(rundir.interrupted_line(run_dir), file=sys.stderr)
+            raise SystemExit(rundir.EXIT_INTERRUPTED) from None

@@ -73,7 +73,8 @@ class RunLogger:
         tensorboard=True,
         names: list[str] | None = None,
     ):
-        self.jsonl = open(run_dir / "metrics.jsonl", "a")  # noqa: SIM115 - closed in close()
+        self.path = run_dir / "metrics.jsonl"
+        self.jsonl = open(self.path, "a")  # noqa: SIM115 - closed in close()
         self.tb = None
         if tensorboard:
             from tensorboardX import SummaryWriter
@@ -101,8 +102,11 @@ class RunLogger:
             record[k + "_mean"] = _jsonable(np.nanmean(v)) if defined else None
         if diverged.size:
             record["diverged"] = diverged.tolist()
-        self.jsonl.write(dumps(record) + "\n")
-        self.jsonl.flush()
+        try:
+            self.jsonl.write(dumps(record) + "\n")
+            self.jsonl.flush()
+        except OSError as err:  # disk full: name the file
+            raise OSError(err.errno, err.strerror, str(self.path)) from err
         if self.tb is not None:
             for k, v in record.items():
                 if isinstance(v, int | float) and not isinstance(v, bool) and k != "env_steps":
@@ -123,6 +127,9 @@ class RunLogger:
 
     def close(self) -> None:
         self.bar.close()
-        self.jsonl.close()
         if self.tb is not None:
             self.tb.close()
+        try:
+            self.jsonl.close()  # writes what a failed write left buffered, and closes the file whatever happens
+        except OSError as err:
+            raise OSError(err.errno, err.strerror, str(self.path)) from err

@@ -773,8 +773,18 @@ def _pearson(x: jax.Array, y: jax.Array) -> jax.Array:
 
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:
-    """One raw PRNG key per seed: ``fold_in(PRNGKey(seed), i)``."""
-    base = jax.random.PRNGKey(seed)
+    """One raw PRNG key per seed: ``fold_in(base, i)``, every integer ``seed`` its own ``base``.
+
+    ``base`` is ``PRNGKey(seed)`` for ``0 <= seed < 2**32`` (``PRNGKey`` keeps 32 bits). Any other seed starts from
+    ``PRNGKey`` of the low 32 bits of ``|seed|`` and folds in ``2 * chunks + (seed < 0)``, then each further 32-bit
+    chunk of ``|seed|``, low to high: the folded words spell the whole integer, sign included.
+    """
+    magnitude = abs(int(seed))
+    base = jax.random.PRNGKey(magnitude & 0xFFFFFFFF)
+    chunks = [(magnitude >> shift) & 0xFFFFFFFF for shift in range(32, magnitude.bit_length(), 32)]
+    words = [2 * len(chunks) + (seed < 0), *chunks] if seed < 0 or chunks else []
+    for word in words:
+        base = jax.random.fold_in(base, word)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
 
 
