@@ -79,7 +79,7 @@ def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
 
     def epoch_rebel(ts, key):
         # The trainer's own REBEL term, as ``PixelTrainer.learn`` builds it (``--rebel.form`` and source included).
-        terms = trainer._value_terms(ts, jax.random.fold_in(key, 1), agent_step)
+        terms = trainer.method.pixel_terms(trainer, ts, jax.random.fold_in(key, 1), agent_step)
         return pixel_reward.train_epoch(rcfg, ts.reward, key, terms)[0].params
 
     def relabel(rows, ts, key):

@@ -52,7 +52,7 @@ from analysis import (  # noqa: E402
 )
 
 from rebel_jax import teachers  # noqa: E402
-from rebel_jax.config import PREFERENCE_ALGOS  # noqa: E402
+from rebel_jax.methods import REGISTRY as PREFERENCE_METHODS  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 
@@ -67,7 +67,7 @@ def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
     """What a method's numbers are: the run's settings, device, date and command."""
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text())
-    preference = cfg["algo"] in PREFERENCE_ALGOS
+    preference = cfg["algo"] in PREFERENCE_METHODS
     return {
         "task": cfg["env"]["task"],
         "algo": cfg["algo"],
@@ -113,7 +113,7 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
     lams = meta.get("lams") or [None] * columns
     # Outside a --teacher-grid the run's own teacher names the method unless it is the oracle, so that runs
     # of one method under different teachers never merge.
-    own = _teacher_name(cfg["teacher"]) if cfg["algo"] in PREFERENCE_ALGOS else None
+    own = _teacher_name(cfg["teacher"]) if cfg["algo"] in PREFERENCE_METHODS else None
     teachers = meta.get("teachers") or [None if own == "oracle" else own] * columns
     out: dict[str, tuple[list[int], dict]] = {}
     for i, (lam, teacher) in enumerate(zip(lams, teachers, strict=True)):
@@ -122,10 +122,10 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
         else:
             label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
         settings = _term_settings(cfg) if lam else []
-        if cfg["algo"] in PREFERENCE_ALGOS and cfg["reward"].get("output", "tanh") != "tanh":
+        if cfg["algo"] in PREFERENCE_METHODS and cfg["reward"].get("output", "tanh") != "tanh":
             settings.append(f"{cfg['reward']['output']} output")
         label += f" ({', '.join(settings)})" if settings else ""
-        if cfg["algo"] in PREFERENCE_ALGOS and cfg["feedback"]["labels"] != 100:
+        if cfg["algo"] in PREFERENCE_METHODS and cfg["feedback"]["labels"] != 100:
             label += f" {cfg['feedback']['labels']} labels"
         if cfg["algo"] == "surf" and cfg.get("surf", {}).get("reward_update", 1000) != 1000:  # SURF's walker value
             label += f" (reward_update {cfg['surf']['reward_update']})"

@@ -245,7 +245,7 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
         ts, _ = step(ts, jnp.int32(t))
         if t >= length:
             after.append(np.asarray(ts.env.obs[n:]))
-    obs, actions = trainer.value_trajectories(ts, jax.random.key(0))
+    obs, actions = trainer.method.value_trajectories(trainer, ts, jax.random.key(0))
     kept, steps = episodes or cfg.train.eval_episodes, horizon or length
     assert obs.shape[:2] == (kept, steps)
     # A trajectory of the environment: each observation is the one the previous step led to...

@@ -456,8 +456,8 @@ def two_episodes():
 def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_episode(two_episodes):
     trainer, ts, after, frozen = two_episodes
     horizon, gamma, lam = 6, 0.9, -0.5
-    assert trainer.onpolicy_size == (1, horizon)
-    frames, actions, predict_fn = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    assert trainer.trajectory_size == (1, horizon)
+    frames, actions, predict_fn = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     assert frames.shape == (1, horizon, SIZE, SIZE, 3) and frames.dtype == jnp.uint8
     frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
     # The environment's own stacks: the reset frame three times, then each step's observation after the last.
@@ -468,7 +468,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
     expected = trainer.mean_action(frozen, jnp.asarray(naive))
     np.testing.assert_allclose(actions, np.asarray(expected), rtol=1e-5, atol=1e-6)
     # V: each member's own apply on each step, looped in Python, discounted over the horizon.
-    (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))
+    (term,) = trainer.method.pixel_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
     loss, metrics = term(ts.reward.params, None, jax.random.key(2))
     net = pixel_reward.network(REWARD)
     values = []
@@ -487,7 +487,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
 @pytest.mark.heavy  # make test checks this for the state-based term (test_surf_rebel.py)
 def test_pixel_onpolicy_value_gradients_reach_only_the_reward_parameters(two_episodes):
     trainer, ts, _, _ = two_episodes
-    frames, actions, predict_fn = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    frames, actions, predict_fn = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     params = ts.reward.params
 
     def loss_of(p, frames, actions):
@@ -524,7 +524,7 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
     seg_m = [SegmentPlaces(tile(s.row), tile(s.env)) for s in (seg_a, seg_b)]
     seg_m = [_frames(buffer, seg, h) for seg in seg_m]
     _, bt = pixel_reward.bt_loss(REWARD, params, *seg_m, jnp.ones((members, pairs)), jnp.ones((members, pairs)))
-    (term,) = trainer._value_terms(ts, jax.random.key(1), jnp.int32(0))
+    (term,) = trainer.method.pixel_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
     loss, metrics = term(params, bt, jax.random.key(2))
 
     net = pixel_reward.network(REWARD)
@@ -534,7 +534,7 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
         obs = frame_replay.row_stacks(buffer, jnp.arange(row, row + length), jnp.int32(env))
         return np.asarray(net.apply(member[m], obs, buffer.action[row : row + length, env]))
 
-    frames, actions, _ = trainer.value_trajectories(ts, jax.random.key(0), jnp.int32(0))
+    frames, actions, _ = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
     naive = np.stack([np.tile(frames[0], (1, 1, 3)), *after[: horizon - 1]])
     segments = [(int(starts[s, i]), int(envs[s, i])) for s in range(2) for i in range(pairs)]

@@ -260,7 +260,7 @@ def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_se
     new, metrics = jax.jit(trainer.learn, static_argnums=6)(ts, key, seg_a, seg_b, labels, mask, False)
     # The fresh segments are drawn with learn's own key split, as documented in Trainer.learn.
     key_fresh = jax.random.split(key, 5)[2]
-    fresh = trainer._sample_segments(new.buffer, key_fresh, 64, trainer.horizon)
+    fresh = trainer.sample_segments(new.buffer, key_fresh, 64, trainer.horizon)
     learned = np.asarray(reward_model.mean_reward(trainer.reward_cfg, ts.reward.params, fresh.obs, fresh.action))
     true = np.asarray(fresh.true_reward)
     np.testing.assert_allclose(

@@ -17,6 +17,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from rebel_jax import methods
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
@@ -28,8 +29,9 @@ from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 
-Algo = Literal["sac", "pebble", "surf", "rebel", "drqv2"]
-PREFERENCE_ALGOS = ("pebble", "surf", "rebel")
+AGENTS = ("sac", "drqv2")
+"""The agents alone, on the task's true reward: SAC on state tasks, DrQ-v2 on pixel tasks."""
+Algo = Literal[(*AGENTS[:1], *methods.REGISTRY, *AGENTS[1:])]  # the registry's methods at import time
 Precision = Literal["tf32", "highest", "bf16"]
 
 
@@ -253,8 +255,13 @@ class Config:
 
     @property
     def preference(self) -> bool:
-        """Whether the agent learns from preferences (pebble, surf, rebel)."""
-        return self.algo in PREFERENCE_ALGOS
+        """Whether the agent learns from preferences (a method of :data:`rebel_jax.methods.REGISTRY`)."""
+        return self.algo in methods.REGISTRY
+
+    @property
+    def method(self) -> methods.Method | None:
+        """The preference method ``algo`` names (None for the agents alone, sac and drqv2)."""
+        return methods.REGISTRY.get(self.algo)
 
     @property
     def pixels(self) -> bool:
@@ -271,10 +278,11 @@ class Config:
             **dict.fromkeys(("feedback", "query", "teacher", "pretrain"), "a preference algo (pebble, surf, rebel)"),
             "reward": "a preference algo on a state task",
             "pixel_reward": "a preference algo on a pixel task",
-            "surf": "--algo surf",
-            "rebel": "--algo rebel",
+            **{m.config_field: f"--algo {m.name}" for m in methods.REGISTRY.values() if m.config_field},
         }
-        used = {"drqv2" if self.pixels else "sac", self.algo}  # the algo's own part: surf or rebel
+        used = {"drqv2" if self.pixels else "sac"}
+        if self.method is not None and self.method.config_field:
+            used.add(self.method.config_field)  # the method's own part: surf or rebel
         if self.preference:
             used |= {"feedback", "query", "teacher", "pretrain", "pixel_reward" if self.pixels else "reward"}
         return {part: text for part, text in where.items() if part not in used}
@@ -287,7 +295,7 @@ class Config:
         branch ``pixel``, README.md:22, :32), so their first session comes after the seed steps."""
         return self.train.seed_steps + (0 if self.pixels else self.pretrain.steps)
 
-    def _check_complete_episode(self, setting: str, what: str, alternative: str) -> None:
+    def check_complete_episode(self, setting: str, what: str, alternative: str) -> None:
         """``setting`` draws ``what`` from complete episodes: the first session must find one."""
         most = self.feedback_start // self.env.episode_length
         _check(
@@ -299,15 +307,18 @@ class Config:
         )
 
     def validate(self) -> Config:
-        _check(self.algo in ("sac", *PREFERENCE_ALGOS, "drqv2"), "algo", self.algo, "sac, pebble, surf, rebel, drqv2")
+        names = [*AGENTS, *methods.REGISTRY]
+        _check(self.algo in names, "algo", self.algo, ", ".join(names))
         _check_finite(self)
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
         pixels = self.pixels
         if self.algo == "drqv2" or pixels:
-            allowed = f"drqv2, pebble, surf or rebel with the pixel task {self.env.task!r}"
-            _check(self.algo in ("drqv2", "pebble", "surf", "rebel"), "algo", self.algo, allowed)
+            allowed = (
+                f"drqv2 or a preference method ({', '.join(methods.REGISTRY)}) with the pixel task {self.env.task!r}"
+            )
+            _check(self.algo != "sac", "algo", self.algo, allowed)
             _check(pixels, "env.task", self.env.task, "a pixel task (<task>_pixels) with --algo drqv2")
             self.drqv2.validate()
             if self.preference:
@@ -323,23 +334,9 @@ class Config:
             for part in (self.feedback, self.reward, self.teacher, self.pretrain):
                 part.validate()
             self.query.validate(self.env.episode_length)
-            if self.algo == "surf":
-                self.surf.validate(self.query.segment_length)
-            if self.algo == "rebel":
-                self.rebel.validate()
-                length = self.rebel.segment_length
-                if self.rebel.source == "replay":
-                    _check(length <= self.env.episode_length, "rebel.segment_length", length, "<= env.episode_length")
-                else:
-                    episodes = self.rebel.episodes
-                    _check(episodes <= self.train.eval_episodes, "rebel.episodes", episodes, "<= train.eval_episodes")
-                    if not pixels:  # PixelTrainer checks in agent steps
-                        horizon = self.rebel.horizon
-                        _check(horizon <= self.env.episode_length, "rebel.horizon", horizon, "<= env.episode_length")
-                        what, other = "V's episodes", "--rebel.source replay"
-                        self._check_complete_episode("rebel.source='onpolicy'", what, other)
+            self.method.validate(self)
             if self.query.pool == "episodes" and not pixels:  # PixelTrainer checks in agent steps
-                self._check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
+                self.check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)
             _check_round_multiple(self.feedback.interval, "feedback.interval", steps)

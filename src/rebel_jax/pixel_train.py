@@ -58,7 +58,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import agent_preference, frame_replay, pixel_reward, teachers
+from rebel_jax import frame_replay, pixel_reward, teachers
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
@@ -145,7 +145,7 @@ class PixelTrainer:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg.validate()
-        if cfg.algo not in ("drqv2", "pebble", "surf", "rebel") or not cfg.pixels:
+        if cfg.algo == "sac" or not cfg.pixels:
             raise ValueError(f"PixelTrainer runs drqv2 or pebble on a pixel task, not {cfg.algo!r} on {cfg.env.task!r}")
         self.env = make_env(cfg.env.task, solver=cfg.env.solver, episode_length=cfg.env.episode_length)
         self.agent = DrQV2(cfg.drqv2, self.env.observation_shape, self.env.action_size)
@@ -157,18 +157,18 @@ class PixelTrainer:
         self.updates_per_step = max(1, self.num_train // every)
         self.update_period = max(1, every // self.num_train)  # vector steps between updates
         self.preference = cfg.preference
+        self.method = cfg.method
         self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
         if self.preference:  # The label store keeps copies: the replay is a ring of recent episodes.
             self.horizon = cfg.query.segment_length
-            self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
+            self.crop = self.method.crop(cfg)
             self.stored = self.horizon + 2 * self.crop  # SURF stores H + 2 c steps (size_segment, :195)
             sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
-            self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0
+            self.pool_capacity = self.method.pool_size(cfg) * sessions
             ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
             # The ring holds a complete episode whatever the running one's step: 2 L - 1 rows.
             ok = ok and self.capacity // self.num_train >= 2 * self.episode_length - 1
-            value_length = cfg.rebel.segment_length if cfg.rebel.source == "replay" else cfg.rebel.horizon
-            ok = ok and (cfg.algo != "rebel" or value_length <= self.episode_length)
+            ok = ok and all(n <= self.episode_length for n in self.method.episode_lengths(cfg))
             if not ok:
                 raise ValueError(
                     f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
@@ -178,8 +178,8 @@ class PixelTrainer:
                     f"(2 x {self.episode_length} - 1 rows; train.buffer_capacity {self.capacity} / num_envs = "
                     f"{self.capacity // self.num_train} rows)"
                 )
-        self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
-        self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, self.episode_length, True)
+        # The evaluation episodes kept for the method's loss (REBEL's on-policy V): (episodes, steps), or None.
+        self.trajectory_size = self.method.trajectory_size(cfg, self.episode_length, True) if self.preference else None
         self.trace_count = 0
         self._looped_session = loop_in_place(self._feedback_session)
 
@@ -217,11 +217,11 @@ class PixelTrainer:
         reward = pixel_reward.init(self.cfg.pixel_reward, key_reward, shape, actions, labels, self.stored)
         if self.pool_capacity:
             reward = reward.replace(pool=pixel_reward.empty_store(self.pool_capacity, self.stored, shape, actions))
-        lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
+        lam = self.method.knob(self.cfg)
         ts = ts.replace(key=key, reward=reward, teacher=teachers.knobs(self.cfg.teacher), lam=lam)
-        if self.onpolicy_value:
+        if self.trajectory_size:
             fields = {"frame": (shape[:2] + (3,), jnp.uint8), "action": ((self.env.action_size,), jnp.float32)}
-            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.onpolicy_size))
+            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.trajectory_size))
         return ts
 
     def _reset_envs(self, key: jax.Array) -> State:
@@ -296,8 +296,8 @@ class PixelTrainer:
             lambda: (ts.sac, zeros),
         )
         ts = ts.replace(sac=agent, buffer=buffer, env=nxt, episodes=episodes)
-        if self.onpolicy_value:  # The evaluation environments' step: the newest frame acted on, the action.
-            first, end = self.num_train, self.num_train + self.onpolicy_size[0]
+        if self.trajectory_size:  # The evaluation environments' step: the newest frame acted on, the action.
+            first, end = self.num_train, self.num_train + self.trajectory_size[0]
             step = {"frame": env_state.obs[first:end, ..., -3:], "action": action[first:end]}
             trajectory = record_trajectory(ts.eval_trajectory, step, t, self.episode_length)
             ts = ts.replace(eval_trajectory=trajectory)
@@ -367,33 +367,8 @@ class PixelTrainer:
         accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
         kept = jnp.sum(mask)
         stored = pixel_reward.add_labels(ts.reward, ts.buffer, seg_a, seg_b, labels, mask)
-        if (
-            self.cfg.algo == "surf"
-        ):  # Grow the pool, then reward_update passes, no early stop (pixel_train_PEBBLE_semi.py:275-281).
-            scfg = self.cfg.surf
-            pool = pixel_reward.sample_segments(
-                key_value,
-                ts.buffer,
-                2 * scfg.pool_size,
-                self.stored,
-                self.episode_length,
-                self.cfg.query.recent_episodes,
-            )
-            pool_a, pool_b = (
-                jax.tree.map(lambda x: x[: scfg.pool_size], pool),
-                jax.tree.map(lambda x: x[scfg.pool_size :], pool),
-            )
-            ones = jnp.full((scfg.pool_size,), (kept > 0).astype(jnp.float32))
-            pool = pixel_reward.append_segments(stored.pool, ts.buffer, pool_a, pool_b, ones * 0, ones)
-            stored = stored.replace(pool=pool)
-            terms = (pixel_reward.pseudo_label_term(rcfg, scfg, stored.pool),)
-            epochs = jnp.where(kept > 0, scfg.reward_update, 0)  # none without new labels, as on state tasks
-            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms, self.crop, epochs, float("inf"))
-        else:
-            rebel = self.cfg.algo == "rebel"
-            terms = self._value_terms(ts.replace(reward=stored), key_value, agent_step) if rebel else ()
-            epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
-            trained, train_metrics = pixel_reward.train(rcfg, stored, key_train, terms, max_epochs=epochs)
+        keys = {"train": key_train, "value": key_value}
+        trained, train_metrics = self.method.train_pixel_reward(self, ts, stored, keys, kept, agent_step)
         # A session without a kept label trains no epoch (``epochs`` above; SURF and B-Pref hold no session
         # once the budget is spent), so its members and Adam state come back as they were: no select needed.
         reward = trained
@@ -405,108 +380,6 @@ class PixelTrainer:
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
         return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
-
-    def value_trajectories(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array):
-        """REBEL's V trajectories on pixels (``rebel.source``): ``(obs, actions (N, T, A), predict_fn)``,
-        ``predict_fn(params, obs, actions) -> (M, N, T)`` the members' rewards (as
-        :meth:`rebel_jax.train.Trainer.value_trajectories`, with the stacks kept out of the closure).
-
-        ``onpolicy`` (the paper's V): the first ``rebel.horizon`` agent steps of the last complete episodes
-        of ``rebel.episodes`` evaluation environments, which start at the task's reset and follow the mean
-        action of the DrQ-v2 policy frozen at the episode start; ``obs`` are their kept newest frames
-        (N, T, H, W, 3), whose stacks ``predict_fn`` rebuilds (:func:`rebel_jax.frame_replay.episode_stacks`).
-
-        ``replay``: ``rebel.num_segments`` replay segments of ``rebel.segment_length`` steps, drawn from the
-        query pool, with actions redrawn once from the current DrQ-v2 policy (its exploration noise at
-        ``agent_step``) and held fixed; ``obs`` are their places (N, T, 2) = (row, env), whose frames
-        ``predict_fn`` gathers from the replay (``pixel_reward.place_rewards``).
-
-        Either way ``predict_fn`` runs in every step of the session: ``N x T`` stacks per member and step.
-        """
-        rebel, rcfg, buffer = self.cfg.rebel, self.cfg.pixel_reward, ts.buffer
-        if self.onpolicy_value:
-            last = ts.eval_trajectory["last"]
-            stack = self.env.frames
-
-            def episode_rewards(params, frames, action):
-                return pixel_reward.predict(rcfg, params, frame_replay.episode_stacks(frames, stack), action)
-
-            return jnp.swapaxes(last["frame"], 0, 1), jnp.swapaxes(last["action"], 0, 1), episode_rewards
-        key_segments, key_actions = jax.random.split(key)
-        places = pixel_reward.sample_segments(
-            key_segments,
-            buffer,
-            rebel.num_segments,
-            rebel.segment_length,
-            self.episode_length,
-            self.cfg.query.recent_episodes,
-        )
-        rows = pixel_reward.segment_rows(places.row, rebel.segment_length)
-        envs = jnp.broadcast_to(places.env[:, None], rows.shape)
-
-        def act(inputs):
-            row, env, key = inputs
-            return self.agent.act(ts.sac, frame_replay.row_stacks(buffer, row % buffer.rows, env), key, agent_step)
-
-        keys = jax.random.split(key_actions, rebel.num_segments)
-        actions = jax.lax.map(act, (rows, envs, keys))  # one segment's stacks at a time
-        return jnp.stack([rows, envs], axis=-1), actions, self._place_rewards(buffer)
-
-    def _place_rewards(self, buffer: frame_replay.FrameBuffer):
-        rcfg = self.cfg.pixel_reward
-
-        def predict_fn(params, place, action):
-            return pixel_reward.place_rewards(rcfg, params, buffer, place, action)
-
-        return predict_fn
-
-    def _value_terms(self, ts: PixelTrainState, key: jax.Array, agent_step: jax.Array) -> tuple:
-        """REBEL's term on pixels (``rebel.form``), through :mod:`rebel_jax.agent_preference` as on state tasks.
-
-        ``lower_bound``: ``lambda * V`` (:func:`~rebel_jax.agent_preference.agent_value_term`) on
-        :meth:`value_trajectories`. ``penalty``: ``lambda * (V* - V)``
-        (:func:`~rebel_jax.agent_preference.value_gap_term`), ``V*`` from the ``rebel.best_segments``
-        labelled segments (both sides of every stored pair, read from the label store's copies) of highest
-        ensemble-mean learned return under the parameters at the session's start, with their stored actions;
-        their ``best_segments x (segment_length + 2)`` frames are kept and their stacks scored in every step.
-        ``rebel.normalize`` divides by :func:`~rebel_jax.agent_preference.reward_spread` of the per-step rewards
-        the BT term computed on the minibatch (no extra encoder pass).
-
-        Args:
-          ts: the state, its label store holding this session's labels.
-        """
-        rebel, rcfg = self.cfg.rebel, self.cfg.pixel_reward
-        obs, actions, predict_fn = self.value_trajectories(ts, key, agent_step)
-
-        def spread_fn(params, bt):
-            del params  # Unused: the BT term's rewards are the parameters' already.
-            return agent_preference.reward_spread(bt["rewards_a"], bt["rewards_b"], bt["weight"])
-
-        common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn, spread_fn=spread_fn)
-        if rebel.form == "lower_bound":
-            return (agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, rebel.gamma, **common),)
-        data = ts.reward.data
-        filled = jnp.tile(jnp.arange(data.capacity) < data.count, 2)  # a sides, then b sides
-        returns = jnp.mean(pixel_reward.stored_returns(rcfg, ts.reward.params, data), axis=0)
-        index, valid = agent_preference.top_segments(returns, filled, rebel.best_segments)
-        best = pixel_reward.stored_side(data, index)
-
-        def best_predict_fn(params, frames, action):
-            return pixel_reward.frame_rewards(rcfg, params, frames, action)
-
-        term = agent_preference.value_gap_term(
-            rcfg,
-            ts.lam,
-            obs,
-            actions,
-            best.frames,
-            best.action,
-            valid,
-            rebel.gamma,
-            best_predict_fn=best_predict_fn,
-            **common,
-        )
-        return (term,)
 
     def _reset_critic(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step):
         """A fresh critic, then ``pretrain.reset_updates`` DrQ-v2 updates (pixel_train_PEBBLE.py:413-420)."""

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax.sharding import NamedSharding
 
-from rebel_jax import agent_preference, pretrain, queries, replay, reward_model, surf, sweep, teachers
+from rebel_jax import pretrain, queries, replay, reward_model, surf, sweep, teachers
 from rebel_jax.config import Config, FeedbackConfig
 from rebel_jax.envs import DMCEnv, PointProbe, State, VmapWrapper, make_env
 from rebel_jax.queries import Segments
@@ -206,16 +206,19 @@ class Trainer:
         self.steps_per_round = cfg.train.steps_per_round // cfg.env.num_envs  # vector steps
         self.updates_per_step = max(1, round(cfg.sac.utd * cfg.env.num_envs))
         self.preference = cfg.preference  # the preference methods train SAC on the learned reward
+        self.method = cfg.method
         # The label store holds exactly the budget; SURF stores segments longer by 2 * crop.
         self.reward_cfg = dataclasses.replace(cfg.reward, label_capacity=cfg.feedback.labels)
         self.horizon = cfg.query.segment_length
-        self.crop = cfg.surf.crop if cfg.algo == "surf" else 0
+        self.crop = self.method.crop(cfg) if self.preference else 0
         self.stored_length = self.horizon + 2 * self.crop
         self.pretrain_steps = cfg.feedback_start // cfg.env.num_envs if self.preference else 0  # vector steps
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
-        self.pool_capacity = cfg.surf.pool_size * sessions if cfg.algo == "surf" else 0  # SURF keeps every session's.
-        self.onpolicy_value = cfg.algo == "rebel" and cfg.rebel.source == "onpolicy"
-        self.onpolicy_size = cfg.rebel.onpolicy_size(cfg.train.eval_episodes, cfg.env.episode_length, False)
+        self.pool_capacity = self.method.pool_size(cfg) * sessions if self.preference else 0  # every session's
+        # The evaluation episodes kept for the method's loss (REBEL's on-policy V): (episodes, steps), or None.
+        self.trajectory_size = (
+            self.method.trajectory_size(cfg, cfg.env.episode_length, False) if self.preference else None
+        )
 
     def policy_params(self, ts: TrainState):
         """What :meth:`evaluate` takes: the actor's parameters."""
@@ -247,13 +250,13 @@ class Trainer:
         reward = reward_model.init(self.reward_cfg, key_reward, obs_size, action_size, self.stored_length)
         if self.pool_capacity:
             reward = reward.replace(pool=surf.init_pool(self.pool_capacity, self.stored_length, obs_size, action_size))
-        lam = jnp.asarray(self.cfg.rebel.lam, jnp.float32) if self.cfg.algo == "rebel" else None
+        lam = self.method.knob(self.cfg)
         teacher = teachers.knobs(self.cfg.teacher)
         stats = pretrain.init_stats(self.cfg.pretrain.running_std)
         ts = ts.replace(key=key, reward=reward, entropy_stats=stats, lam=lam, teacher=teacher)
-        if self.onpolicy_value:
+        if self.trajectory_size:
             fields = {"obs": ((obs_size,), jnp.float32), "action": ((action_size,), jnp.float32)}
-            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.onpolicy_size))
+            ts = ts.replace(eval_trajectory=init_trajectory(fields, *self.trajectory_size))
         return ts
 
     def _qpos_size(self) -> int:
@@ -297,7 +300,7 @@ class Trainer:
     def _learned_reward(self, ts: TrainState, obs: jax.Array, action: jax.Array) -> jax.Array:
         return reward_model.mean_reward(self.reward_cfg, ts.reward.params, obs, action)
 
-    def _updates(self, ts: TrainState, buffer: replay.Buffer, key: jax.Array, intrinsic: bool):
+    def _updates(self, ts: TrainState, buffer: replay.Buffer, key: jax.Array, t: jax.Array, intrinsic: bool):
         """``utd * num_envs`` SAC updates on the learned (or true, for sac) or the intrinsic reward."""
         # Pre-training happens before the buffer wraps: its kNN search needs only the rows written by then.
         early = buffer.replace(obs=buffer.obs[: max(self.pretrain_steps, 1)])
@@ -305,10 +308,15 @@ class Trainer:
         def one(carry, key):
             state, stats = carry
             key_sample, key_update = jax.random.split(key)
-            batch = replay.sample(buffer, key_sample, self.cfg.sac.batch_size, self.preference)
+            if not self.preference:
+                batch = replay.sample(buffer, key_sample, self.cfg.sac.batch_size, False)
+            else:
+                batch = self.method.sample_batch(self, ts, buffer, key_sample)
             if intrinsic:
                 reward, stats = pretrain.intrinsic_reward(self.cfg.pretrain, stats, batch.obs, early)
                 batch = batch.replace(reward=reward)
+            elif self.preference:
+                batch = self.method.batch_reward(self, ts, batch, t)
             state, metrics = self.sac.update(state, batch, key_update)
             return (state, stats), metrics
 
@@ -338,16 +346,16 @@ class Trainer:
         zeros = {k: jnp.zeros(()) for k in ("critic_loss", "actor_loss", "alpha_loss", "alpha", "q", "entropy")}
         branches = [
             lambda: ((ts.sac, ts.entropy_stats), zeros),
-            lambda: self._updates(ts, buffer, key_update, intrinsic=False),
+            lambda: self._updates(ts, buffer, key_update, t, intrinsic=False),
         ]
         phase = learning.astype(jnp.int32)  # 0: seeding, 1: SAC on the stored reward
         if self.pretrain_steps:
-            branches.append(lambda: self._updates(ts, buffer, key_update, intrinsic=True))
+            branches.append(lambda: self._updates(ts, buffer, key_update, t, intrinsic=True))
             phase = jnp.where(learning & (t < self.pretrain_steps), 2, phase)  # 2: unsupervised pre-training
         (sac_state, stats), metrics = jax.lax.switch(phase, branches)
         ts = ts.replace(sac=sac_state, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
-        if self.onpolicy_value:  # The evaluation environments' step: the state acted in, the action.
-            first, end = self.num_train, self.num_train + self.onpolicy_size[0]
+        if self.trajectory_size:  # The evaluation environments' step: the state acted in, the action.
+            first, end = self.num_train, self.num_train + self.trajectory_size[0]
             step = {"obs": env_state.obs[first:end], "action": action[first:end]}
             trajectory = record_trajectory(ts.eval_trajectory, step, t, self.cfg.env.episode_length)
             ts = ts.replace(eval_trajectory=trajectory)
@@ -359,13 +367,18 @@ class Trainer:
         """The middle ``segment_length`` steps of stored segments (all of them unless SURF crops)."""
         return jax.tree.map(lambda x: x[:, self.crop : self.crop + self.horizon], seg)
 
-    def _sample_segments(self, buffer: replay.Buffer, key: jax.Array, n: int, length: int) -> Segments:
+    def sample_segments(self, buffer: replay.Buffer, key: jax.Array, n: int, length: int) -> Segments:
+        """``n`` segments of ``length`` steps from the query pool (``query.recent_episodes``, ``query.pool``)."""
         query = self.cfg.query
         episode_length = self.cfg.env.episode_length
         return queries.sample_segments(buffer, key, n, length, episode_length, query.recent_episodes, query.pool)
 
     def select(self, ts: TrainState, key: jax.Array, first: bool | jax.Array) -> tuple[Segments, Segments]:
-        """The session's query pairs (uniform at the first session), of the stored length.
+        """The session's query pairs, of the stored length: the method's (``Method.query_segments``)."""
+        return self.method.query_segments(self, ts, key, first)
+
+    def select_queries(self, ts: TrainState, key: jax.Array, first: bool | jax.Array) -> tuple[Segments, Segments]:
+        """The session's query pairs by ``query.sampling`` (uniform at the first session), of the stored length.
 
         Disagreement and entropy are scored on the whole stored segments, as SURF scores its
         ``H + 2 * crop`` segments (``get_rank_probability`` on ``sa_t_1``, ``sa_t_2``).
@@ -391,43 +404,6 @@ class Trainer:
         labels, mask, info = teachers.label(teacher, key, self._central(seg_a), self._central(seg_b), margin)
         return labels, within_budget(self.cfg.feedback, mask, ts.reward.data.count, index), info
 
-    def value_trajectories(self, ts: TrainState, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """REBEL's V trajectories (``rebel.source``): ``(obs (N, H, obs_size), actions (N, H, act_size))``.
-
-        ``onpolicy``: the first ``rebel.horizon`` steps of the evaluation environments' last complete
-        episodes, N = ``rebel.episodes`` and H = ``rebel.horizon`` (by default all of them, whole).
-        ``replay``: ``num_segments`` replay segments, actions redrawn from the current policy
-        (``a_h ~ pi_theta``, held fixed).
-        """
-        if self.onpolicy_value:
-            last = ts.eval_trajectory["last"]
-            return jnp.swapaxes(last["obs"], 0, 1), jnp.swapaxes(last["action"], 0, 1)
-        rebel = self.cfg.rebel
-        key_segments, key_actions = jax.random.split(key)
-        seg = self._sample_segments(ts.buffer, key_segments, rebel.num_segments, rebel.segment_length)
-        return seg.obs, self.sac.act(ts.sac.actor_params, seg.obs, key_actions)
-
-    def _loss_terms(self, ts: TrainState, key: jax.Array) -> list[reward_model.LossTerm]:
-        cfg, rcfg = self.cfg, self.reward_cfg
-        if cfg.algo == "rebel":
-            obs, actions = self.value_trajectories(ts, key)
-            rebel = cfg.rebel
-            if rebel.form == "penalty":  # V(pi*(nu)) from the best labelled segments, ranked once per session.
-                best = agent_preference.best_segments(rcfg, ts.reward.params, ts.reward.data, rebel.best_segments)
-                value = agent_preference.value_gap_term(
-                    rcfg, ts.lam, obs, actions, *best, rebel.gamma, rebel.estimator, rebel.normalize
-                )
-            else:
-                value = agent_preference.agent_value_term(
-                    rcfg, ts.lam, obs, actions, rebel.gamma, rebel.estimator, rebel.normalize
-                )
-            return [reward_model.bt_loss(rcfg), value]
-        if cfg.algo == "surf":
-            pool = ts.reward.pool
-            pseudo = surf.pseudo_label_term(rcfg, cfg.surf, pool.obs_a, pool.act_a, pool.obs_b, pool.act_b, pool.count)
-            return [surf.cropped_bt_loss(rcfg, cfg.surf), pseudo]
-        return [reward_model.bt_loss(rcfg)]
-
     def learn(
         self,
         ts: TrainState,
@@ -449,23 +425,8 @@ class Trainer:
         )
         kept = jnp.sum(mask)
         stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
-        if self.cfg.algo == "surf":  # SURF's session: grow the pool, then a fixed number of steps.
-            pool_a, pool_b = queries.sample_pairs(
-                ts.buffer,
-                key_pool,
-                self.cfg.surf.pool_size,
-                self.stored_length,
-                self.cfg.env.episode_length,
-                self.cfg.query.recent_episodes,
-                self.cfg.query.pool,
-            )
-            stored = surf.add_unlabelled(stored, pool_a, pool_b, kept > 0)
-            terms = self._loss_terms(ts.replace(reward=stored), key_terms)
-            steps = surf.surf_iterations(self.cfg.surf.reward_update, stored.data.count, rcfg.batch_size, kept)
-            trained, train_metrics = reward_model.train_iterations(rcfg, stored, key_train, terms, steps)
-        else:
-            terms = self._loss_terms(ts.replace(reward=stored), key_terms)  # The store with this session's labels.
-            trained, train_metrics = reward_model.train(rcfg, stored, key_train, terms)
+        keys = {"terms": key_terms, "train": key_train, "pool": key_pool}
+        trained, train_metrics = self.method.train_state_reward(self, ts, stored, keys, kept)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):
@@ -475,7 +436,7 @@ class Trainer:
         sac_state = ts.sac
         if self.cfg.pretrain.steps:
             sac_state = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic), lambda: ts.sac)
-        fresh = self._sample_segments(buffer, key_fresh, 64, self.horizon)
+        fresh = self.sample_segments(buffer, key_fresh, 64, self.horizon)
         learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = _pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))

@@ -1,0 +1,135 @@
+"""The Method interface: what sets one preference-learning method apart, with PEBBLE's behaviour as every default.
+
+A method is an object whose hooks the trainers call at fixed places of a run (:mod:`rebel_jax.train` on state
+tasks, :mod:`rebel_jax.pixel_train` on pixel tasks). Every hook receives the trainer, so it can read the run's
+config (``trainer.cfg``), sizes and helpers; it returns values and never mutates anything. A method overrides
+only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e):
+
+- **its config**: ``config_field`` names the section of :class:`rebel_jax.config.Config` it reads (``surf``,
+  ``rebel``), checked by :meth:`validate`;
+- **its state**: :meth:`knob` (a traced per-column value a sweep can vmap over, e.g. REBEL's lambda),
+  :meth:`crop` (extra steps stored on each side of a segment), :meth:`pool_size` (unlabelled pairs kept per
+  session) and :meth:`trajectory_size` (the evaluation episodes' trajectories kept for the reward loss);
+- **its loss terms** over the label store: :meth:`state_terms` / :meth:`pixel_terms`;
+- **its schedule of reward steps** in a session: :meth:`train_state_reward` / :meth:`train_pixel_reward`
+  (PEBBLE's early-stopped epochs by default; SURF's fixed iterations);
+- **hooks with no effect by default**: :meth:`query_segments` (which segments the queries come from),
+  :meth:`sample_batch` (the agent's minibatch from the replay) and :meth:`batch_reward` (an intrinsic reward
+  added to the learned one in that minibatch).
+
+A new method is one file with a subclass, registered in :data:`rebel_jax.methods.REGISTRY` (or at run time
+with :func:`rebel_jax.methods.register`); ``docs/adding_a_method.md`` walks through one.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from rebel_jax import pixel_reward, replay, reward_model
+
+
+class Method:
+    """PEBBLE: the Bradley-Terry loss on the labelled pairs, trained in early-stopped epochs each session."""
+
+    name: ClassVar[str] = "pebble"
+    config_field: ClassVar[str | None] = None
+    """The section of the run's config this method reads (None: none of its own)."""
+
+    # -- config and sizes ------------------------------------------------------------------
+    def validate(self, cfg: Any) -> None:
+        """Checks the method's own settings in the run's config (raises ``ConfigError``)."""
+        del cfg  # Unused.
+
+    def crop(self, cfg: Any) -> int:
+        """Steps stored on each side of a segment beyond ``query.segment_length`` (a temporal crop's room)."""
+        del cfg  # Unused.
+        return 0
+
+    def pool_size(self, cfg: Any) -> int:
+        """Unlabelled pairs the method keeps per session (0: no pool)."""
+        del cfg  # Unused.
+        return 0
+
+    def knob(self, cfg: Any) -> jax.Array | None:
+        """A traced value per column (``TrainState.lam``), so that a sweep vmaps over it; None: no knob."""
+        del cfg  # Unused.
+        return None
+
+    def trajectory_size(self, cfg: Any, episode_length: int, pixels: bool) -> tuple[int, int] | None:
+        """``(episodes, steps)`` of the evaluation episodes the run keeps for the method's loss; None: none kept.
+
+        Args:
+          episode_length: agent steps per episode.
+          pixels: whether the task observes frame stacks.
+        """
+        del cfg, episode_length, pixels  # Unused.
+        return None
+
+    def episode_lengths(self, cfg: Any) -> tuple[int, ...]:
+        """Lengths in agent steps of what the method reads from single episodes (checked against the episode)."""
+        del cfg  # Unused.
+        return ()
+
+    # -- state tasks ----------------------------------------------------------------------
+    def state_terms(self, trainer: Any, ts: Any, key: jax.Array) -> list[reward_model.LossTerm]:
+        """The reward loss's terms on a state task; ``ts.reward`` holds this session's labels."""
+        del ts, key  # Unused.
+        return [reward_model.bt_loss(trainer.reward_cfg)]
+
+    def train_state_reward(
+        self, trainer: Any, ts: Any, stored: reward_model.RewardState, keys: dict[str, jax.Array], kept: jax.Array
+    ) -> tuple[reward_model.RewardState, dict]:
+        """One session's reward training on a state task: up to ``reward.max_epochs`` epochs, stopped early.
+
+        Args:
+          trainer: the state trainer.
+          ts: the state before the session.
+          stored: the reward state with this session's labels.
+          keys: ``terms``, ``train`` and ``pool`` keys of the session.
+          kept: () the number of answers kept this session.
+        """
+        del kept  # Unused: the trainer keeps the old model when no answer was kept.
+        terms = self.state_terms(trainer, ts.replace(reward=stored), keys["terms"])
+        return reward_model.train(trainer.reward_cfg, stored, keys["train"], terms)
+
+    # -- pixel tasks ----------------------------------------------------------------------
+    def pixel_terms(self, trainer: Any, ts: Any, key: jax.Array, agent_step: jax.Array) -> tuple:
+        """Terms added to the Bradley-Terry loss on a pixel task (``pixel_reward.train`` writes that one)."""
+        del trainer, ts, key, agent_step  # Unused.
+        return ()
+
+    def train_pixel_reward(
+        self, trainer: Any, ts: Any, stored: Any, keys: dict[str, jax.Array], kept: jax.Array, agent_step: jax.Array
+    ) -> tuple[Any, dict]:
+        """One session's reward training on a pixel task: ``pixel_reward.max_epochs`` epochs, stopped early;
+        none without a kept answer (the members and their Adam state come back unchanged).
+
+        Args:
+          keys: ``train`` and ``value`` keys of the session.
+        """
+        rcfg = trainer.cfg.pixel_reward
+        terms = self.pixel_terms(trainer, ts.replace(reward=stored), keys["value"], agent_step)
+        epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
+        return pixel_reward.train(rcfg, stored, keys["train"], terms, max_epochs=epochs)
+
+    # -- hooks with no effect by default ----------------------------------------------------
+    def query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
+        """The session's query pairs on a state task (the configured sampling; uniform at the first session)."""
+        return trainer.select_queries(ts, key, first)
+
+    def sample_batch(self, trainer: Any, ts: Any, buffer: replay.Buffer, key: jax.Array) -> replay.Transition:
+        """The agent's minibatch on a state task: uniform over the replay, with the learned reward."""
+        del ts  # Unused.
+        return replay.sample(buffer, key, trainer.cfg.sac.batch_size, True)
+
+    def batch_reward(self, trainer: Any, ts: Any, batch: replay.Transition, t: jax.Array) -> replay.Transition:
+        """The minibatch's reward as the agent sees it (an intrinsic bonus goes here); unchanged by default.
+
+        Args:
+          t: the vector step of the run (unbatched), for a bonus that decays.
+        """
+        del trainer, ts, t  # Unused.
+        return batch
