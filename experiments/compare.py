@@ -16,7 +16,7 @@ A REBEL term other than the paper's (on-policy V, lower bound, raw) and a reward
 in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that variants never merge.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
 different lengths at equal steps).
-Run directories of the same method (e.g. seeds split over several GPU calls with different
+Run directories of the same method (e.g. seeds split over several programs with different
 ``--seed``) are merged; they must share task, algo, preset, labels, teacher, lambda, num_envs and utd (``SHARED``).
 Writes ``DIR/NAME.json`` (per method: final returns per seed, mean, std, IQM with its 95% percentile-bootstrap
 interval, mean curve, and the sample-efficiency ratio against ``--reference``: env steps the other method needs to
