@@ -1,4 +1,4 @@
-"""Where one seed's DrQ-v2 update spends its time: its parts timed alone (issue 12's throughput target).
+"""Where one seed's DrQ-v2 update spends its time: its parts timed alone (the pixel throughput target).
 
     python benchmarks/drqv2_parts.py --precision bf16        # 84x84, walker's batch 512 (n-step 1)
     python benchmarks/drqv2_parts.py --size 16 --batch-size 8 --repeats 2 --per-call 2   # a CPU check

@@ -1,4 +1,4 @@
-"""Where the device time of the seed-vmapped DrQ-v2 update goes, kernel by kernel, from a JAX profiler trace.
+"""Where the GPU time of the seed-vmapped DrQ-v2 update goes, kernel by kernel, from a JAX profiler trace.
 
     python benchmarks/drqv2_profile.py --precision bf16     # 84x84, 5 seeds looped, walker (batch 512, n-step 1)
     python benchmarks/drqv2_profile.py --size 16 --batch-size 8 --seeds 2 --repeats 2   # a CPU check

@@ -43,7 +43,7 @@ from rebel_jax.pixel_train import PixelTrainer
 
 GIB = 2**30
 GPU_BYTES = 78 * GIB
-"""What the lent H100 gives a process (about 78 GiB of its 80 GB)."""
+"""What an H100 gives a process (about 78 GiB of its 80 GB)."""
 
 # SURF's pixel protocol is the presets surf_pixels_walker / surf_pixels_cheetah (rebel_jax.config._surf_pixels);
 # the DrQ-v2 runs take 10 envs and rounds of 10,000 agent steps instead of its 4 envs and 1,000.

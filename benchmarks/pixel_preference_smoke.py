@@ -5,7 +5,7 @@ what it measured). A smoke test of the sizes and the speed, not a learning resul
 Jobs are :data:`pixel_memory.CONFIGS`' flags (5 seeds, 84x84, the real replay sizes: pixel PEBBLE's
 replay holds the whole 500k-step run, 51.7 GiB at 5 seeds) with rounds of ``--steps-per-round`` agent
 steps, so that a few rounds pass the 2,000 seed steps. Pixel PEBBLE's rounds at 1,000 steps: 0-1 seed
-steps, 2 the first session (with its 100 critic-reset updates), 3 on plain rounds with DrQ-v2's updates;
+steps, 2 the first feedback session (with its 100 critic-reset updates), 3 on plain rounds with DrQ-v2's updates;
 DrQ-v2's: 0-1 seed steps, 2 on updates. ``frames_per_s_per_seed`` counts environment frames (2 per agent
 step, action repeat 2) of one seed; ``phase`` says what a round did.
 

@@ -3,8 +3,8 @@ ensemble's training over ``--labels`` stored pairs with the Bradley-Terry term a
 REBEL's value term added (for a REBEL job), and the relabelling of the whole replay, each at every
 ``--pixel-reward.precision`` asked for.
 
-A session of the nineteenth session's cheetah run (PEBBLE and REBEL columns side by side, 4 columns, tf32) took
-55-150 s against 5.9 s for a plain round (BENCHMARKS.md, "Two pixel jobs on one machine"), so a session's cost
+A session of the first pixel cheetah run (PEBBLE and REBEL columns side by side, 4 columns, tf32) took
+55-150 s against 5.9 s for a plain round (BENCHMARKS.md, "Pixels"), so a session's cost
 decides how long a pixel preference run takes. A session trains up to ``pixel_reward.max_epochs`` epochs (it stops
 once the ensemble fits its labels), so its training costs about epochs x one epoch's seconds; in a ``--lam-grid``
 program every column computes REBEL's term (lambda 0 multiplies it), so PEBBLE's columns there cost REBEL's epoch.
@@ -20,7 +20,7 @@ With ``--columns C`` (default 4, 0 for none) it also times whole sessions (``Pix
 select, teach, train, relabel) vmapped over C columns as the trainer runs them, with ``pixel_reward.session_loop``
 on and off (``--session-loops``): batched, the members' convolutions are grouped over the columns. Each session
 trains ``max_epochs`` epochs (``--pixel-reward.stop-accuracy 1``: it never stops early; the row's ``epochs``), an
-upper bound on a session, whose epochs vary (3-19 in the nineteenth session's run).
+upper bound on a session, whose epochs vary (3-19 in that run).
 
 Rows go to ``benchmarks/results/pixel_session_parts.json`` (``--out``): per part and precision the compile seconds,
 the median seconds of ``--repeats`` calls after it, and the device's peak memory.

@@ -11,7 +11,7 @@ Rows (merged into ``benchmarks/results/render_throughput.json`` by default):
 - ``env_step``: one agent step of the pixel task (``<task>_pixels``: action repeat 2 of the
   state task's physics, then the render and the frame stack), timed as scans of 10 steps.
 - ``physics``: the same agent step without the camera (the state task stepped twice), the
-  baseline of the issue's "pixel env step <= 1.3 x physics" target.
+  baseline of the "pixel env step <= 1.3 x physics" target.
 
 ``render`` rows are taken at ``--batches``, ``env_step`` and ``physics`` rows at ``--step-batches``
 (each of those compiles the physics step again). The states are made once per task, at most

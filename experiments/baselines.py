@@ -1,4 +1,4 @@
-"""The faithful-baseline table (issue 9) from the runs' logs: ``results/baselines.json``.
+"""The faithful-baseline table (B-Pref's protocol) from the runs' logs: ``results/baselines.json``.
 
 Usage:
   python experiments/baselines.py     # writes results/baselines.json, results/baselines_<task>.png
@@ -6,7 +6,7 @@ Usage:
 
 Every setting in a row is read from that run's ``config.json`` and ``meta.json``; returns are read
 from its ``metrics.jsonl`` (per seed, the evaluation return logged at a step) or ``final.json``.
-A run that stopped before its ``total_steps`` (the device budget ran out) says so in ``complete``.
+A run that stopped before its ``total_steps`` (stopped early, e.g. by a time limit) says so in ``complete``.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ STEPS = (100_000, 190_000, 200_000, 270_000, 300_000, 330_000, 500_000, 750_000,
 
 # (log directory under results/runs, the columns of a grid run that are this method, published
 # mean at the run's total steps, rung name). Published: PEBBLE and SURF at 500k (walker) from the
-# SURF paper's table (REFERENCE.md section 2).
+# SURF paper's walker_walk table at 100 labels (Park et al., ICLR 2022).
 RUNS = [
     (
         "paper/rebel_walker_100_neg",
@@ -247,8 +247,8 @@ PUBLISHED = {  # task -> (name -> (published mean, its step))
     "walker_walk": {"PEBBLE": (453, 500_000), "PEBBLE+SURF": (661, 500_000)},
     "cheetah_run": {"PEBBLE": (546, 1_000_000), "PEBBLE+SURF": (557, 1_000_000)},
 }
-"""The published means at 100 labels (REFERENCE.md section 2): walker_walk at 500k from the SURF paper's
-table, cheetah_run at 1M (the issue's targets)."""
+"""The published means at 100 labels: walker_walk at 500k from the SURF paper's table (Park et al., ICLR 2022),
+cheetah_run at 1M (the re-run of the authors' code that RESULTS.md quotes)."""
 
 
 def figure(task: str, path: pathlib.Path) -> None:

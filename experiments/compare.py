@@ -2,7 +2,7 @@
 
 Usage:
   python experiments/compare.py RUN_DIR [RUN_DIR ...] --name NAME [--reference LABEL]
-      [--methods LABEL ...] [--max-steps N] [--out-dir DIR]
+      [--methods LABEL ...] [--max-steps N] [--threshold R] [--caveat TEXT] [--out-dir DIR]
 
 Each run directory (``python -m rebel_jax.train``) contributes one method per grid point: a
 REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is
@@ -16,7 +16,7 @@ A REBEL term other than the paper's (on-policy V, lower bound, raw) and a reward
 in brackets (``rebel lam=0.01 (replay V, sigmoid output)``), so that variants never merge.
 ``--methods`` keeps a subset in a given order; ``--max-steps`` cuts every curve (to compare runs of
 different lengths at equal steps).
-Run directories of the same method (e.g. seeds split over several GPU calls with different
+Run directories of the same method (e.g. seeds split over several programs with different
 ``--seed``) are merged; they must share task, algo, preset, labels, teacher, lambda, num_envs and utd (``SHARED``).
 Writes ``DIR/NAME.json`` (per method: final returns per seed, mean, std, IQM with its 95% percentile-bootstrap
 interval, mean curve, and the sample-efficiency ratio against ``--reference``: env steps the other method needs to
@@ -229,6 +229,7 @@ def main():
     p.add_argument("--methods", nargs="+", help="keep only these method labels, in this order (default: all)")
     p.add_argument("--max-steps", type=int, help="cut every curve at this many env steps")
     p.add_argument("--threshold", type=float, help="return for the sample-efficiency ratios (default: common)")
+    p.add_argument("--caveat", help="a warning stored with the numbers (e.g. a bug the runs had)")
     args = p.parse_args()
     curves, infos = gather(args.run_dirs, args.max_steps)
     if args.methods:
@@ -237,6 +238,8 @@ def main():
             raise SystemExit(f"error: --methods {missing} not among {list(curves)}")
         curves = {m: curves[m] for m in args.methods}
     result = compare(curves, args.reference, args.threshold)
+    if args.caveat:
+        result = {"caveat": args.caveat, **result}
     for label, entry in result["methods"].items():  # What the numbers are (not gather's bookkeeping).
         entry.update({k: v for k, v in infos[label].items() if k != "run_dirs"})
     args.out_dir.mkdir(parents=True, exist_ok=True)

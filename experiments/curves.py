@@ -1,7 +1,7 @@
 """Learning curves and JSON summaries from finished runs (``python -m rebel_jax.train``).
 
 Usage:
-  python experiments/curves.py RUN_DIR [RUN_DIR ...] [--labels A B ...] --name NAME [--out-dir DIR]
+  python experiments/curves.py RUN_DIR [RUN_DIR ...] [--labels A B ...] --name NAME [--caveat TEXT] [--out-dir DIR]
 
 Writes ``DIR/NAME.json`` (``analysis.summary`` of each run: task, algo, preset, seeds,
 env_steps, final_returns = per seed the mean of the last 10 evaluations, mean, std, iqm,
@@ -30,10 +30,13 @@ def main():
     p.add_argument("--labels", nargs="*")
     p.add_argument("--name", required=True)
     p.add_argument("--out-dir", type=pathlib.Path, default=RESULTS)
+    p.add_argument("--caveat", help="a warning stored with the numbers (e.g. a bug the runs had)")
     args = p.parse_args()
     labels = args.labels or [d.name for d in args.run_dirs]
     summaries = [summary(d) for d in args.run_dirs]
     out = summaries[0] if len(summaries) == 1 else {"runs": dict(zip(labels, summaries, strict=True))}
+    if args.caveat:
+        out = {"caveat": args.caveat, **out}
     args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / f"{args.name}.json").write_text(json.dumps(out, indent=1, allow_nan=False))
     fig, ax = plt.subplots(figsize=(6, 4))

@@ -1,19 +1,19 @@
-"""``results/pixels.json``: the pixel runs of issue 12 (DrQ-v2, and PEBBLE, SURF and REBEL on pixels).
+"""``results/pixels.json``: the pixel runs (DrQ-v2, and PEBBLE, SURF and REBEL on pixels).
 
 Usage:
   python experiments/pixels.py
 
 One row per (task, method, run length) of the run directories in ``RUNS``, split into methods and merged over
-directories by ``compare.gather`` (the ``drqv2_seed`` set of ``experiments/baselines_h100.sh`` runs one
-seed per job, so a method's seeds come from several directories). ``frames`` are the agent steps of the
+directories by ``compare.gather`` (the DrQ-v2 walker runs are one seed per program, so a method's seeds come
+from several directories). ``frames`` are the agent steps of the
 log times the task's action repeat (``PixelEnv.action_repeat``, 2): DrQ-v2 and SURF's pixel branch count
-frames. Per row, as issue 12's schema: ``labels`` (those the seeds got, read from the logs' ``labels_used``; the
+frames. Per row: ``labels`` (those the seeds got, read from the logs' ``labels_used``; the
 budget asked is ``labels_asked``), ``final_returns`` (per seed the mean of its last 10 evaluations,
 ``analysis.final_returns``), ``mean``, ``std``, ``iqm`` with ``iqm_ci`` (95% percentile bootstrap over
 seeds), ``device``, ``date``, ``command`` and ``log``; for a preference method also ``reward_accuracy_new`` and
 ``reward_correlation``, per seed the mean over its sessions (``REWARD_METRICS``). Also writes
 ``results/pixels_<task>.png``: each method's mean +- std evaluation return against frames. ``stopped`` lists the
-runs the device budget stopped, ``matched`` the preference methods at the agent steps all of their runs reached
+runs stopped early, ``matched`` the preference methods at the agent steps all of their runs reached
 (``MATCHED``), drawn in ``results/pixels_<task>_matched.png``; ``coupling`` whether a key's return difference between
 two methods follows its learned reward's (:func:`coupling`); ``pooled`` a comparison over both tasks at once, in
 units of each task's DrQ-v2 score (:func:`pooled`); ``results/pixels_paper.png`` draws the paper's pixel
@@ -84,7 +84,7 @@ STOPPED: dict[str, list[str]] = {
         "pixels/drqv2_walker_500kframes_seed1_seeds2_bf16_stopped245k",
     ],
 }
-"""Pixel runs that the device budget stopped early: drawn in the task's figure and listed with every
+"""Pixel runs stopped early: drawn in the task's figure and listed with every
 evaluation under ``pixels.json``'s ``stopped``, but not rows (their last 10 evaluations are not a final score)."""
 MATCHED: dict[str, tuple[int, list[str]]] = {
     "cheetah_run_pixels": (80_000, [*STOPPED["cheetah_run_pixels"], *CHEETAH_PREFERENCE]),
@@ -114,7 +114,7 @@ POOLED: dict[str, dict[str, tuple[str, str]]] = {
 ``pixels.json``'s ``pooled``."""
 REFERENCE = {"cheetah_run_pixels": "drqv2", "walker_walk_pixels": "drqv2 (float32 critic output)"}
 """Pixel task -> the row whose mean scales its differences in :func:`pooled`: DrQ-v2 on the true reward, 5 seeds
-at 500k frames (the float32 critic output on walker, the arm that met the issue's target)."""
+at 500k frames (the float32 critic output on walker, the arm that met the target of 700)."""
 
 
 def action_repeat(task: str) -> int:
@@ -154,11 +154,11 @@ def labels_used(run_dirs: list[pathlib.Path], label: str, max_steps: int) -> lis
     """Per seed of method ``label`` (in ``gather``'s order), the labels it had used at its run's last round up to
     ``max_steps`` agent steps that logs ``labels_used``: what it got, which may fall short of ``--labels`` (SURF's
     walker schedule asks 170 of 200 in 500k frames, notes/surf_pixel_audit.md, decision 3). A run that stopped
-    before its first session logged none: its seeds are left out."""
+    before its first feedback session logged none: its seeds are left out."""
     out = []
     for run_dir, columns in _columns(run_dirs, label):
         logged = [r for r in records(run_dir) if r.get("labels_used") is not None and r["env_steps"] <= max_steps]
-        if logged:  # none: stopped before its first session
+        if logged:  # none: stopped before its first feedback session
             out += [int(logged[-1]["labels_used"][c]) for c in columns]
     return out
 
@@ -254,7 +254,7 @@ def pooled(pairs: list[dict], table: list[dict]) -> list[dict]:
     at the longest frames, each key's difference divided by the mean of the task's reference row
     (:data:`REFERENCE`, DrQ-v2 on the true reward at 500k frames), the tasks' keys together (:func:`differences`,
     in units of that mean). ``tasks`` says which entry and reference each task gave. No entry where fewer than two
-    tasks have one. Chosen after the per-task entries were seen (twenty-eighth session), to read both panels at
+    tasks have one. Chosen after the per-task entries were seen, to read both panels at
     once with more keys than either; RESULTS.md says so."""
     out = []
     for name, by_task in POOLED.items():

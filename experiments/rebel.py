@@ -1,4 +1,4 @@
-"""``results/rebel.json``: REBEL against SAC, PEBBLE and PEBBLE+SURF on the faithful baselines (issue 10).
+"""``results/rebel.json``: REBEL against SAC, PEBBLE and PEBBLE+SURF on B-Pref's protocol.
 
 Usage:
   python experiments/rebel.py
@@ -29,7 +29,7 @@ Also writes ``results/rebel_<task>.png``, one figure per task: each method's mea
 ``results/rebel_teachers_walker_walk.png``: PEBBLE's and REBEL's (at the chosen lambda) IQM per B-Pref teacher.
 The task figures draw the oracle teacher's methods only.
 
-``STOPPED`` lists REBEL runs that the device budget stopped early; they are not rows. For them and for
+``STOPPED`` lists REBEL runs stopped early (at 140k steps); they are not rows. For them and for
 every run above that logs them, ``rebel.json``'s ``on_policy_reward`` gives, per method, the learned
 reward on the policy's own training transitions (``train.ROUND_REWARD_METRICS``), averaged over the
 rounds from ``ON_POLICY_FROM`` steps and over seeds: its mean, the share of steps where it is
@@ -101,7 +101,7 @@ RUNS = {  # task -> run directories under results/runs (REBEL's runs join them a
         "rebel/rebel_cheetah_100_1m_lam0.001_bf16",
     ],
 }
-STOPPED = {  # task -> REBEL runs stopped early by the device budget (not rows; see the module docstring)
+STOPPED = {  # task -> REBEL runs stopped early (not rows; see the module docstring)
     "walker_walk": [
         "rebel/rebel_walker_100_lams_0.1_-0.1_bf16_stopped140k",
         "rebel/rebel_walker_100_lams_0.01_-0.01_bf16_stopped140k",
@@ -116,7 +116,7 @@ SIGMOID_VARIANT = "lower_bound, raw, sigmoid output"
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
 SURF = {"walker_walk": "surf", "cheetah_run": "surf (reward_update 100)"}
-"""Per task the method label of the PEBBLE+SURF run that met its published figure (issue 9), the reference of
+"""Per task the method label of the PEBBLE+SURF run that met its published figure, the reference of
 ``efficiency_vs_surf`` (the paper's claim names both baselines): on cheetah_run ``reward_update`` 100."""
 
 

@@ -41,8 +41,8 @@ RUNS: list[str] = [
     "pixels/drqv2_walker_120kframes_seed10_seeds8_bf16",
     "pixels/drqv2_walker_120kframes_seed10_seeds8_bf16_qf32",
 ]
-"""The take-off runs' directories under ``results/runs`` (``drqv2_seed`` with ``STEPS=60000``, both arms on one
-machine of two H200s, one GPU each, the same seed keys)."""
+"""The take-off runs' directories under ``results/runs`` (8 seeds to 120k frames per arm, the same seed keys;
+experiments/README.md gives the command)."""
 THRESHOLD = 100.0
 """Return above which a seed has left the plateau (a lying walker gets 16-40 per 1,000-frame episode)."""
 FROM_FRAMES = 100_000
@@ -174,7 +174,7 @@ def full_length(run_dirs: list[pathlib.Path], reference: dict[str, tuple[np.ndar
 
 def main() -> None:
     if not RUNS:
-        print("no take-off runs listed in RUNS yet (experiments/baselines_h100.sh, drqv2_seed with STEPS=60000)")
+        print("no take-off runs listed in RUNS yet (experiments/README.md: the take-off test)")
         return
     curves, logs = arm_curves([RESULTS / "runs" / d for d in RUNS])
     reference = {DRQV2: (DRQV2_FRAMES, DRQV2_RETURNS)}

@@ -388,20 +388,6 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
         np.testing.assert_allclose(jax.jit(trainer.evaluate)(params, key), final[column], rtol=1e-4, atol=1e-4)
 
 
-def test_gpu_batch_resumes_a_job_killed_before_its_first_checkpoint(tmp_path):
-    # A new run refuses a directory holding a run: gpu_batch must pass --resume (which restarts it).
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import gpu_batch
-
-    run_dir = tmp_path / "job"
-    run_dir.mkdir()
-    (run_dir / "stdout.log").write_text("a caller's log is not a run\n")
-    assert gpu_batch._state(run_dir) == "new"
-    (run_dir / "config.json").write_text("{}")
-    assert gpu_batch._state(run_dir) == "resume"
-    assert gpu_batch._command({"args": []}, run_dir, 10.0, "resume")[-1] == "--resume"
-
-
 def test_a_checkpoint_slower_than_its_round_is_noted_once_with_a_larger_interval(whole, tmp_path, monkeypatch, capsys):
     from rebel_jax.checkpoint import Checkpointer
 
