@@ -73,7 +73,7 @@ def test_every_task_is_registered_with_brax_without_a_time_limit():
     assert isinstance(point, PointProbe) and isinstance(point, brax.envs.Env) and point.episode_length is None
 
 
-def test_brax_episode_and_vmap_wrappers_equal_our_time_limit_stepped_in_a_loop():
+def test_brax_episode_and_vmap_wrappers_equal_our_episode_end_stepped_one_by_one():
     """``brax.envs.create`` (EpisodeWrapper inside VmapWrapper) on the registered probe, past the time limit."""
     key, actions = jax.random.PRNGKey(0), _actions(L + 2, 2)
     wrapped = brax.envs.create("rebel_probe_point", episode_length=L, auto_reset=False, batch_size=B)

@@ -311,7 +311,7 @@ def test_a_run_killed_anywhere_resumes_to_the_same_result(whole, tmp_path, capsy
     _same_checkpoint(whole, run_dir)
 
 
-def test_time_limit_stops_after_a_round_with_its_checkpoint_and_resume_finishes_the_same_run(whole, tmp_path, capsys):
+def test_time_limit_ends_after_a_round_with_its_checkpoint_and_resume_finishes_the_same_run(whole, tmp_path, capsys):
     run_dir = tmp_path / "timed"
     _main(run_dir, "--time-limit", "1e-9")
     out = capsys.readouterr().out.splitlines()
@@ -372,7 +372,7 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
     # Its checkpoint holds the frame replay, the reward ensemble and the label store's segment copies (4 labels).
     flags, whole, extended = [*PIXEL, *algo], tmp_path / "whole", tmp_path / "extended"
     cli.main([*flags, "--run-dir", str(whole)])
-    cli.main([*flags, "--run-dir", str(extended), "--total-steps", "40"])  # rounds 0 and 1: the first session
+    cli.main([*flags, "--run-dir", str(extended), "--total-steps", "40"])  # rounds 0 and 1: the first feedback session
     assert _steps_on_disk(extended) == [1, 2]
     assert [row["labels_used"] for row in _metrics(extended)] == [[0.0, 0.0], [4.0, 4.0]]
     cli.main([*flags, "--run-dir", str(extended), "--resume"])  # round 2, after the checkpoint of round 1

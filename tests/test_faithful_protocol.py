@@ -1,4 +1,4 @@
-"""B-Pref's and SURF's protocol (issue 9): the reward init, query segments from complete episodes,
+"""B-Pref's and SURF's protocol: the reward init, query segments from complete episodes,
 SURF's step count and growing pool, the reset update and frozen-policy evaluation."""
 
 from __future__ import annotations
@@ -227,7 +227,7 @@ def test_evaluation_envs_follow_the_actor_frozen_at_the_episode_start(micro):
     )
 
 
-# -- REBEL's on-policy V (issue 10) ---------------------------------------------------------------
+# -- REBEL's on-policy V ---------------------------------------------------------------
 
 
 @pytest.mark.parametrize("size", [(0, 0), pytest.param((1, 5), marks=pytest.mark.heavy)])  # (1, 5): make test-heavy

@@ -195,7 +195,7 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
             assert np.all(np.isfinite(m[key])), key
         np.testing.assert_array_equal(m["diverged"], 0.0)
     # The reward learned from the oracle's labels follows the true one over the replay, in every seed (0.30 and
-    # 0.46 after the third session on this CPU; a flipped label convention would make it negative).
+    # 0.46 after the third feedback session on this CPU; a flipped label convention would make it negative).
     assert np.all(metrics[-1]["reward_correlation"] > 0.1), metrics[-1]["reward_correlation"]
     before, after = jax.tree.leaves(start.reward.params), jax.tree.leaves(state.reward.params)
     assert all(not np.allclose(a, b) for a, b in zip(before, after, strict=True))

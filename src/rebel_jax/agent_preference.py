@@ -13,7 +13,7 @@ is computed on (``rebel.source``) is the trainer's choice; this module takes the
 
 References:
   REBEL: Reward Regularization-Based Approach for Robotic Reinforcement Learning from Human
-  Feedback (AAAI 2025); REFERENCE.md section 1.
+  Feedback (AAAI 2025).
 """
 
 from __future__ import annotations

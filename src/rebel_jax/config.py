@@ -186,7 +186,7 @@ class TrainConfig:
 class FeedbackConfig:
     """When the teacher is asked, and how much (B-Pref's schedule).
 
-    The first session comes at env step ``train.seed_steps + pretrain.steps`` (the end of
+    The first feedback session comes at env step ``train.seed_steps + pretrain.steps`` (the end of
     unsupervised pre-training, as B-Pref), then one every ``interval`` steps while the budget
     lasts; ``budget`` says what it counts.
     """
@@ -292,17 +292,17 @@ class Config:
         """Env step of the first feedback session (= end of pre-training).
 
         Pixel tasks have no unsupervised phase: SURF's pixel runs set ``num_unsup_frames=0`` (alinlab/SURF
-        branch ``pixel``, README.md:22, :32), so their first session comes after the seed steps."""
+        branch ``pixel``, README.md:22, :32), so their first feedback session comes after the seed steps."""
         return self.train.seed_steps + (0 if self.pixels else self.pretrain.steps)
 
     def check_complete_episode(self, setting: str, what: str, alternative: str) -> None:
-        """``setting`` draws ``what`` from complete episodes: the first session must find one."""
+        """``setting`` draws ``what`` from complete episodes: the first feedback session must find one."""
         most = self.feedback_start // self.env.episode_length
         _check(
             self.env.num_envs <= most,
             "env.num_envs",
             self.env.num_envs,
-            f"<= {most} with {setting}: {what} come from complete episodes, and the first session "
+            f"<= {most} with {setting}: {what} come from complete episodes, and the first feedback session "
             f"(env step {self.feedback_start}) must find one (or use {alternative})",
         )
 
@@ -431,7 +431,7 @@ def _surf_pixels(task: str) -> Config:
     - SURF (same commands): threshold_u 0.99, mu 1, reward_update 20, pool 5 x the session's queries
       (inv_label_ratio 5); walker time crop 2 and lambda_u 0.1, cheetah crop 5 and lambda_u left at 1
       (cfgs/config_pebble_semi.yaml:66-67).
-    - 4 envs and rounds of 1,000 agent steps: the first session (after the 2,000 seed steps) needs a complete
+    - 4 envs and rounds of 1,000 agent steps: the first feedback session (after the 2,000 seed steps) needs a complete
       500-step episode in each env, and 1,000 divides the seed steps and both session intervals. DrQ-v2 alone
       needs no such episode; its runs so far used 10 envs (``--num-envs 10``).
     """
@@ -457,7 +457,7 @@ PRESETS: dict[str, Config] = {
     "surf_pixels_walker": _surf_pixels("walker_walk"),
     "surf_pixels_cheetah": _surf_pixels("cheetah_run"),
 }
-"""``paper``: B-Pref's walker_walk settings (REFERENCE.md section 2), with its disagreement query
+"""``paper``: B-Pref's walker_walk settings (rll-research/BPref@f3ece2e), with its disagreement query
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
 ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small preference-learning run that learns on a

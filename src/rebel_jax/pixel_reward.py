@@ -106,8 +106,8 @@ class PixelRewardConfig:
     (``feature_group_count`` = columns), as DrQ-v2's update did under the seed ``vmap`` (``drqv2.seed_loop``: 6.8x
     slower batched in tf32 on one H100, BENCHMARKS.md); looped, each is a plain one, and the working memory holds
     one column's copy of its state (``sequential_vmap``, used before, held every column's). Rounds with a session
-    of the 4-column PEBBLE + REBEL cheetah program took 55-150 s batched (nineteenth session) and 10-24 s looped
-    (twenty-first, BENCHMARKS.md)."""
+    of the 4-column PEBBLE + REBEL cheetah program took 55-150 s batched and 10-24 s looped
+    (one H100, BENCHMARKS.md)."""
 
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "chunk", "relabel_rows"):
@@ -438,7 +438,7 @@ def select(
 ) -> tuple[SegmentPlaces, SegmentPlaces]:
     """The session's pairs: uniform, or the ``num_queries`` of ``candidate_factor x num_queries`` uniform
     candidates whose members' preference probabilities disagree most (B-Pref's, SURF's ``disagreement_sampling``,
-    pixel_reward_model.py:740-757). The first session is uniform (pixel_train_PEBBLE.py:245-246): the
+    pixel_reward_model.py:740-757). The first feedback session is uniform (pixel_train_PEBBLE.py:245-246): the
     first ``num_queries`` candidates, themselves a uniform draw.
 
     Only indices are drawn; a candidate's frames are gathered when it is scored, ``cfg.chunk`` pairs at a time.

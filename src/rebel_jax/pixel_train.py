@@ -33,7 +33,7 @@ branch ``pixel``):
   as SURF's episodes keep ``true_reward``, :513) for the teacher; DrQ-v2's n-step returns read the
   learned one. Relabelling once per session, not at sampling, fits the frame replay: a sample would
   otherwise run the 3 encoders on every one of its ``batch_size x 2`` stacks at every update;
-- at the first session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
+- at the first feedback session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
   follow (``agent.reset_critic()``, ``update_after_reset(gradient_update=reset_update)``, :413-420);
 - the label store keeps copies of its segments (:class:`rebel_jax.pixel_reward.PixelLabels`: the
   ``H + stack - 1`` frames of an ``H``-step segment, each once as uint8, and its actions), taken from the
@@ -173,7 +173,7 @@ class PixelTrainer:
                 raise ValueError(
                     f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
                     f"rebel.segment_length, rebel.horizon) <= {self.episode_length} agent steps per "
-                    f"episode, a complete episode before the first session (train.seed_steps / num_envs = "
+                    f"episode, a complete episode before the first feedback session (train.seed_steps / num_envs = "
                     f"{cfg.feedback_start // self.num_train} vector steps) and one in the replay at any step "
                     f"(2 x {self.episode_length} - 1 rows; train.buffer_capacity {self.capacity} / num_envs = "
                     f"{self.capacity // self.num_train} rows)"
@@ -312,7 +312,7 @@ class PixelTrainer:
         return session_due(self.cfg, round_index)
 
     def select(self, ts: PixelTrainState, key: jax.Array, first: jax.Array):
-        """The session's query pairs as segment places (uniform at the first session)."""
+        """The session's query pairs as segment places (uniform at the first feedback session)."""
         cfg = self.cfg
         return pixel_reward.select(
             cfg.pixel_reward,
@@ -355,7 +355,7 @@ class PixelTrainer:
         return seg.replace(row=seg.row + self.crop)
 
     def learn(self, ts: PixelTrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, agent_step):
-        """Stores the answers, trains the ensemble, relabels the replay; resets the critic at the first session."""
+        """Stores the answers, trains the ensemble, relabels the replay; new critic at the first feedback session."""
         key_train, key_critic, key_value = jax.random.split(key, 3)
         rcfg, h = self.cfg.pixel_reward, self.horizon
         both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))

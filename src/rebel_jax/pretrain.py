@@ -1,4 +1,4 @@
-"""Unsupervised pre-training reward: state entropy by k-nearest neighbours (PEBBLE, REFERENCE.md section 2).
+"""Unsupervised pre-training reward: state entropy by k-nearest neighbours (PEBBLE; rll-research/BPref@f3ece2e).
 
 During pre-training the critic target uses an intrinsic reward instead of the task reward:
 for every observation of the SAC batch, its distance to its k-th nearest neighbour among the

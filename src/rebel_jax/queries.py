@@ -1,4 +1,4 @@
-"""Segment sampling and query selection (PEBBLE / B-Pref, REFERENCE.md section 2).
+"""Segment sampling and query selection (PEBBLE / B-Pref, rll-research/BPref@f3ece2e).
 
 The replay buffer is time-major: every field is shaped (T, E, ...) with E environments per
 seed, rows are written in a ring at ``ptr`` and ``size`` rows are filled. Any object with the
@@ -206,7 +206,7 @@ def sample_episode_segments(
     uniformly with replacement, then a start uniform in ``[0, L - H)`` for an episode of L steps
     (B-Pref: ``np.random.choice(len_traj - size_segment)``, so the last step is never shown).
     Episodes shorter than H are skipped. Before any episode is complete the segments are
-    arbitrary rows; ``Config.validate`` makes the first session come after the first episodes.
+    arbitrary rows; ``Config.validate`` makes the first feedback session come after the first episodes.
 
     Args:
       buffer: the replay buffer (see the module docstring).
@@ -317,7 +317,7 @@ def select_queries(
     ``uniform`` draws ``num_queries`` pairs with ``sample_pairs(buffer, key, num_queries, ...)``.
     ``disagreement`` / ``entropy`` draw ``C = candidate_factor * num_queries`` candidates with
     ``sample_pairs(buffer, key, C, ...)`` and keep the ``num_queries`` with the highest score
-    (ties to the earlier candidate). The first session is uniform: the first ``num_queries``
+    (ties to the earlier candidate). The first feedback session is uniform: the first ``num_queries``
     candidates, which are themselves a uniform sample. ``first_session`` may be a Python bool
     (static) or a traced bool (both scores are computed and one is selected).
 

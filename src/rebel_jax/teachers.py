@@ -1,7 +1,7 @@
 """Scripted preference teachers (B-Pref, Lee et al. 2021).
 
 A teacher compares the true returns of two segments and answers which one it prefers.
-B-Pref's simulated teachers are one rule with five knobs (REFERENCE.md section 3), applied
+B-Pref's simulated teachers are one rule with five knobs (rll-research/BPref@f3ece2e), applied
 in this order to each pair ``(seg_a, seg_b)``:
 
 1. **skip**: the pair is dropped (``mask = 0``) if ``max(R_a, R_b) <= margin * eps_skip``.
@@ -70,7 +70,7 @@ PRESETS: dict[str, TeacherConfig] = {
     "equal": TeacherConfig(eps_equal=0.1),
     "myopic": TeacherConfig(gamma=0.9),
 }
-"""B-Pref's six teachers (REFERENCE.md section 3); combinations are plain ``TeacherConfig``s."""
+"""B-Pref's six teachers (rll-research/BPref@f3ece2e); combinations are plain ``TeacherConfig``s."""
 
 
 def knobs(cfg: TeacherConfig) -> dict[str, jax.Array]:

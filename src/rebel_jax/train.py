@@ -18,7 +18,7 @@ reward (:mod:`rebel_jax.pretrain`), and a round that starts on the feedback sche
 runs a *feedback session*: :meth:`Trainer.select` picks query pairs, :meth:`Trainer.teach`
 labels them with the scripted teacher (the only place that reads the true reward), and
 :meth:`Trainer.learn` stores the labels, trains the reward ensemble with the algorithm's
-loss terms, relabels the whole buffer and, at the first session, re-initialises the critic.
+loss terms, relabels the whole buffer and, at the first feedback session, re-initialises the critic.
 The three are separate pure functions, so a human can answer the queries between rounds.
 The session is a ``lax.cond`` on the (unbatched) round index, so rounds without one skip it.
 A trainer built with ``host_teacher=True`` (the human and replay teachers, :mod:`rebel_jax.human`)
@@ -378,7 +378,7 @@ class Trainer:
         return self.method.query_segments(self, ts, key, first)
 
     def select_queries(self, ts: TrainState, key: jax.Array, first: bool | jax.Array) -> tuple[Segments, Segments]:
-        """The session's query pairs by ``query.sampling`` (uniform at the first session), of the stored length.
+        """The session's query pairs by ``query.sampling`` (uniform at the first feedback session), stored length.
 
         Disagreement and entropy are scored on the whole stored segments, as SURF scores its
         ``H + 2 * crop`` segments (``get_rank_probability`` on ``sa_t_1``, ``sa_t_2``).
@@ -414,7 +414,7 @@ class Trainer:
         mask: jax.Array,
         first: bool | jax.Array,
     ) -> tuple[TrainState, dict]:
-        """Stores the answers, trains the ensemble, relabels the buffer; resets the critic at the first session.
+        """Stores the answers, trains the ensemble, relabels the buffer; a fresh critic at the first feedback session.
 
         A seed whose answers are all masked (budget spent, or all skipped) keeps its reward model.
         """

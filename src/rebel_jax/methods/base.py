@@ -117,7 +117,7 @@ class Method:
 
     # -- hooks with no effect by default ----------------------------------------------------
     def query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
-        """The session's query pairs on a state task (the configured sampling; uniform at the first session)."""
+        """The session's query pairs on a state task (by ``query.sampling``; uniform at the first feedback session)."""
         return trainer.select_queries(ts, key, first)
 
     def sample_batch(self, trainer: Any, ts: Any, buffer: replay.Buffer, key: jax.Array) -> replay.Transition:
