@@ -58,7 +58,7 @@ import numpy as np
 import tyro
 from jax.sharding import NamedSharding
 
-from rebel_jax import plots, rundir, sweep, teachers, video
+from rebel_jax import api, plots, rundir, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
@@ -201,6 +201,11 @@ def runs_on_cpu(environ=os.environ) -> bool:
     return not _accelerator_plugins()
 
 
+def swept_knob(cfg) -> bool:
+    """Whether the run's method has a traced knob (REBEL's lambda), which ``--lam-grid`` sweeps as columns."""
+    return cfg.method is not None and cfg.method.knob(cfg) is not None
+
+
 def avoid_cpu_deadlock(environ=os.environ) -> None:
     """Adds :data:`NO_CPU_DEADLOCK` to ``XLA_FLAGS`` on CPU (unless the scheduler flag is set already).
 
@@ -253,7 +258,7 @@ def _run_fields(args: Args) -> dict:
     """What fixes a run besides its config: the columns (as meta.json records them)."""
     return {
         "seeds": args.seeds,
-        "lams": [lam for lam, _ in args.grid()] if args.config.algo == "rebel" else None,
+        "lams": [lam for lam, _ in args.grid()] if swept_knob(args.config) else None,
         "teachers": [t for _, t in args.grid()] if args.teacher_grid else None,
     }
 
@@ -602,7 +607,7 @@ def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSh
     cfg = args.config
     state = init(keys)
     grid = args.grid()
-    if cfg.algo == "rebel":
+    if swept_knob(cfg):
         state = state.replace(lam=jnp.asarray([lam for lam, _ in grid], jnp.float32))
     if args.teacher_grid:
         knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
@@ -631,10 +636,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     primary = sweep.is_primary()
     if resuming is None:
         resuming = args.resume and (run_dir / "config.json").exists()
-    if cfg.pixels:  # DrQ-v2, or the preference methods on it
-        trainer = PixelTrainer(cfg)
-    else:
-        trainer = Trainer(cfg, host_teacher=bool(args.host_teacher))
+    trainer = api.make_trainer(cfg, host_teacher=bool(args.host_teacher))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
     sharding = sweep.seed_sharding(args.columns)
@@ -751,7 +753,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     for i in range(0, args.columns, args.seeds):
         part = final[i : i + args.seeds]
         lam, teacher = grid[i]
-        which = ([f"lambda {lam:g}"] if cfg.algo == "rebel" else []) + ([f"teacher {teacher}"] if teacher else [])
+        which = ([f"lambda {lam:g}"] if swept_knob(cfg) else []) + ([f"teacher {teacher}"] if teacher else [])
         which = f" ({', '.join(which)})" if which else ""
         print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f} +- {part.std():.1f}")
     if ever_diverged.any():
@@ -787,7 +789,7 @@ def _check_args(args: Args, preset: Config) -> None:
             )
     if not (math.isfinite(args.time_limit) and args.time_limit >= 0):
         raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed a finite number >= 0")
-    if args.lam_grid and cfg.algo != "rebel":
+    if args.lam_grid and not swept_knob(cfg):
         raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
     if not all(math.isfinite(lam) for lam in args.lam_grid):
         raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed finite numbers")

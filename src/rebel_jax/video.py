@@ -75,17 +75,17 @@ def load_policy(run_dir: pathlib.Path, column: int = 0):
 
     Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run).
     """
+    from rebel_jax import api
     from rebel_jax.checkpoint import Checkpointer
     from rebel_jax.config import read_config
-    from rebel_jax.pixel_train import PixelTrainer
-    from rebel_jax.train import Trainer, seed_keys
+    from rebel_jax.train import seed_keys
 
     cfg = read_config(run_dir / "config.json")
     meta = json.loads((run_dir / "meta.json").read_text())
     columns = int(meta["columns"])
     if not 0 <= column < columns:
         raise ValueError(f"column {column} out of range: the run has {columns} columns")
-    trainer = PixelTrainer(cfg) if cfg.pixels else Trainer(cfg)
+    trainer = api.make_trainer(cfg)
     keys = seed_keys(cfg.train.seed, columns)
     like = jax.eval_shape(jax.vmap(trainer.init), keys)
     ckpt = Checkpointer(run_dir / "checkpoints")

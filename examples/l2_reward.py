@@ -1,0 +1,64 @@
+"""A new preference method in one file: PEBBLE with an L2 penalty on the learned reward.
+
+The penalty ``weight * mean(r(s, a)^2)`` over the steps of each minibatch's labelled segments, summed over
+the ensemble's members, is added to the Bradley-Terry loss. It keeps the learned reward small, away from the
+bounds of its ``tanh`` output, where it has no room left to rank a good behaviour above a better one.
+
+Use it from Python (``docs/adding_a_method.md`` walks through this file)::
+
+    import dataclasses
+    from rebel_jax import api, config, methods
+    from l2_reward import L2Reward
+
+    methods.register(L2Reward(weight=0.1))
+    cfg = dataclasses.replace(config.PRESETS["tiny"], algo="l2_reward")
+    trainer = api.make_trainer(cfg)
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from rebel_jax import reward_model
+from rebel_jax.methods import Method
+
+
+def l2_penalty(weight: float, rewards_a: jax.Array, rewards_b: jax.Array, mask: jax.Array) -> jax.Array:
+    """``weight`` times the sum over members of the mean squared reward of the minibatch's real pairs.
+
+    Args:
+      rewards_a, rewards_b: (M, B, H) each member's per-step rewards of the pairs' two segments.
+      mask: (M, B) 1 for a real pair, 0 for padding.
+    """
+    squares = jnp.mean(rewards_a**2 + rewards_b**2, axis=-1) / 2 * mask  # (M, B)
+    return weight * jnp.sum(jnp.sum(squares, axis=1) / jnp.maximum(jnp.sum(mask, axis=1), 1.0))
+
+
+class L2Reward(Method):
+    """PEBBLE plus :func:`l2_penalty` on state and pixel tasks alike."""
+
+    name = "l2_reward"
+
+    def __init__(self, weight: float = 0.1):
+        self.weight = weight
+
+    def state_terms(self, trainer, ts, key):
+        net = reward_model.network(trainer.reward_cfg)
+
+        def term(params, batch: reward_model.PrefBatch, key):
+            del key  # Unused.
+            rewards_a = jax.vmap(net.apply)(params, batch.obs_a, batch.act_a)  # each member its own pairs
+            rewards_b = jax.vmap(net.apply)(params, batch.obs_b, batch.act_b)
+            loss = l2_penalty(self.weight, rewards_a, rewards_b, batch.weight)
+            return loss, {"l2_penalty": loss}
+
+        return [*super().state_terms(trainer, ts, key), term]
+
+    def pixel_terms(self, trainer, ts, key, agent_step):
+        def term(params, bt: dict, key):
+            del params, key  # Unused: the Bradley-Terry term computed the rewards already.
+            loss = l2_penalty(self.weight, bt["rewards_a"], bt["rewards_b"], bt["weight"])
+            return loss, {"l2_penalty": loss}
+
+        return (*super().pixel_terms(trainer, ts, key, agent_step), term)

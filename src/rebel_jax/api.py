@@ -1,0 +1,48 @@
+"""The Python API: a whole run as one jittable, vmappable function of a PRNG key.
+
+``make_train(cfg)`` returns ``train(key) -> (state, metrics)``: one seed's run, its rounds a ``lax.scan``
+whose round index stays unbatched under ``jax.vmap``, so that ``jax.jit(jax.vmap(make_train(cfg)))(keys)``
+runs many seeds in one program (PureJaxRL's, luchris429/purejaxrl@146b485:purejaxrl/ppo.py:62).
+``metrics`` stacks each round's metrics on a leading round axis. Scripted teachers only: a person labels
+between rounds, which the command line's host loop does (``python -m rebel_jax.train --teacher human``).
+
+``make_trainer(cfg)`` gives the trainer of the config's observation kind, whose ``init``, ``round`` and
+``evaluate`` the command line drives one round at a time (with checkpoints, logs and progress between rounds).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from rebel_jax.config import Config
+from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.train import Trainer
+
+
+def make_trainer(cfg: Config, host_teacher: bool = False) -> Trainer | PixelTrainer:
+    """The trainer of ``cfg``: :class:`~rebel_jax.pixel_train.PixelTrainer` on a pixel task, else
+    :class:`~rebel_jax.train.Trainer` (``host_teacher``: the sessions run on the host, state tasks only)."""
+    return PixelTrainer(cfg) if cfg.pixels else Trainer(cfg, host_teacher=host_teacher)
+
+
+def make_train(cfg: Config) -> Callable[[jax.Array], tuple]:
+    """``train(key) -> (state, metrics)``: the run of ``cfg`` for one seed, every round, as a pure function.
+
+    Example::
+
+        train = jax.jit(jax.vmap(make_train(cfg)))
+        state, metrics = train(jax.random.split(jax.random.key(0), 4))  # 4 seeds
+        metrics["eval_return"]  # (4, rounds)
+    """
+    trainer = make_trainer(cfg)
+
+    def train(key: jax.Array):
+        def one_round(state, round_index):
+            return trainer.round(state, round_index)
+
+        return jax.lax.scan(one_round, trainer.init(key), jnp.arange(cfg.train.num_rounds))
+
+    return train
