@@ -12,6 +12,11 @@ are visible in the traced programs: these tests read them there.
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import pathlib
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -70,3 +75,16 @@ def test_the_run_programs_are_tied_to_no_device(algo, task):
     assert _device_ties(jax.make_jaxpr(init)(keys)) == []
     states = jax.eval_shape(init, keys)
     assert _device_ties(jax.make_jaxpr(round_fn)(states, jnp.int32(1))) == []
+
+
+def test_sharded_compile_reports_each_part_over_two_devices():
+    script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "sharded_compile.py"
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    command = [sys.executable, str(script), "--task", "probe_point", "--parts", "evaluate", "--seeds-per-device", "1"]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
+    rows = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [(r["part"], r["mode"], r["status"]) for r in rows] == [
+        ("evaluate", "shard_map", "ok"),
+        ("evaluate", "partitioner", "ok"),
+    ]
+    assert all(len(r["devices"]) == 2 and r["compile_seconds"] > 0 for r in rows)
