@@ -387,7 +387,7 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     assert parse(["--preset", "tiny", *flags, "--pixel-reward.per-member-adam"]).config.pixel_reward.per_member_adam
     assert cfg.feedback_start == cfg.train.seed_steps  # no unsupervised phase on pixels
     for algo in ("sac",):
-        with pytest.raises(ConfigError, match="drqv2, pebble, surf or rebel"):
+        with pytest.raises(ConfigError, match="drqv2 or a preference method"):
             Config(algo=algo, env=EnvConfig(task="probe_point_pixels")).validate()
     for rebel in (
         AgentPreferenceConfig(form="penalty", normalize=True),

@@ -64,7 +64,7 @@ from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HostTeacher, HumanError, HumanOptions, is_loopback, redact_token
 from rebel_jax.logging import RunLogger, write_json
-from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.pixel_train import PixelTrainer, check_config
 from rebel_jax.train import Trainer, compiled, seed_keys, session_due
 
 RUN_FILES = (
@@ -919,6 +919,8 @@ def parse(argv: list[str] | None = None) -> Args:
     args = dataclasses.replace(args, host_teacher=host_teacher)
     try:
         args.config.validate()
+        if args.config.pixels:
+            check_config(args.config)  # the pixel trainer's checks, in agent steps
         _check_args(args, PRESETS[preset])
         if host_teacher:
             _check_host_teacher(args)

@@ -62,6 +62,8 @@ from rebel_jax import frame_replay, pixel_reward, teachers
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
+from rebel_jax.envs.pixels import agent_steps
+from rebel_jax.errors import check
 from rebel_jax.queries import Segments
 from rebel_jax.train import (
     EpisodeStats,
@@ -140,6 +142,41 @@ def policy_of(agent_state: DrQV2State) -> dict:
     return {"encoder": agent_state.encoder_params, "actor": agent_state.actor_params}
 
 
+def check_config(cfg: Config) -> None:
+    """The pixel preference runs' checks in agent steps, before anything is built or written.
+
+    The label store keeps copies, so the replay is a ring of recent episodes: the stored segments (and the
+    method's own, e.g. REBEL's V) must fit an episode, a complete episode must precede the first feedback
+    session, and the ring must hold a complete episode whatever the running one's step (2 L - 1 rows).
+
+    Raises:
+      ConfigError: naming the settings.
+    """
+    if not cfg.preference:
+        return
+    length = agent_steps(cfg.env.episode_length)
+    stored = cfg.query.segment_length + 2 * cfg.method.crop(cfg)
+    capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
+    envs = cfg.env.num_envs
+    crop = f" + 2 x crop {cfg.method.crop(cfg)}" if cfg.method.crop(cfg) else ""
+    allowed = f"query.segment_length{crop} <= {length} agent steps (one episode)"
+    check(stored <= length, "query.segment_length", cfg.query.segment_length, allowed)
+    for field, steps in cfg.method.episode_lengths(cfg).items():
+        check(steps <= length, field, steps, f"<= {length} agent steps per episode")
+    check(
+        cfg.feedback_start // envs >= length,
+        "train.seed_steps",
+        cfg.train.seed_steps,
+        f">= num_envs x {length} agent steps: a complete episode before the first feedback session",
+    )
+    check(
+        capacity // envs >= 2 * length - 1,
+        "train.buffer_capacity",
+        capacity,
+        f">= num_envs x {2 * length - 1} rows: a complete episode in the replay at any step",
+    )
+
+
 class PixelTrainer:
     """Builds the pure functions of one seed's DrQ-v2 run from a :class:`Config` (``algo='drqv2'``)."""
 
@@ -159,25 +196,13 @@ class PixelTrainer:
         self.preference = cfg.preference
         self.method = cfg.method
         self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
+        check_config(cfg)
         if self.preference:  # The label store keeps copies: the replay is a ring of recent episodes.
             self.horizon = cfg.query.segment_length
             self.crop = self.method.crop(cfg)
             self.stored = self.horizon + 2 * self.crop  # SURF stores H + 2 c steps (size_segment, :195)
             sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
             self.pool_capacity = self.method.pool_size(cfg) * sessions
-            ok = self.stored <= self.episode_length and cfg.feedback_start // self.num_train >= self.episode_length
-            # The ring holds a complete episode whatever the running one's step: 2 L - 1 rows.
-            ok = ok and self.capacity // self.num_train >= 2 * self.episode_length - 1
-            ok = ok and all(n <= self.episode_length for n in self.method.episode_lengths(cfg))
-            if not ok:
-                raise ValueError(
-                    f"pixel {cfg.algo} needs query.segment_length + 2 surf.crop={self.stored} (and "
-                    f"rebel.segment_length, rebel.horizon) <= {self.episode_length} agent steps per "
-                    f"episode, a complete episode before the first feedback session (train.seed_steps / num_envs = "
-                    f"{cfg.feedback_start // self.num_train} vector steps) and one in the replay at any step "
-                    f"(2 x {self.episode_length} - 1 rows; train.buffer_capacity {self.capacity} / num_envs = "
-                    f"{self.capacity // self.num_train} rows)"
-                )
         # The evaluation episodes kept for the method's loss (REBEL's on-policy V): (episodes, steps), or None.
         self.trajectory_size = self.method.trajectory_size(cfg, self.episode_length, True) if self.preference else None
         self.trace_count = 0

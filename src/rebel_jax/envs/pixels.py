@@ -23,6 +23,15 @@ from rebel_jax.envs.dmc import DMCEnv
 SUFFIX = "_pixels"
 
 
+ACTION_REPEAT = 2
+"""Environment frames per agent step of the pixel tasks (SURF's pixel branch and DrQ-v2: 2)."""
+
+
+def agent_steps(frames: int | None, action_repeat: int = ACTION_REPEAT) -> int | None:
+    """Agent steps of an episode of ``frames`` environment frames (None: no time limit)."""
+    return None if frames is None else math.ceil(frames / action_repeat)
+
+
 class PixelEnv(Env):
     """A pixel-observation task around ``env``, a ``brax.envs.Env`` like :class:`DMCEnv`.
 
@@ -40,7 +49,7 @@ class PixelEnv(Env):
     def __init__(
         self,
         env: DMCEnv,
-        action_repeat: int = 2,
+        action_repeat: int = ACTION_REPEAT,
         frames: int = 3,
         size: int = 84,
         camera: int | str = 0,
@@ -66,9 +75,7 @@ class PixelEnv(Env):
     @property
     def episode_length(self) -> int | None:
         """Agent steps per episode (None where the state task has no time limit)."""
-        if self.env.episode_length is None:
-            return None
-        return math.ceil(self.env.episode_length / self.action_repeat)
+        return agent_steps(self.env.episode_length, self.action_repeat)
 
     @property
     def dt(self) -> float:

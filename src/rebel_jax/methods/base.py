@@ -68,10 +68,10 @@ class Method:
         del cfg, episode_length, pixels  # Unused.
         return None
 
-    def episode_lengths(self, cfg: Any) -> tuple[int, ...]:
-        """Lengths in agent steps of what the method reads from single episodes (checked against the episode)."""
+    def episode_lengths(self, cfg: Any) -> dict[str, int]:
+        """Setting -> length in agent steps of what the method reads from single episodes (each must fit one)."""
         del cfg  # Unused.
-        return ()
+        return {}
 
     # -- state tasks ----------------------------------------------------------------------
     def state_terms(self, trainer: Any, ts: Any, key: jax.Array) -> list[reward_model.LossTerm]:

@@ -43,7 +43,9 @@ class REBEL(Method):
         return cfg.rebel.onpolicy_size(cfg.train.eval_episodes, episode_length, pixels)
 
     def episode_lengths(self, cfg):
-        return (cfg.rebel.segment_length if cfg.rebel.source == "replay" else cfg.rebel.horizon,)
+        if cfg.rebel.source == "replay":
+            return {"rebel.segment_length": cfg.rebel.segment_length}
+        return {"rebel.horizon": cfg.rebel.horizon}
 
     # -- state tasks ----------------------------------------------------------------------
     def value_trajectories(self, trainer, ts, key: jax.Array) -> tuple[jax.Array, jax.Array]:
