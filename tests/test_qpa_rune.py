@@ -279,6 +279,28 @@ def test_help_lists_both_methods_and_their_settings(capsys):
         assert flag in out
 
 
+def test_the_qpa_preset_is_qpa_s_walker_walk_command():
+    # huxiao09/QPA@7e9e49e, run_QPA.sh:5 and config/train_QPA.yaml, config/agent/sac.yaml.
+    cfg = cli.parse(["--preset", "qpa"]).config.validate()
+    assert (cfg.algo, cfg.env.task, cfg.train.total_steps, cfg.train.seed_steps, cfg.pretrain.steps) == (
+        "qpa",
+        "walker_walk",
+        500_000,
+        1_000,
+        9_000,
+    )
+    assert (cfg.feedback.labels, cfg.feedback.queries, cfg.feedback.interval, cfg.feedback.budget) == (
+        100,
+        10,
+        20_000,
+        "asked",
+    )
+    assert (cfg.reward.ensemble_size, cfg.reward.lr, cfg.reward.batch_size, cfg.reward.output) == (1, 3e-4, 128, "tanh")
+    assert (cfg.query.segment_length, cfg.pretrain.k, cfg.pretrain.reset_updates) == (50, 5, 100)
+    assert (cfg.sac.actor_lr, cfg.sac.critic_lr, cfg.sac.batch_size, cfg.sac.utd) == (5e-4, 5e-4, 1024, 1.0)
+    assert cfg.qpa == QPAConfig(recent_episodes=10, her_ratio=0.5, data_aug_ratio=20, reward_update=2000)
+
+
 # Rounds of 20 vector steps on the probe task: 20 seed steps, 60 of pre-training, sessions at env steps 80, 120 and
 # 160 (4 pairs each), 200 steps in all.
 MICRO_FLAGS = (
