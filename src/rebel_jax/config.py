@@ -22,6 +22,8 @@ from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
+from rebel_jax.methods.qpa import QPAConfig
+from rebel_jax.methods.rune import RUNEConfig
 from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
@@ -231,8 +233,8 @@ class Config:
     """A whole run."""
 
     algo: Algo = "sac"
-    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, or drqv2 (DrQ-v2 on a pixel task, true reward);
-    on a pixel task the preference methods train DrQ-v2 on the learned reward."""
+    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, qpa, rune (docs/methods.md), or drqv2 (DrQ-v2 on a
+    pixel task, true reward); on a pixel task pebble, surf and rebel train DrQ-v2 on the learned reward."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
     sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
@@ -246,6 +248,10 @@ class Config:
     """PEBBLE+SURF's semi-supervised terms; used by ``--algo surf`` only."""
     rebel: AgentPreferenceConfig = AgentPreferenceConfig()
     """REBEL's agent-preference term; used by ``--algo rebel`` only."""
+    qpa: QPAConfig = QPAConfig()
+    """QPA's policy-aligned queries, hybrid replay and crops; used by ``--algo qpa`` only."""
+    rune: RUNEConfig = RUNEConfig()
+    """RUNE's exploration bonus; used by ``--algo rune`` only."""
     drqv2: DrQV2Config = DrQV2Config()
     """DrQ-v2's settings; used on pixel tasks (``--algo drqv2``, and the agent of ``--algo pebble`` there). The
     defaults are DrQ-v2's cheetah_run ones; walker's are ``--drqv2.nstep 1 --drqv2.batch-size 512
@@ -275,7 +281,9 @@ class Config:
         where = {
             "sac": "a state task",
             "drqv2": "a pixel task",
-            **dict.fromkeys(("feedback", "query", "teacher", "pretrain"), "a preference algo (pebble, surf, rebel)"),
+            **dict.fromkeys(
+                ("feedback", "query", "teacher", "pretrain"), f"a preference algo ({', '.join(methods.REGISTRY)})"
+            ),
             "reward": "a preference algo on a state task",
             "pixel_reward": "a preference algo on a pixel task",
             **{m.config_field: f"--algo {m.name}" for m in methods.REGISTRY.values() if m.config_field},
@@ -450,8 +458,19 @@ def _surf_pixels(task: str) -> Config:
     )
 
 
+_QPA = dataclasses.replace(
+    _PAPER,
+    algo="qpa",
+    reward=RewardConfig(ensemble_size=1),
+    query=dataclasses.replace(_PAPER.query, sampling="uniform"),
+)
+"""QPA's walker_walk protocol (huxiao09/QPA@7e9e49e:run_QPA.sh:5): the ``paper`` preset with one reward member
+(``ensemble_size=1``) and uniform queries (``explore=false``; ``--algo qpa`` draws them uniformly anyway); its
+other settings are the ``qpa`` section's defaults. cheetah_run: ``--task cheetah_run --total-steps 1000000``."""
+
 PRESETS: dict[str, Config] = {
     "paper": _PAPER,
+    "qpa": _QPA,
     "tiny": _tiny(),
     "demo": _demo(),
     "surf_pixels_walker": _surf_pixels("walker_walk"),
@@ -460,5 +479,6 @@ PRESETS: dict[str, Config] = {
 """``paper``: B-Pref's walker_walk settings (rll-research/BPref@f3ece2e), with its disagreement query
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
-``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small preference-learning run that learns on a
-CPU (``_demo``). ``surf_pixels_walker`` and ``surf_pixels_cheetah``: SURF's pixel runs (``_surf_pixels``)."""
+``qpa``: QPA's protocol (``_QPA``). ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small
+preference-learning run that learns on a CPU (``_demo``). ``surf_pixels_walker`` and ``surf_pixels_cheetah``:
+SURF's pixel runs (``_surf_pixels``)."""

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from rebel_jax.methods.base import Method
 from rebel_jax.methods.pebble import PEBBLE
+from rebel_jax.methods.qpa import QPA
 from rebel_jax.methods.rebel import REBEL
+from rebel_jax.methods.rune import RUNE
 from rebel_jax.methods.surf import SURF
 
-REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL())}
-"""The methods a run can name with ``algo`` (``--algo NAME``): ``pebble``, ``surf``, ``rebel``."""
+REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE())}
+"""The methods a run can name with ``algo`` (``--algo NAME``): ``pebble``, ``surf``, ``rebel``, ``qpa``, ``rune``."""
 
 
 def register(method: Method) -> Method:

@@ -1,0 +1,329 @@
+"""QPA and RUNE (``rebel_jax.methods.qpa``, ``.rune``) against NumPy and Python-loop references of their own rules:
+QPA's recent-episode query pool, its hybrid SAC batch, its cropped Bradley-Terry term and its early-stopped
+sessions; RUNE's bonus and its decay. Then their settings on the command line, and one short run of each."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import types
+from typing import Any
+
+import chex
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rebel_jax import cli, replay, reward_model, surf, train
+from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
+from rebel_jax.methods import REGISTRY
+from rebel_jax.methods.qpa import QPAConfig, augmented_bt_loss
+from rebel_jax.methods.rune import RUNEConfig, bonus_weight
+from rebel_jax.reward_model import PrefBatch, RewardConfig
+
+# A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment
+# (rows 0-139) and the running ones (rows 140-149). Each cell's observation is its (row, env).
+EPISODE, ENVS, ROWS, WRITTEN = 20, 2, 200, 150
+
+
+def _marked_buffer(terminal: bool = False) -> replay.Buffer:
+    """The replay above; ``terminal`` marks every 7th row terminal (a pattern a batch's discount must follow)."""
+    buffer = replay.init(ROWS * ENVS, ENVS, 2, 1)
+    row, env = np.meshgrid(np.arange(ROWS), np.arange(ENVS), indexing="ij")
+    step = row % EPISODE
+    return buffer.replace(
+        obs=jnp.asarray(np.stack([row, env], -1), jnp.float32),
+        next_obs=jnp.asarray(np.stack([row + 0.5, env], -1), jnp.float32),
+        learned_reward=jnp.asarray(10 * row + env, jnp.float32),
+        terminal=jnp.asarray(terminal & (row % 7 == 0), jnp.float32),
+        truncated=jnp.asarray(step == EPISODE - 1, jnp.float32),
+        episode_step=jnp.asarray(step, jnp.int32),
+        ptr=jnp.int32(WRITTEN),
+        size=jnp.int32(WRITTEN),
+    )
+
+
+def _qpa_config(**qpa) -> Config:
+    return Config(
+        algo="qpa",
+        env=EnvConfig(task="probe_point", num_envs=ENVS, episode_length=EPISODE),
+        sac=SACConfig(batch_size=64),
+        feedback=FeedbackConfig(labels=40, per_session=64),
+        qpa=QPAConfig(**qpa),
+    )
+
+
+def test_qpa_queries_come_only_from_the_last_complete_episodes():
+    cfg, length = _qpa_config(recent_episodes=3), 5
+    trainer = types.SimpleNamespace(cfg=cfg, stored_length=length)
+    ts = types.SimpleNamespace(buffer=_marked_buffer())
+    seg_a, seg_b = jax.jit(lambda key: REGISTRY["qpa"].query_segments(trainer, ts, key, True))(jax.random.key(3))
+    # Reference (B-Pref's FIFO of complete episodes, last transition at step L - 1): the episodes ordered by
+    # (last row, env), the last three kept; a segment starts at an offset in [0, L - H) of one of them.
+    ends = [(r, e) for r in range(WRITTEN) for e in range(ENVS) if r % EPISODE == EPISODE - 1]
+    allowed = {(r - EPISODE + 1, e) for r, e in ends[-3:]}
+    seen = set()
+    for seg in (seg_a, seg_b):
+        rows, envs = np.asarray(seg.row), np.asarray(seg.env)
+        np.testing.assert_array_equal(np.asarray(seg.obs[..., 0]), rows)
+        for row, env in zip(rows, envs, strict=True):
+            first = row[0] - row[0] % EPISODE
+            assert (first, env[0]) in allowed and np.all(env == env[0])
+            np.testing.assert_array_equal(row, row[0] + np.arange(length))
+            assert row[0] - first < EPISODE - length
+            seen.add((first, env[0]))
+    assert seen == allowed  # 128 segments: each of the three episodes is drawn
+
+
+@pytest.mark.parametrize("count,hybrid", [(0, False), (20, True), (40, False)], ids=["before", "during", "after"])
+def test_qpa_hybrid_batch_draws_its_last_quarter_from_the_recent_rows_while_the_budget_lasts(count, hybrid):
+    cfg = _qpa_config(recent_episodes=3, her_ratio=0.25)
+    trainer = types.SimpleNamespace(cfg=cfg)
+    ts = types.SimpleNamespace(reward=types.SimpleNamespace(data=types.SimpleNamespace(count=jnp.int32(count))))
+    buffer = _marked_buffer(terminal=True)
+    keys = jax.random.split(jax.random.key(0), 300)
+    batch = jax.jit(jax.vmap(lambda k: REGISTRY["qpa"].sample_batch(trainer, ts, buffer, k)))(keys)
+    rows, envs = np.asarray(batch.obs[..., 0]).astype(int), np.asarray(batch.obs[..., 1]).astype(int)
+    np.testing.assert_array_equal(np.asarray(batch.reward), 10 * rows + envs)
+    np.testing.assert_array_equal(np.asarray(batch.next_obs[..., 0]), rows + 0.5)
+    np.testing.assert_array_equal(np.asarray(batch.discount), 1.0 - (rows % 7 == 0))
+    assert rows.min() >= 0 and rows.max() < WRITTEN and set(envs.ravel()) == {0, 1}
+    # Reference: QPA's last 3 x 20 transitions are ceil(60 / 2) = 30 rows of the 2 environments; int(0.25 x 64) = 16.
+    window = min(math.ceil(3 * EPISODE / ENVS), WRITTEN)
+    recent = int(0.25 * 64)
+    inside = rows >= WRITTEN - window
+    share = window / WRITTEN  # of uniform rows inside the window
+    tolerance = 4 * math.sqrt(share * (1 - share) / rows[:, :-recent].size)
+    assert abs(inside[:, :-recent].mean() - share) < tolerance
+    if hybrid:
+        assert inside[:, -recent:].all()
+        assert abs(inside.mean() - (recent + (64 - recent) * share) / 64) < tolerance
+    else:
+        assert abs(inside[:, -recent:].mean() - share) < 4 * math.sqrt(share * (1 - share) / rows[:, -recent:].size)
+
+
+def _np_log_sigmoid(z):
+    return -np.logaddexp(0.0, -z)
+
+
+def _init_params(rcfg: RewardConfig, seed: int, obs_size: int, act_size: int):
+    return jax.jit(lambda key: reward_model.init(rcfg, key, obs_size, act_size, 1).params)(jax.random.key(seed))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _member_rewards(rcfg: RewardConfig, params, obs, action):
+    """Each member's rewards of its own (obs, action) (leading member axis on all three): (M, ...)."""
+    return jax.vmap(reward_model.network(rcfg).apply)(params, obs, action)
+
+
+def test_augmented_bt_loss_is_the_mean_cross_entropy_over_every_crop_of_every_pair():
+    rcfg, qpa = RewardConfig(ensemble_size=2, hidden=16, depth=2), QPAConfig(data_aug_ratio=3, crop=2)
+    members, pairs, length = 2, 5, 12
+    params, rng = _init_params(rcfg, 1, 3, 2), np.random.default_rng(2)
+    obs_a, obs_b = (jnp.asarray(rng.normal(size=(members, pairs, length, 3)), jnp.float32) for _ in "ab")
+    act_a, act_b = (jnp.asarray(rng.normal(size=(members, pairs, length, 2)), jnp.float32) for _ in "ab")
+    batch = PrefBatch(
+        obs_a=obs_a,
+        act_a=act_a,
+        obs_b=obs_b,
+        act_b=act_b,
+        labels=jnp.array([[1.0, 0.0, 0.5, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0, 0.5]]),
+        weight=jnp.array([[1.0, 1.0, 1.0, 1.0, 0.0], [1.0] * 5]),  # one padded pair
+    )
+    key = jax.random.key(4)
+    loss, metrics = jax.jit(augmented_bt_loss(rcfg, qpa))(params, batch, key)
+    masks = jax.jit(lambda key: surf.crop_masks(key, (members, 3, pairs), length, qpa.crop))(key)
+    mask_a, mask_b = (np.asarray(m) for m in masks)
+    rewards_a = np.asarray(_member_rewards(rcfg, params, obs_a, act_a), np.float64)
+    rewards_b = np.asarray(_member_rewards(rcfg, params, obs_b, act_b), np.float64)
+    expected, correct, counted = 0.0, 0.0, 0.0
+    for m in range(members):
+        reward_a, reward_b = rewards_a[m], rewards_b[m]
+        labels, weight = np.asarray(batch.labels[m]), np.asarray(batch.weight[m])
+        total = 0.0
+        for r in range(3):
+            for b in range(pairs):
+                z = np.sum(reward_b[b] * mask_b[m, r, b]) - np.sum(reward_a[b] * mask_a[m, r, b])
+                y = labels[b]
+                total += weight[b] * -(y * _np_log_sigmoid(z) + (1 - y) * _np_log_sigmoid(-z))
+                if y != 0.5:
+                    correct += weight[b] * ((z > 0) == (y > 0.5))
+                    counted += weight[b]
+        expected += total / (3 * weight.sum())
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["bt_accuracy"]), correct / counted, rtol=1e-6)
+    plain = jax.jit(reward_model.bt_loss(rcfg))(params, batch, key)[0]
+    once = jax.jit(augmented_bt_loss(rcfg, dataclasses.replace(qpa, data_aug_ratio=0)))(params, batch, key)[0]
+    assert float(once) == float(plain)
+
+
+def test_qpa_crops_are_qpa_s_35_to_45_of_50_steps_one_length_per_pair():
+    # QPA's get_cropping_mask: length = randint(S - 15, S - 5 + 1), each segment's start randint(0, S + 1 - length).
+    masks = jax.jit(lambda key: surf.crop_masks(key, (3000,), 50, QPAConfig().crop))(jax.random.key(5))
+    mask_a, mask_b = (np.asarray(m) for m in masks)
+    lengths = mask_a.sum(-1)
+    np.testing.assert_array_equal(lengths, mask_b.sum(-1))
+    assert set(lengths.astype(int)) == set(range(35, 46))
+    for mask in (mask_a, mask_b):
+        starts = mask.argmax(-1)
+        inside = (np.arange(50) >= starts[:, None]) & (np.arange(50) < (starts + lengths)[:, None])
+        np.testing.assert_array_equal(mask, inside)  # one run from the start
+        assert starts.min() == 0 and np.all(starts <= 50 - lengths)
+
+
+@flax.struct.dataclass
+class _State:
+    reward: Any
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _labelled_state(rcfg: RewardConfig, count: int, length: int) -> reward_model.RewardState:
+    """A fresh model with ``count`` stored pairs of random segments, labelled by a teacher it can learn."""
+    state = reward_model.init(rcfg, jax.random.key(6), 3, 1, length)
+    k = jax.random.split(jax.random.key(7), 4)
+    obs_a, obs_b = (jax.random.normal(k[i], (count, length, 3)) for i in (0, 1))
+    seg_a, seg_b = (
+        types.SimpleNamespace(obs=o, action=jax.random.normal(k[i], (count, length, 1)))
+        for o, i in ((obs_a, 2), (obs_b, 3))
+    )
+    labels = (obs_b[..., 0].sum(-1) > obs_a[..., 0].sum(-1)).astype(jnp.float32)
+    return reward_model.add_labels(state, seg_a, seg_b, labels, jnp.ones(count))
+
+
+@pytest.mark.parametrize("stop,kept", [(0.81, 12), (2.0, 12), (0.81, 0)], ids=["stops", "never-stops", "no-labels"])
+def test_qpa_session_runs_one_step_at_a_time_until_the_running_accuracy_reaches_the_stop(stop, kept):
+    rcfg = RewardConfig(ensemble_size=1, hidden=16, depth=2, batch_size=8, lr=1e-2)
+    qpa = QPAConfig(reward_update=20, stop_accuracy=stop, data_aug_ratio=2, crop=1)
+    cfg = dataclasses.replace(_qpa_config(), qpa=qpa)
+    stored = _labelled_state(rcfg, 12, 8)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg)
+    keys = {"terms": jax.random.key(8), "train": jax.random.key(9)}
+    session = jax.jit(lambda s: REGISTRY["qpa"].train_state_reward(trainer, _State(None), s, keys, jnp.int32(kept)))
+    state, metrics = session(stored)
+    # Reference: QPA's loop (train_QPA.py:143, reward_model.py:707-762) with this project's one-step training.
+    most = math.ceil(20 * 12 / 8) if kept else 0
+    terms = [augmented_bt_loss(rcfg, qpa)]
+    one_step = jax.jit(lambda s, key: reward_model.train_iterations(rcfg, s, key, terms, jnp.ones((), jnp.int32)))
+    expected, accuracy, steps = stored, 0.0, 0
+    for step in range(most):
+        expected, m = one_step(expected, jax.random.fold_in(keys["train"], step))
+        accuracy, steps = accuracy + float(m["train_accuracy"]), step + 1
+        if accuracy / steps >= stop:
+            break
+    assert int(metrics["epochs"]) == steps and (steps < most) == (stop < 1 and kept > 0)
+    chex.assert_trees_all_close(state.params, expected.params, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(float(metrics["train_accuracy"]), accuracy / max(steps, 1), rtol=1e-5)
+
+
+def test_rune_adds_the_members_spread_weighted_by_a_decaying_beta():
+    rcfg, rune = RewardConfig(ensemble_size=3, hidden=16, depth=2), RUNEConfig(beta_0=0.3, rho=1e-3)
+    cfg = dataclasses.replace(_qpa_config(), algo="rune", rune=rune)
+    params, rng = _init_params(rcfg, 10, 2, 1), np.random.default_rng(11)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg)
+    ts = types.SimpleNamespace(reward=types.SimpleNamespace(params=params))
+    obs, action, reward = (jnp.asarray(rng.normal(size=shape), jnp.float32) for shape in ((32, 2), (32, 1), (32,)))
+    batch = replay.Transition(obs, action, reward, jnp.zeros((32, 2)), jnp.ones(32))
+    members = np.asarray(_member_rewards(rcfg, params, *(jnp.broadcast_to(x, (3, *x.shape)) for x in (obs, action))))
+    members = members.astype(np.float64)
+    spread = np.sqrt(np.mean((members - members.mean(0)) ** 2, axis=0))  # NumPy's std, ddof 0, as RUNE's np.std
+    batch_reward = jax.jit(lambda t: REGISTRY["rune"].batch_reward(trainer, ts, batch, t).reward)
+    for t in (0, 7, 250):
+        beta = 0.3 * (1 - 1e-3) ** (t * ENVS)  # RUNE's beta(step), step = environment steps
+        np.testing.assert_allclose(
+            np.asarray(batch_reward(jnp.int32(t))), np.asarray(reward) + beta * spread, rtol=1e-5, atol=1e-7
+        )
+    # The weight far into a run, where (1 - rho) rounded to float32 would be off by a few percent.
+    steps = np.array([0, 1, 12_345, 1_000_000])
+    weights = jax.jit(jax.vmap(lambda step: bonus_weight(RUNEConfig(), step)))(jnp.asarray(steps, jnp.int32))
+    np.testing.assert_allclose(np.asarray(weights), 0.05 * (1 - 1e-5) ** steps.astype(np.float64), rtol=1e-5)
+
+
+TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tensorboard"]
+BAD = {
+    "qpa-on-pixels": (
+        ["--algo", "qpa", "--task", "probe_point_pixels"],
+        ["env.task='probe_point_pixels'", "state task"],
+    ),
+    "rune-on-pixels": (["--algo", "rune", "--task", "probe_point_pixels"], ["env.task='probe_point_pixels'", "state"]),
+    "rune-one-member": (["--algo", "rune", "--reward.ensemble-size", "1"], ["reward.ensemble_size=1", ">= 2"]),
+    "qpa-with-pebble": (["--algo", "pebble", "--qpa.her-ratio", "0.3"], ["qpa settings", "qpa only with --algo qpa"]),
+    "rune-with-qpa": (["--algo", "qpa", "--rune.rho", "0.1"], ["rune settings", "rune only with --algo rune"]),
+    "qpa-crop": (["--algo", "qpa", "--qpa.crop", "9"], ["qpa.crop=9", "3 crop < 25"]),
+    "qpa-her-ratio": (["--algo", "qpa", "--qpa.her-ratio", "1.5"], ["qpa.her_ratio=1.5", "[0, 1]"]),
+    "rune-rho": (["--algo", "rune", "--rune.rho", "1"], ["rune.rho=1.0", "[0, 1)"]),
+}
+
+
+@pytest.mark.parametrize("argv,expected", BAD.values(), ids=BAD.keys())
+def test_bad_or_unused_qpa_and_rune_settings_are_one_line(tmp_path, monkeypatch, capsys, argv, expected):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([*TINY, *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(err) == 1 and err[0].startswith("error: "), err
+    assert all(part in err[0] for part in expected), err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_help_lists_both_methods_and_their_settings(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    assert exit_info.value.code == 0
+    assert "--algo {sac,pebble,surf,rebel,qpa,rune,drqv2}" in out
+    for flag in ("--qpa.recent-episodes", "--qpa.her-ratio", "--qpa.data-aug-ratio", "--rune.beta-0", "--rune.rho"):
+        assert flag in out
+
+
+def test_the_qpa_preset_is_qpa_s_walker_walk_command():
+    # huxiao09/QPA@7e9e49e, run_QPA.sh:5 and config/train_QPA.yaml, config/agent/sac.yaml.
+    cfg = cli.parse(["--preset", "qpa"]).config.validate()
+    assert (cfg.algo, cfg.env.task, cfg.train.total_steps, cfg.train.seed_steps, cfg.pretrain.steps) == (
+        "qpa",
+        "walker_walk",
+        500_000,
+        1_000,
+        9_000,
+    )
+    assert (cfg.feedback.labels, cfg.feedback.queries, cfg.feedback.interval, cfg.feedback.budget) == (
+        100,
+        10,
+        20_000,
+        "asked",
+    )
+    assert (cfg.reward.ensemble_size, cfg.reward.lr, cfg.reward.batch_size, cfg.reward.output) == (1, 3e-4, 128, "tanh")
+    assert (cfg.query.segment_length, cfg.pretrain.k, cfg.pretrain.reset_updates) == (50, 5, 100)
+    assert (cfg.sac.actor_lr, cfg.sac.critic_lr, cfg.sac.batch_size, cfg.sac.utd) == (5e-4, 5e-4, 1024, 1.0)
+    assert cfg.qpa == QPAConfig(recent_episodes=10, her_ratio=0.5, data_aug_ratio=20, reward_update=2000)
+
+
+# Rounds of 20 vector steps on the probe task: 20 seed steps, 60 of pre-training, sessions at env steps 80, 120 and
+# 160 (4 pairs each), 200 steps in all.
+MICRO_FLAGS = (
+    "--preset tiny --task probe_point --num-envs 2 --episode-length 40 --hidden 16 --batch-size 16 --utd 0.5"
+    " --total-steps 200 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1 --labels 12"
+    " --per-session 4 --interval 40 --reward.hidden 32 --reward.batch-size 16 --query.segment-length 8"
+    " --pretrain.steps 60 --pretrain.chunk-size 64 --seeds 2 --no-tensorboard --no-progress"
+).split()
+METHOD_FLAGS = {
+    "qpa": "--algo qpa --qpa.recent-episodes 2 --qpa.reward-update 20 --qpa.data-aug-ratio 4 --qpa.crop 1",
+    "rune": "--algo rune --rune.beta-0 0.5 --rune.rho 1e-3",
+}
+
+
+@pytest.mark.parametrize("method", METHOD_FLAGS)
+def test_a_short_run_through_the_cli_traces_its_round_once_and_uses_the_budget(method, tmp_path, monkeypatch):
+    def traced_once(trainer, sharding=None):
+        chex.clear_trace_counter()
+        trainer.round = chex.assert_max_traces(trainer.round, n=1)
+        return train.compiled(trainer, sharding)
+
+    monkeypatch.setattr(cli, "compiled", traced_once)
+    cli.main([*MICRO_FLAGS, *METHOD_FLAGS[method].split(), "--run-dir", str(tmp_path / "run")])
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 5 and all(row["status"] == "ok" for row in rows)
+    assert rows[-1]["labels_used"] == [12.0, 12.0]
