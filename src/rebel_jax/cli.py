@@ -821,9 +821,12 @@ def observed_task(task: str, obs: str | None) -> str:
 def default_preset(task: str) -> str:
     """``--preset`` when none is given: SURF's pixel protocol (``surf_pixels_walker`` or ``surf_pixels_cheetah``)
     for a walker or cheetah pixel task, whose agent steps, rounds and sessions the ``paper`` preset does not fit;
-    ``paper`` otherwise."""
-    pixel_preset = f"surf_pixels_{task.split('_', 1)[0]}"
-    return pixel_preset if task.endswith(PIXEL_SUFFIX) and pixel_preset in PRESETS else "paper"
+    B-Pref's quadruped settings (``paper_quadruped``) on a quadruped task; ``paper`` otherwise."""
+    domain = task.split("_", 1)[0]
+    pixel_preset, state_preset = f"surf_pixels_{domain}", f"paper_{domain}"
+    if task.endswith(PIXEL_SUFFIX):
+        return pixel_preset if pixel_preset in PRESETS else "paper"
+    return state_preset if state_preset in PRESETS else "paper"
 
 
 @contextlib.contextmanager
@@ -866,7 +869,8 @@ def parse(argv: list[str] | None = None) -> Args:
     scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
     description = (
         f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper; on a walker or cheetah pixel"
-        " task surf_pixels_walker or surf_pixels_cheetah).\nObservations: --obs {state,pixels} (default: the task's;"
+        " task surf_pixels_walker or surf_pixels_cheetah; on a quadruped task paper_quadruped)."
+        "\nObservations: --obs {state,pixels} (default: the task's;"
         " pixels: the task's pixel version, <task>_pixels)."
         f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it;"
         " --teacher human asks a person on a web page (--human.*), --teacher replay --human.labels FILE"
