@@ -38,7 +38,9 @@ def test_the_check_sees_the_placement_of_mjx_make_data():
     assert _pinned_placements(jaxpr)
 
 
-@pytest.mark.parametrize("task", ["walker_walk", "cheetah_run", "probe_point", "walker_walk_pixels"])
+@pytest.mark.parametrize(
+    "task", ["walker_walk", "cheetah_run", "quadruped_walk", "quadruped_run", "probe_point", "walker_walk_pixels"]
+)
 def test_reset_and_step_place_nothing(task):
     env = make_env(task, episode_length=10)
     reset = jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0))

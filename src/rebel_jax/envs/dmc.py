@@ -25,7 +25,7 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from rebel_jax.envs import models, quadruped
-from rebel_jax.envs._mjx import newton_trips
+from rebel_jax.envs._mjx import mujoco_contact_frames, newton_trips
 from rebel_jax.envs.rewards import tolerance
 
 
@@ -89,6 +89,9 @@ class TaskSpec:
         sensors of the last physics substep, as dm_control's ``mj_step2`` leaves them.
       has_pixels: the pure-JAX camera (:mod:`rebel_jax.render`) draws every geom of the model, so the task has
         a pixel version (``<task>_pixels``).
+      mujoco_frames: collide planes and capsules with MuJoCo's contact frames (``_mjx.mujoco_contact_frames``)
+        instead of MJX's, which differ for capsules near the plane's normal: needed in 3-D (the quadruped);
+        in a planar model (walker, cheetah) both frames span the same friction pyramid.
     """
 
     name: str
@@ -103,6 +106,7 @@ class TaskSpec:
     pose_sampler: Callable[[mujoco.MjModel], Callable[[jax.Array], jax.Array]] | None = None
     sensors: bool = False
     has_pixels: bool = True
+    mujoco_frames: bool = False
 
 
 def _traced_constant(leaf):
@@ -203,6 +207,7 @@ def _quadruped(name: str, speed: float) -> TaskSpec:
         pose_sampler=quadruped.pose_sampler,
         sensors=True,
         has_pixels=False,  # ellipsoid and cylinder geoms, which the pure-JAX camera does not draw
+        mujoco_frames=True,
     )
 
 
@@ -314,7 +319,14 @@ class DMCEnv(Env):
         return self
 
     def _solved(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
-        """``fn(d)``, traced with the solver's Newton loop (``Solver.newton_loop``)."""
+        """``fn(d)``, traced with the solver's Newton loop (``Solver.newton_loop``) and, where the task says so,
+        MuJoCo's contact frames (``TaskSpec.mujoco_frames``)."""
+        if self.spec.mujoco_frames:
+            with mujoco_contact_frames():
+                return self._solved_by_loop(fn, d)
+        return self._solved_by_loop(fn, d)
+
+    def _solved_by_loop(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
         loop, iterations = self.solver.newton_loop, self.solver.iterations
         if loop == "while":
             return fn(d)
