@@ -81,6 +81,11 @@ def _dm_obs(ts) -> np.ndarray:
     return np.concatenate([np.atleast_1d(v) for v in ts.observation.values()])
 
 
+def _controls(control, action: np.ndarray) -> np.ndarray:
+    """dm_control's controls (float64) of ``action`` in [-1, 1], by the env's ``control``."""
+    return np.asarray(control(jnp.asarray(action, jnp.float32)), np.float64)
+
+
 def fidelity(args) -> dict:
     """Errors of MJX (several solver settings) against dm_control (float64, its own solver)."""
     from dm_control import suite  # test-only dependency
@@ -92,19 +97,24 @@ def fidelity(args) -> dict:
         "1/4": Solver(1, 4),
         "1/4 no eulerdamp": Solver(1, 4, eulerdamp=False),
     }
+    candidates = {label: candidates[label] for label in args.candidates}
     out = {}
     for task in args.tasks:
         domain, name = task.split("_")
         ref = suite.load(domain, name, task_kwargs={"random": 0})
         rng = np.random.default_rng(0)
+        plain = make_env(task)
+        # dm_control's controls of actions in [-1, 1] (the quadruped maps them onto its control ranges).
+        ctrl = functools.partial(_controls, jax.jit(plain.control))
         # Reference trajectory of random actions: states, actions, next obs, rewards.
         ref.reset()
         states, actions, next_obs, rewards = [], [], [], []
         for _ in range(args.fidelity_states):
             phys = ref.physics
-            states.append((phys.data.qpos.copy(), phys.data.qvel.copy(), phys.data.qacc_warmstart.copy()))
-            a = rng.uniform(-1, 1, 6)
-            ts = ref.step(a)
+            data = phys.data
+            states.append((data.qpos.copy(), data.qvel.copy(), data.qacc_warmstart.copy(), data.act.copy()))
+            a = rng.uniform(-1, 1, plain.action_size)
+            ts = ref.step(ctrl(a))
             actions.append(a)
             next_obs.append(_dm_obs(ts))
             rewards.append(ts.reward)
@@ -112,10 +122,10 @@ def fidelity(args) -> dict:
         # Open-loop rollout of a fixed action sequence from dm_control's reset state.
         ref.reset()
         q0, v0 = ref.physics.data.qpos.copy(), ref.physics.data.qvel.copy()
-        seq = np.random.default_rng(1).uniform(-1, 1, (1000, 6))
+        seq = np.random.default_rng(1).uniform(-1, 1, (1000, plain.action_size))
         ref_traj, ref_ret = [], 0.0
         for a in seq:
-            ts = ref.step(a)
+            ts = ref.step(ctrl(a))
             ref_traj.append(_dm_obs(ts))
             ref_ret += ts.reward
         ref_traj = np.array(ref_traj)
@@ -124,20 +134,18 @@ def fidelity(args) -> dict:
             env = make_env(task, solver=solver)
             base = jax.jit(env.reset)(jax.random.PRNGKey(0))
 
-            def with_state(q, v, w, base=base):
-                d = base.pipeline_state.replace(qpos=q, qvel=v, qacc_warmstart=w)
+            def with_state(q, v, w, act, base=base):
+                d = base.pipeline_state.replace(qpos=q, qvel=v, qacc_warmstart=w, act=act)
                 return base.replace(pipeline_state=d)
 
-            qs = jnp.asarray(np.array([s[0] for s in states]), jnp.float32)
-            vs = jnp.asarray(np.array([s[1] for s in states]), jnp.float32)
-            ws = jnp.asarray(np.array([s[2] for s in states]), jnp.float32)
-            batch = jax.jit(jax.vmap(with_state))(qs, vs, ws)
+            qs, vs, ws, acts = (jnp.asarray(np.array([s[i] for s in states]), jnp.float32) for i in range(4))
+            batch = jax.jit(jax.vmap(with_state))(qs, vs, ws, acts)
             nxt = jax.jit(jax.vmap(env.step))(batch, jnp.asarray(np.array(actions), jnp.float32))
             obs_err = np.abs(np.asarray(nxt.obs) - next_obs)
             rew_err = np.abs(np.asarray(nxt.reward) - rewards)
 
             q, v = jnp.asarray(q0, jnp.float32), jnp.asarray(v0, jnp.float32)
-            start = with_state(q, v, jnp.zeros_like(v))
+            start = with_state(q, v, jnp.zeros_like(v), base.pipeline_state.act)
             traj, rew = jax.jit(functools.partial(_open_loop, env))(start, jnp.asarray(seq, jnp.float32))
             dev = np.abs(np.asarray(traj) - ref_traj).mean(axis=1)
             out[task][label] = {
@@ -169,6 +177,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--unroll", action="store_true", help="unroll the physics substeps of a control step")
     p.add_argument("--max-dm-batch", type=int, default=4096, help="skip dm_control solver above this batch")
     p.add_argument("--fidelity-states", type=int, default=200)
+    p.add_argument(
+        "--candidates",
+        nargs="+",
+        default=["dm_control", "4/8", "2/5", "1/4", "1/4 no eulerdamp"],
+        help="fidelity: the solver settings to compare (labels of fidelity's table)",
+    )
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     add_xla_flags_argument(p)
     return p

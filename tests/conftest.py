@@ -113,6 +113,7 @@ _SHARED_GROUPS = {"test_envs.py": "envs", "test_envs_dm_control.py": "envs"}
 # The groups that take longest (mostly compiling MJX, cold cache), longest first.
 _SLOWEST_FIRST = (
     "envs",
+    "test_envs_quadruped.py",
     "test_preference_train.py",
     "test_human_session.py",
     "test_pixel_preference.py",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import dataclasses
 import gc
 import json
 import math
@@ -74,6 +75,15 @@ BAD = {
         ["--obs", "pixels", "--task", "walker_fly"],
         ["env.task='walker_fly_pixels'"],
     ),
+    "quadruped-pixels": (
+        ["--task", "quadruped_walk_pixels"],
+        ["env.task='quadruped_walk_pixels'", "quadruped_walk has no pixel version", "walker_walk_pixels"],
+    ),
+    "obs-pixels-on-the-quadruped": (
+        ["--obs", "pixels", "--task", "quadruped_run"],
+        ["env.task='quadruped_run_pixels'", "quadruped_run has no pixel version", "spheres and capsules only"],
+    ),
+    "task-unknown": (["--task", "quadruped_fly"], ["env.task='quadruped_fly'", "'quadruped_walk'", "'walker_walk'"]),
     "relabel-rows-zero": (
         ["--task", "probe_point_pixels", "--algo", "pebble", "--pixel-reward.relabel-rows", "0"],
         ["pixel_reward.relabel_rows=0 is invalid", ">= 1"],
@@ -224,6 +234,8 @@ def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path,
         ),
         (["--obs", "pixels", "--task", "cheetah_run_pixels"], ["--preset", "surf_pixels_cheetah"]),
         (["--obs", "state", "--task", "cheetah_run"], ["--preset", "paper", "--task", "cheetah_run"]),
+        # A quadruped task without a preset takes B-Pref's quadruped settings.
+        (["--task", "quadruped_walk"], ["--preset", "paper_quadruped"]),
     ],
     ids=[
         "walker",
@@ -235,6 +247,7 @@ def test_metrics_are_strict_json_and_means_do_not_hide_a_diverged_seed(tmp_path,
         "tiny-probe",
         "pixels-twice",
         "state",
+        "quadruped",
     ],
 )
 def test_obs_and_a_pixel_task_pick_the_task_and_its_preset(argv, same_as):
@@ -355,3 +368,16 @@ def test_every_train_command_the_readme_shows_parses(capsys):
             cli.parse(shlex.split(flags))
         except SystemExit as err:
             pytest.fail(f"README's `python -m rebel_jax.train {flags}` is refused: {capsys.readouterr().err}{err}")
+
+
+@pytest.mark.parametrize("algo", ["sac", "pebble"])
+def test_the_quadruped_preset_is_paper_with_b_prefs_quadruped_schedule(algo):
+    """Only the task, SAC's learning rates, the run length and the label schedule differ from ``paper``; the preset
+    is a valid run of both algorithms (B-Pref's quadruped scripts: run_sac.sh, 1000/oracle/run_PEBBLE.sh)."""
+    quadruped, paper = PRESETS["paper_quadruped"], PRESETS["paper"]
+    same = dataclasses.replace(quadruped, env=paper.env, sac=paper.sac, train=paper.train, feedback=paper.feedback)
+    assert same == paper
+    assert dataclasses.replace(quadruped.sac, actor_lr=paper.sac.actor_lr, critic_lr=paper.sac.critic_lr) == paper.sac
+    assert dataclasses.replace(quadruped.train, total_steps=paper.train.total_steps) == paper.train
+    assert quadruped.env.task == "quadruped_walk" and quadruped.sac.actor_lr < paper.sac.actor_lr
+    dataclasses.replace(quadruped, algo=algo).validate()

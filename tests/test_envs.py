@@ -20,10 +20,11 @@ OBS_SIZE = {"walker_stand": 24, "walker_walk": 24, "walker_run": 24, "cheetah_ru
 # a CPU); walker_stand and walker_run observe its states with their own reward (see below).
 PHYSICS = ["cheetah_run", "walker_walk"]
 SAME_PHYSICS_AS_WALK = ["walker_run", "walker_stand"]
+QUADRUPED = ["quadruped_run", "quadruped_walk"]  # tests/test_envs_quadruped.py (12 actions, MuJoCo's sensors)
 
 
 def test_every_task_is_tested_here():
-    assert set(PHYSICS) | set(SAME_PHYSICS_AS_WALK) == set(TASKS)
+    assert set(PHYSICS) | set(SAME_PHYSICS_AS_WALK) | set(QUADRUPED) == set(TASKS)
 
 
 @pytest.mark.parametrize("task", PHYSICS)

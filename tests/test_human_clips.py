@@ -99,6 +99,49 @@ def test_walker_clip_with_mujocos_renderer():
     assert result["floor_moved"] > 1.0 and result["leg_moved"] > 0.5
 
 
+QUADRUPED_RENDER = textwrap.dedent(
+    """
+    import json, sys
+    import numpy as np
+    from rebel_jax.envs.dmc import mj_model
+    from rebel_jax.human import clips
+
+    try:
+        renderer = clips.make_renderer("quadruped_walk", 256)
+    except clips.ClipError as err:
+        print(json.dumps({"error": str(err)}))
+        sys.exit(0)
+    qpos = np.tile(mj_model("quadruped_walk").qpos0, (3, 1))  # standing on its toes, facing +x
+    qpos[1, 0] = 0.5   # the root moved forward; the tracking camera shows the floor moving back
+    qpos[2, 7] = 0.8   # the front left hip's yaw: the leg swings in the picture
+    frames = renderer.frames(qpos)
+    body = np.all(np.abs(frames.astype(int) - (179, 128, 77)) < 60, axis=-1)  # materials "self" and "effector", lit
+    print(json.dumps({
+        "shape": list(frames.shape), "fps": renderer.fps, "camera": renderer.camera,
+        "floor_moved": float(np.abs(frames[1, 200:].astype(int) - frames[0, 200:]).mean()),
+        "leg_moved": float(np.abs(frames[2].astype(int) - frames[0]).mean()),
+        "body_pixels": int(body[0].sum()), "body_centre": float(np.nonzero(body[0])[1].mean()),
+    }))
+    """
+)
+
+
+def test_quadruped_clip_with_mujocos_renderer():
+    """The quadruped (ellipsoid and cylinder geoms, which the pure-JAX camera does not draw) through its side
+    camera ``y``, which tracks the centre of mass."""
+    gl = os.environ.get("MUJOCO_GL", "egl")
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"), MUJOCO_GL=gl)
+    out = subprocess.run([sys.executable, "-c", QUADRUPED_RENDER], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    if "error" in result:
+        pytest.skip(f"no OpenGL for MuJoCo here (MUJOCO_GL={gl}): {result['error']}")
+    assert result["shape"] == [3, 256, 256, 3] and result["fps"] == 50.0  # dm_control's quadruped: 20 ms per step
+    assert result["camera"] == "y" and clips.INSTRUCTIONS["quadruped_walk"]
+    assert result["body_pixels"] > 500 and 96 < result["body_centre"] < 160  # centred by the tracking camera
+    assert result["floor_moved"] > 1.0 and result["leg_moved"] > 0.5
+
+
 def test_cli_without_opengl_stops_at_once_naming_the_fix(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
     env["PYTHONPATH"] = str(ROOT / "src")

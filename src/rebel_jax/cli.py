@@ -141,7 +141,8 @@ class Args:
 
     video_steps: int = 250
     """Agent steps of the evaluation clip written at the end of the run (``eval.gif``: the first
-    column's deterministic policy, 120x120, camera 0); 0: none. Only for MuJoCo tasks (state or pixel), and not
+    column's deterministic policy, 120x120, camera 0; the quadruped's by MuJoCo's renderer, skipped without OpenGL);
+    0: none. Only for MuJoCo tasks (state or pixel), and not
     under ``--time-limit`` (``python -m rebel_jax.video RUN_DIR`` renders one later)."""
 
     teacher_grid: tuple[str, ...] = ()
@@ -560,7 +561,12 @@ def _eval_clip(args: Args, trainer: Trainer | PixelTrainer, policy, run_dir: pat
     params = jax.tree.map(lambda x: jnp.asarray(x[0]), policy)
     key = seed_keys(args.config.train.seed, 1)[0]  # any seed (PRNGKey keeps 32 bits)
     path = run_dir / "eval.gif"
-    video.policy_video(trainer.env, functools.partial(trainer.mean_action, params), key, path, args.video_steps, 120)
+    try:
+        act = functools.partial(trainer.mean_action, params)
+        video.policy_video(trainer.env, act, key, path, args.video_steps, 120)
+    except HumanError as err:  # the quadruped's clip needs MuJoCo's renderer, which found no OpenGL context
+        print(f"eval.gif skipped: {err}")
+        return None
     return path
 
 
@@ -862,9 +868,12 @@ def observed_task(task: str, obs: str | None) -> str:
 def default_preset(task: str) -> str:
     """``--preset`` when none is given: SURF's pixel protocol (``surf_pixels_walker`` or ``surf_pixels_cheetah``)
     for a walker or cheetah pixel task, whose agent steps, rounds and sessions the ``paper`` preset does not fit;
-    ``paper`` otherwise."""
-    pixel_preset = f"surf_pixels_{task.split('_', 1)[0]}"
-    return pixel_preset if task.endswith(PIXEL_SUFFIX) and pixel_preset in PRESETS else "paper"
+    B-Pref's quadruped settings (``paper_quadruped``) on a quadruped task; ``paper`` otherwise."""
+    domain = task.split("_", 1)[0]
+    pixel_preset, state_preset = f"surf_pixels_{domain}", f"paper_{domain}"
+    if task.endswith(PIXEL_SUFFIX):
+        return pixel_preset if pixel_preset in PRESETS else "paper"
+    return state_preset if state_preset in PRESETS else "paper"
 
 
 @contextlib.contextmanager
@@ -907,7 +916,8 @@ def parse(argv: list[str] | None = None) -> Args:
     scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
     description = (
         f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper; on a walker or cheetah pixel"
-        " task surf_pixels_walker or surf_pixels_cheetah).\nObservations: --obs {state,pixels} (default: the task's;"
+        " task surf_pixels_walker or surf_pixels_cheetah; on a quadruped task paper_quadruped)."
+        "\nObservations: --obs {state,pixels} (default: the task's;"
         " pixels: the task's pixel version, <task>_pixels)."
         f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it;"
         " --teacher human asks a person on a web page (--human.*), --teacher replay --human.labels FILE"

@@ -61,9 +61,10 @@ class EnvConfig:
     """The task and how many copies of it each seed runs."""
 
     task: str = "walker_walk"
-    """Task name: walker_stand, walker_walk, walker_run or cheetah_run (or ``probe_point``, a pure-JAX
-    point mass that compiles in seconds, for tests of the training loop); ``<task>_pixels`` (and
-    ``probe_point_pixels``) observe frame stacks, for ``--algo drqv2``, ``pebble``, ``surf`` and ``rebel``."""
+    """Task name: walker_stand, walker_walk, walker_run, cheetah_run, quadruped_walk or quadruped_run (or
+    ``probe_point``, a pure-JAX point mass that compiles in seconds, for tests of the training loop);
+    ``<task>_pixels`` (and ``probe_point_pixels``; not the quadruped's) observe frame stacks, for ``--algo drqv2``,
+    ``pebble``, ``surf`` and ``rebel``."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 10
@@ -76,8 +77,10 @@ class EnvConfig:
     """Control steps per episode (dm_control: 1000)."""
 
     def validate(self) -> None:
-        from rebel_jax.envs import PIXEL_TASKS, PROBES, SOLVERS, TASKS
+        from rebel_jax.envs import PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version
 
+        if no_pixel_version(self.task):
+            raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
         known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS
         _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *PROBES]}")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
@@ -426,6 +429,20 @@ _PAPER = Config(
 )
 
 
+def _paper_quadruped() -> Config:
+    """B-Pref's quadruped_walk protocol (rll-research/BPref@f3ece2e, ``scripts/quadruped_walk/run_sac.sh`` and
+    ``scripts/quadruped_walk/1000/oracle/run_PEBBLE.sh``): ``paper``'s settings except the actor and critic learning
+    rates (1e-4), 1M steps, and 1,000 labels, 100 per session, every 30k steps. QPA's quadruped runs use the
+    same budget."""
+    return dataclasses.replace(
+        _PAPER,
+        env=EnvConfig(task="quadruped_walk"),
+        sac=SACConfig(actor_lr=1e-4, critic_lr=1e-4),
+        train=TrainConfig(total_steps=1_000_000),
+        feedback=dataclasses.replace(_PAPER.feedback, labels=1_000, per_session=100, interval=30_000),
+    )
+
+
 def _surf_pixels(task: str) -> Config:
     """SURF's pixel protocol on ``task`` (alinlab/SURF, branch ``pixel``; notes/surf_pixel_audit.md), for
     ``--algo pebble`` (the default), ``surf``, ``rebel`` and ``drqv2``: the ``paper`` preset's accounting with
@@ -470,6 +487,7 @@ other settings are the ``qpa`` section's defaults. cheetah_run: ``--task cheetah
 
 PRESETS: dict[str, Config] = {
     "paper": _PAPER,
+    "paper_quadruped": _paper_quadruped(),
     "qpa": _QPA,
     "tiny": _tiny(),
     "demo": _demo(),
@@ -479,6 +497,7 @@ PRESETS: dict[str, Config] = {
 """``paper``: B-Pref's walker_walk settings (rll-research/BPref@f3ece2e), with its disagreement query
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
+``paper_quadruped``: B-Pref's quadruped_walk settings (``_paper_quadruped``), the default on a quadruped task.
 ``qpa``: QPA's protocol (``_QPA``). ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small
 preference-learning run that learns on a CPU (``_demo``). ``surf_pixels_walker`` and ``surf_pixels_cheetah``:
 SURF's pixel runs (``_surf_pixels``)."""

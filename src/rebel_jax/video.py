@@ -4,7 +4,10 @@
 
 renders a deterministic episode of a saved run's latest checkpoint. GIFs are written with
 imageio's Pillow plugin; MP4 needs imageio's ffmpeg plugin (``pip install imageio-ffmpeg``).
-``rebel_jax.cli`` writes ``eval.gif`` at the end of each run of a MuJoCo task.
+``rebel_jax.cli`` writes ``eval.gif`` at the end of each run of a MuJoCo task. The tasks the pure-JAX
+camera cannot draw (the quadruped: ellipsoids and cylinders) are drawn by MuJoCo's renderer from the
+episode's positions, as the labelling page's clips are (:class:`rebel_jax.human.clips.MujocoRenderer`;
+it needs ``MUJOCO_GL=egl`` or ``osmesa``).
 """
 
 from __future__ import annotations
@@ -58,13 +61,55 @@ def episode_frames(
     return jnp.concatenate([camera.render(state.pipeline_state)[None], frames]), rewards.sum()
 
 
+def episode_positions(
+    env, policy: Callable[[jax.Array], jax.Array], key: jax.Array, steps: int
+) -> tuple[jax.Array, jax.Array]:
+    """Positions ``(steps + 1, nq)`` and the total reward of one episode of ``policy(obs) -> action``, for a
+    renderer outside JAX. Jittable (``env``, ``policy`` and ``steps`` static). The first row is the reset state."""
+    state = env.reset(key)
+
+    def body(state, _):
+        state = env.step(state, policy(state.obs))
+        return state, (state.pipeline_state.qpos, state.reward)
+
+    _, (qpos, rewards) = jax.lax.scan(body, state, length=steps)
+    return jnp.concatenate([state.pipeline_state.qpos[None], qpos]), rewards.sum()
+
+
+def drawn_by_mujoco(env) -> bool:
+    """Whether ``env`` (a state task) has geoms that the pure-JAX camera does not draw, so that its videos are
+    drawn by MuJoCo's renderer."""
+    spec = getattr(env, "spec", None)
+    return spec is not None and not spec.has_pixels
+
+
 def policy_video(
-    env, policy, key: jax.Array, path: str | pathlib.Path, steps: int, size: int = 240, camera: int | str = 0
+    env,
+    policy,
+    key: jax.Array,
+    path: str | pathlib.Path,
+    steps: int,
+    size: int = 240,
+    camera: int | str | None = None,
 ) -> float:
-    """Renders one episode of ``policy`` on ``env`` (a MuJoCo task) to ``path``; returns its return."""
-    cam = render.make_camera(env.mj_model, camera, size, size)
-    fn = jax.jit(lambda k: episode_frames(env, policy, k, steps, cam))
-    frames, total = fn(key)
+    """Renders one episode of ``policy`` on ``env`` (a MuJoCo task) to ``path``; returns its return.
+
+    ``camera``: a camera id or name of the model; None: camera 0, or where MuJoCo's renderer draws the task, the
+    labelling page's camera (``rebel_jax.human.clips.CAMERAS``). Raises ``rebel_jax.human.ClipError`` where MuJoCo's
+    renderer is needed and has no OpenGL context.
+    """
+    if drawn_by_mujoco(env):
+        from rebel_jax.human.clips import MujocoRenderer
+
+        renderer = MujocoRenderer(env.spec.name, size, camera)
+        try:
+            positions, total = jax.jit(lambda k: episode_positions(env, policy, k, steps))(key)
+            frames = renderer.frames(np.asarray(positions))
+        finally:
+            renderer.close()
+    else:
+        cam = render.make_camera(env.mj_model, 0 if camera is None else camera, size, size)
+        frames, total = jax.jit(lambda k: episode_frames(env, policy, k, steps, cam))(key)
     write(path, np.asarray(frames), fps=1.0 / env.dt)
     return float(total)
 
@@ -103,7 +148,9 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
     parser.add_argument("--column", type=int, default=0, help="which vmapped seed column")
     parser.add_argument("--steps", type=int, default=None, help="agent steps (default: one episode)")
     parser.add_argument("--size", type=int, default=240, help="frame height and width")
-    parser.add_argument("--camera", default="0", help="camera id or name")
+    parser.add_argument(
+        "--camera", default=None, help="camera id or name (default: 0; the quadruped: the labelling page's, y)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="reset key")
     args = parser.parse_args(argv)
     trainer, step, params = load_policy(args.run_dir, args.column)
@@ -111,7 +158,7 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
     env = trainer.env
     if not hasattr(env, "mj_model"):
         raise ValueError(f"task {trainer.cfg.env.task!r} has no MuJoCo model to render")
-    camera = int(args.camera) if args.camera.isdigit() else args.camera
+    camera = int(args.camera) if args.camera and args.camera.isdigit() else args.camera
     out = args.out or args.run_dir / "policy.gif"
     steps = args.steps or env.episode_length
     total = policy_video(env, policy, jax.random.PRNGKey(args.seed), out, steps, args.size, camera)

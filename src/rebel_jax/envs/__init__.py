@@ -19,8 +19,22 @@ registry.register()
 PROBES = {"probe_point": PointProbe, "probe_point_pixels": PixelProbe}
 """Pure-JAX tasks that compile in seconds, for tests of the training loop (not dm_control tasks)."""
 
-PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t in TASKS)
-"""Each state task seen through camera 0 (:class:`PixelEnv`): ``walker_walk_pixels``, ..."""
+PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t, spec in TASKS.items() if spec.has_pixels)
+"""Each state task that the pure-JAX camera can draw, seen through camera 0 (:class:`PixelEnv`):
+``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.render`) draws planes, spheres and capsules only, so
+the quadruped (ellipsoid and cylinder geoms) has no pixel version."""
+
+
+def no_pixel_version(name: str) -> str | None:
+    """Why ``name``, a state task's name with the pixel suffix, is no task: a one-line reason, or None where
+    ``name`` is not such a name."""
+    state = name.removesuffix(pixels.SUFFIX)
+    if name == state or state not in TASKS or TASKS[state].has_pixels:
+        return None
+    return (
+        f"{state} has no pixel version: the pure-JAX camera draws planes, spheres and capsules only, and its model "
+        f"has other geoms; pixel tasks: {', '.join(PIXEL_TASKS)}"
+    )
 
 
 def make_env(
@@ -39,6 +53,9 @@ def make_env(
         parse_solver(solver)
         del unroll_substeps  # Unused.
         return PROBES[name](episode_length)
+    reason = no_pixel_version(name)
+    if reason:
+        raise ValueError(reason)
     if name not in TASKS:
         valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
@@ -59,5 +76,6 @@ __all__ = [
     "State",
     "VmapWrapper",
     "make_env",
+    "no_pixel_version",
     "parse_solver",
 ]

@@ -90,3 +90,45 @@ def newton_trips(iterations: int, unroll: bool = False) -> Iterator[list[int]]:
         yield replaced
     finally:
         solver.jax = original
+
+
+def _plane_capsule(plane, capsule):
+    """MuJoCo's plane-capsule contacts (``mjc_PlaneCapsule``, mujoco 3.17): a sphere-plane test at each end of the
+    capsule's segment, each contact's first tangent the capsule's axis made orthogonal to the normal.
+
+    MJX's ``plane_capsule`` (``collision_primitive.py``) computes the same points but falls back to a fixed
+    tangent, ``(0, 1, 0)``, whenever the axis' projection onto the plane is shorter than 0.5, i.e. for a capsule
+    within 30 degrees of the normal. MuJoCo completes the frame from the axis in every case (``mju_makeFrame``
+    tests the hint's length before projecting it), and with pyramidal friction cones (MuJoCo's default) the
+    tangents orient the friction pyramid: the two frames give different contact forces, one step apart by up to a
+    third of the joint velocities on dm_control's quadruped (its thighs and shins). In a planar model (walker,
+    cheetah) both frames span the same pyramid.
+    """
+    n, axis = plane.mat[:, 2], capsule.mat[:, 2]
+    tangent = axis - n * jnp.dot(n, axis)
+    length = jnp.linalg.norm(tangent)
+    # mju_normalize3: a vector shorter than mjMINVAL becomes (1, 0, 0).
+    tangent = jnp.where(length < 1e-15, jnp.array([1.0, 0.0, 0.0]), tangent / jnp.maximum(length, 1e-15))
+    frame = jnp.stack([n, tangent, jnp.cross(n, tangent)])
+    segment = axis * capsule.size[1]
+    ends = jnp.stack([capsule.pos + segment, capsule.pos - segment])
+    dist = (ends - plane.pos) @ n - capsule.size[0]
+    pos = ends - n * (capsule.size[0] + 0.5 * dist)[:, None]
+    return dist, pos, jnp.stack([frame, frame])
+
+
+@contextlib.contextmanager
+def mujoco_contact_frames() -> Iterator[None]:
+    """While code is traced under it, MJX collides planes with capsules as MuJoCo does, contact frames included
+    (:func:`_plane_capsule`); MJX's other collision functions are unchanged. ``tests/test_envs_quadruped.py``
+    compares the contacts with MuJoCo's."""
+    from mujoco.mjx._src import collision_driver, collision_primitive
+    from mujoco.mjx._src.types import GeomType
+
+    key = (GeomType.PLANE, GeomType.CAPSULE)
+    original = collision_driver._COLLISION_FUNC[key]
+    collision_driver._COLLISION_FUNC[key] = collision_primitive.collider(ncon=2)(_plane_capsule)
+    try:
+        yield
+    finally:
+        collision_driver._COLLISION_FUNC[key] = original

@@ -1,9 +1,9 @@
-"""DeepMind-Control-equivalent walker and cheetah tasks on MJX.
+"""DeepMind-Control-equivalent walker, cheetah and quadruped tasks on MJX.
 
 Each task is a ``brax.envs.Env`` with brax's ``State``: a pure ``reset(key) -> State`` and
 ``step(state, action) -> State``, jittable and vmappable. Observations, rewards,
 reset distributions, control and physics time steps and the 1000-step episode are
-dm_control's (suite ``walker.py`` and ``cheetah.py``); the tests compare them with
+dm_control's (suite ``walker.py``, ``cheetah.py`` and ``quadruped.py``); the tests compare them with
 dm_control on the same physics states.
 
 References:
@@ -13,6 +13,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Literal
 
@@ -23,8 +24,8 @@ import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
-from rebel_jax.envs import models
-from rebel_jax.envs._mjx import newton_trips
+from rebel_jax.envs import models, quadruped
+from rebel_jax.envs._mjx import mujoco_contact_frames, newton_trips
 from rebel_jax.envs.rewards import tolerance
 
 
@@ -79,6 +80,18 @@ class TaskSpec:
       randomize_rotational: the reset also draws unlimited hinges uniformly in [-pi, pi]
         (dm_control's ``randomize_limited_and_rotational_joints``, walker); otherwise only
         limited joints are drawn, in their range (dm_control's cheetah).
+      pose_sampler: given the compiled model, a pure ``key -> qpos`` that replaces the joint-range draw
+        above (the quadruped's random orientation at a contact-free height); None: the joint-range draw.
+      sensors: the observation or reward reads MuJoCo sensors (``sensordata``). The reset then runs
+        ``mjx.forward`` once, so that the acceleration and force sensors hold the reset state's values, as
+        after dm_control's ``mj_forward``; each observation recomputes the position and velocity sensors at
+        the new state, as dm_control's closing ``mj_step1`` does, and keeps the acceleration and force
+        sensors of the last physics substep, as dm_control's ``mj_step2`` leaves them.
+      has_pixels: the pure-JAX camera (:mod:`rebel_jax.render`) draws every geom of the model, so the task has
+        a pixel version (``<task>_pixels``).
+      mujoco_frames: collide planes and capsules with MuJoCo's contact frames (``_mjx.mujoco_contact_frames``)
+        instead of MJX's, which differ for capsules near the plane's normal: needed in 3-D (the quadruped);
+        in a planar model (walker, cheetah) both frames span the same friction pyramid.
     """
 
     name: str
@@ -90,6 +103,10 @@ class TaskSpec:
     obs_fn: Callable[[mjx.Data], jax.Array]
     reward_fn: Callable[[mjx.Data], tuple[jax.Array, dict[str, jax.Array]]]
     randomize_rotational: bool
+    pose_sampler: Callable[[mujoco.MjModel], Callable[[jax.Array], jax.Array]] | None = None
+    sensors: bool = False
+    has_pixels: bool = True
+    mujoco_frames: bool = False
 
 
 def _uncommitted(leaf):
@@ -102,17 +119,22 @@ def _traced_constant(leaf):
     return jnp.asarray(leaf) if isinstance(leaf, np.ndarray) else leaf
 
 
-def _observed(d: mjx.Data, m: mjx.Model) -> mjx.Data:
+def _observed(d: mjx.Data, m: mjx.Model, sensors: bool = False) -> mjx.Data:
     """Position and velocity quantities of ``d``'s current qpos/qvel.
 
     ``mjx.step`` leaves kinematics at the pre-integration state; dm_control (legacy
     stepping) observes after ``mj_step1``, i.e. at the new state. This recomputes
-    only what the observations and rewards read (no collision or constraint solve).
+    only what the observations and rewards read (no collision or constraint solve);
+    with ``sensors``, also the position and velocity sensors (``mj_step1`` computes them; the
+    acceleration and force sensors keep the values of the last ``mjx.step``, as ``mj_step2`` left them).
     """
     d = mjx.kinematics(m, d)
     d = mjx.com_pos(m, d)
     d = mjx.com_vel(m, d)
-    return mjx.subtree_vel(m, d)
+    d = mjx.subtree_vel(m, d)
+    if sensors:
+        d = mjx.sensor_vel(m, mjx.sensor_pos(m, d))
+    return d
 
 
 # Body index 1 is the torso in both models; index 0 is the world.
@@ -175,6 +197,25 @@ def _walker(name: str, move_speed: float) -> TaskSpec:
     )
 
 
+def _quadruped(name: str, speed: float) -> TaskSpec:
+    """dm_control's quadruped ``walk`` or ``run`` (``Move`` at ``speed``) on ``make_model(floor_size=20 * speed)``."""
+    return TaskSpec(
+        name,
+        functools.partial(models.quadruped_xml, quadruped.TIME_LIMIT * speed),
+        None,
+        quadruped.CONTROL_SUBSTEPS,
+        0,
+        quadruped.OBS_SIZE,
+        quadruped.observation,
+        quadruped.move_reward(speed),
+        randomize_rotational=False,
+        pose_sampler=quadruped.pose_sampler,
+        sensors=True,
+        has_pixels=False,  # ellipsoid and cylinder geoms, which the pure-JAX camera does not draw
+        mujoco_frames=True,
+    )
+
+
 TASKS: dict[str, TaskSpec] = {
     "walker_stand": _walker("walker_stand", 0.0),
     "walker_walk": _walker("walker_walk", 1.0),
@@ -190,6 +231,8 @@ TASKS: dict[str, TaskSpec] = {
         _cheetah_reward,
         randomize_rotational=False,
     ),
+    "quadruped_walk": _quadruped("quadruped_walk", quadruped.WALK_SPEED),
+    "quadruped_run": _quadruped("quadruped_run", quadruped.RUN_SPEED),
 }
 
 
@@ -254,6 +297,11 @@ class DMCEnv(Env):
             elif self.spec.randomize_rotational and m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
                 low[adr], high[adr] = -np.pi, np.pi
         self._reset_low, self._reset_high = jnp.asarray(low), jnp.asarray(high)
+        self._sample_pose = self.spec.pose_sampler(m) if self.spec.pose_sampler else None
+        # Actions in [-1, 1] map linearly onto each actuator's control range, as dmc2gym (B-Pref, PEBBLE, SURF)
+        # and DrQ-v2's action-scale wrapper map them; the identity where every range is [-1, 1] (walker, cheetah).
+        ctrl_low, ctrl_high = (np.asarray(m.actuator_ctrlrange[:, i], np.float32) for i in (0, 1))
+        self._ctrl_range = None if np.all(ctrl_low == -1) and np.all(ctrl_high == 1) else (ctrl_low, ctrl_high)
 
     # brax's Env properties.
     @property
@@ -276,12 +324,20 @@ class DMCEnv(Env):
     def unwrapped(self) -> DMCEnv:
         return self
 
-    def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
+    def _solved(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
+        """``fn(d)``, traced with the solver's Newton loop (``Solver.newton_loop``) and, where the task says so,
+        MuJoCo's contact frames (``TaskSpec.mujoco_frames``)."""
+        if self.spec.mujoco_frames:
+            with mujoco_contact_frames():
+                return self._solved_by_loop(fn, d)
+        return self._solved_by_loop(fn, d)
+
+    def _solved_by_loop(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
         loop, iterations = self.solver.newton_loop, self.solver.iterations
         if loop == "while":
-            return jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+            return fn(d)
         with newton_trips(iterations, unroll=loop == "unrolled") as replaced:
-            d = jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll)
+            d = fn(d)
         if iterations > 1 and not replaced:  # MJX runs a single iteration without a loop
             raise RuntimeError(
                 f"solver newton_loop={loop!r} found no Newton while_loop to replace in mujoco {mujoco.__version__}'s "
@@ -289,8 +345,11 @@ class DMCEnv(Env):
             )
         return d
 
+    def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
+        return self._solved(lambda d: jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll), d)
+
     def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
-        d = _observed(d, self.sys)
+        d = _observed(d, self.sys, self.spec.sensors)
         reward, metrics = self.spec.reward_fn(d)
         return State(d, self.spec.obs_fn(d), reward, done, metrics, info)
 
@@ -300,24 +359,39 @@ class DMCEnv(Env):
 
     def reset(self, rng: jax.Array) -> State:
         """Samples an initial state from dm_control's reset distribution."""
-        u = jax.random.uniform(rng, self._reset_low.shape)
-        qpos = self._reset_low + u * (self._reset_high - self._reset_low)
+        if self._sample_pose is not None:
+            qpos = self._sample_pose(rng)
+        else:
+            u = jax.random.uniform(rng, self._reset_low.shape)
+            qpos = self._reset_low + u * (self._reset_high - self._reset_low)
         d = jax.tree.map(_traced_constant, self._data0).replace(qpos=qpos)
         if self.spec.settle_steps:
             d = self._physics_steps(d, self.spec.settle_steps).replace(time=jnp.zeros(()))
+        if self.spec.sensors:  # dm_control's closing mj_forward (actuation off; at rest it exerts nothing anyway)
+            d = self._solved(lambda d: mjx.forward(self.sys, d), d)
         zero = jnp.zeros(())
         if self.episode_length is None:
             return self._observe(d, zero, {})
         return self.observe(d, jnp.zeros((), jnp.int32), zero)
 
+    def control(self, action: jax.Array) -> jax.Array:
+        """The actuator controls of ``action`` in [-1, 1]: mapped linearly onto the control ranges (the
+        quadruped's lift and extend actuators have ranges [-1, 1.1] and [-0.8, 0.8]); the identity for the
+        tasks whose ranges are all [-1, 1]. MuJoCo clips controls to their range."""
+        if self._ctrl_range is None:
+            return action
+        low, high = self._ctrl_range
+        return low + (action + 1.0) / 2.0 * (high - low)
+
     def step(self, state: State, action: jax.Array) -> State:
-        """Applies ``action`` (clipped to [-1, 1] by MuJoCo) for one control step."""
+        """Applies ``action`` (in [-1, 1]; see :meth:`control`) for one control step."""
         if action.shape != (self.action_size,):
             raise ValueError(
                 f"{self.spec.name}: action must have shape ({self.action_size},), got {action.shape}; "
                 "vmap the environment for a batch of actions"
             )
-        d = state.pipeline_state.replace(ctrl=action.astype(state.pipeline_state.ctrl.dtype))
+        ctrl = self.control(action).astype(state.pipeline_state.ctrl.dtype)
+        d = state.pipeline_state.replace(ctrl=ctrl)
         d = self._physics_steps(d, self.spec.n_substeps, self.unroll_substeps)
         if self.episode_length is None:
             return self._observe(d, jnp.zeros_like(state.done), dict(state.info))
@@ -355,7 +429,8 @@ def make_env(
     """Builds a task by name.
 
     Args:
-      name: one of ``walker_stand``, ``walker_walk``, ``walker_run``, ``cheetah_run``.
+      name: one of ``walker_stand``, ``walker_walk``, ``walker_run``, ``cheetah_run``, ``quadruped_walk``,
+        ``quadruped_run``.
       solver: a name from :data:`SOLVERS` (``default`` or ``dm_control``) or a :class:`Solver`.
       episode_length: control steps per episode (dm_control: 1000); None for no time limit (brax's
         convention: ``EpisodeWrapper`` adds it).

@@ -185,3 +185,196 @@ def compile_model(xml: str, total_mass: float | None = None) -> mujoco.MjModel:
         mujoco.mj_setTotalmass(model, total_mass)
         mujoco.mj_setConst(model, mujoco.MjData(model))
     return model
+
+
+# The quadruped's legs in dm_control's order (front left, front right, back right, back left): name, hip position
+# on the torso, hip yaw (degrees).
+QUADRUPED_LEGS = (
+    ("front_left", ".2 .2 0", 45),
+    ("front_right", ".2 -.2 0", -45),
+    ("back_right", "-.2 -.2 0", -135),
+    ("back_left", "-.2 .2 0", 135),
+)
+
+_QUADRUPED_LEG = """
+      <body name="hip_{leg}" pos="{pos}" euler="0 0 {yaw}" childclass="hip">
+        <joint name="yaw_{leg}" class="yaw"/>
+        <joint name="pitch_{leg}" class="pitch"/>
+        <geom name="thigh_{leg}"/>
+        <body name="knee_{leg}" pos=".3 0 .11" childclass="knee">
+          <joint name="knee_{leg}"/>
+          <geom name="shin_{leg}"/>
+          <body name="ankle_{leg}" pos=".25 0 -.25" childclass="ankle">
+            <joint name="ankle_{leg}"/>
+            <geom name="foot_{leg}"/>
+            <body name="toe_{leg}" pos="0 0 -.3" childclass="toe">
+              <geom name="toe_{leg}"/>
+              <site name="toe_{leg}"/>
+            </body>
+          </body>
+        </body>
+      </body>"""
+
+# Per leg: a coupling tendon (pitch + knee + ankle, held at 0 by an equality constraint), and the tendons that the
+# lift and extend actuators pull.
+_QUADRUPED_TENDONS = """
+    <fixed name="extend_{leg}">
+      <joint joint="pitch_{leg}" coef=".25"/>
+      <joint joint="knee_{leg}" coef="-.5"/>
+      <joint joint="ankle_{leg}" coef=".25"/>
+    </fixed>
+    <fixed name="lift_{leg}">
+      <joint joint="pitch_{leg}" coef=".5"/>
+      <joint joint="ankle_{leg}" coef="-.5"/>
+    </fixed>"""
+
+_QUADRUPED_COUPLING = """
+    <fixed name="coupling_{leg}">
+      <joint joint="pitch_{leg}" coef=".333"/>
+      <joint joint="knee_{leg}" coef=".333"/>
+      <joint joint="ankle_{leg}" coef=".333"/>
+    </fixed>"""
+
+QUADRUPED_XML = f"""
+<mujoco model="quadruped">
+{_MATERIALS}
+  <visual>
+    <map znear=".005" zfar="20"/>
+  </visual>
+  <asset>
+    <material name="effector" rgba=".7 .4 .2 1"/>
+    <material name="eye" rgba="0 .2 1 1"/>
+    <material name="site" rgba=".5 .5 .5 .3"/>
+  </asset>
+  <option timestep=".005"/>
+  <default>
+    <geom solimp=".9 .99 .003" solref=".01 1"/>
+    <default class="body">
+      <geom type="capsule" size=".08" condim="1" material="self" density="500"/>
+      <joint type="hinge" damping="30" armature=".01" limited="true" solimplimit="0 .99 .01"/>
+      <default class="hip">
+        <default class="yaw">
+          <joint axis="0 0 1" range="-50 50"/>
+        </default>
+        <default class="pitch">
+          <joint axis="0 1 0" range="-20 60"/>
+        </default>
+        <geom fromto="0 0 0 .3 0 .11"/>
+      </default>
+      <default class="knee">
+        <joint axis="0 1 0" range="-60 50"/>
+        <geom size=".065" fromto="0 0 0 .25 0 -.25"/>
+      </default>
+      <default class="ankle">
+        <joint axis="0 1 0" range="-45 55"/>
+        <geom size=".055" fromto="0 0 0 0 0 -.25"/>
+      </default>
+      <default class="toe">
+        <geom type="sphere" size=".08" material="effector" friction="1.5"/>
+        <site type="sphere" size=".084" material="site" group="4"/>
+      </default>
+    </default>
+    <default class="rangefinder">
+      <site type="capsule" size=".005 .1" material="site" group="4"/>
+    </default>
+    <default class="coupling">
+      <equality solimp="0.95 0.99 0.01" solref=".005 .5"/>
+    </default>
+    <general ctrllimited="true" gainprm="1000" biasprm="0 -1000" biastype="affine" dyntype="filter" dynprm=".1"/>
+    <default class="yaw_act">
+      <general ctrlrange="-1 1"/>
+    </default>
+    <default class="lift_act">
+      <general ctrlrange="-1 1.1"/>
+    </default>
+    <default class="extend_act">
+      <general ctrlrange="-.8 .8"/>
+    </default>
+  </default>
+  <worldbody>
+    <geom name="floor" type="plane" size="{{floor}} {{floor}} .5" material="grid"/>
+    <camera name="global" pos="-10 10 10" xyaxes="-1 -1 0 1 0 1" mode="trackcom"/>
+    <body name="torso" childclass="body" pos="0 0 .57">
+      <freejoint name="root"/>
+      <camera name="x" pos="-1.7 0 1" xyaxes="0 -1 0 .75 0 1" mode="trackcom"/>
+      <camera name="y" pos="0 4 2" xyaxes="-1 0 0 0 -.5 1" mode="trackcom"/>
+      <camera name="egocentric" pos=".3 0 .11" xyaxes="0 -1 0 .4 0 1" fovy="60"/>
+      <light name="light" pos="0 0 4" mode="trackcom"/>
+      <geom name="eye_r" type="cylinder" size=".05" fromto=".1 -.07 .12 .31 -.07 .08" mass="0"/>
+      <site name="pupil_r" type="sphere" size=".033" pos=".3 -.07 .08" zaxis="1 0 0" material="eye"/>
+      <geom name="eye_l" type="cylinder" size=".05" fromto=".1 .07 .12 .31 .07 .08" mass="0"/>
+      <site name="pupil_l" type="sphere" size=".033" pos=".3 .07 .08" zaxis="1 0 0" material="eye"/>
+      <site name="workspace" type="sphere" size=".3 .3 .3" material="site" pos=".8 0 -.2" group="3"/>
+{{rangefinders}}
+      <geom name="torso" type="ellipsoid" size=".3 .27 .2" density="1000"/>
+      <site name="torso_touch" type="box" size=".26 .26 .26" rgba="0 0 1 0"/>
+      <site name="torso" size=".05" rgba="1 0 0 1"/>
+{{legs}}
+    </body>
+  </worldbody>
+  <tendon>
+{{tendons}}
+  </tendon>
+  <equality>
+{{couplings}}
+  </equality>
+  <actuator>
+{{actuators}}
+  </actuator>
+  <sensor>
+    <accelerometer name="imu_accel" site="torso"/>
+    <gyro name="imu_gyro" site="torso"/>
+    <velocimeter name="velocimeter" site="torso"/>
+{{toe_sensors}}
+    <subtreecom name="center_of_mass" body="torso"/>
+  </sensor>
+</mujoco>
+"""
+
+
+def _rangefinder_sites() -> str:
+    """dm_control's 20 rangefinder sites on the head (``rf_<row><column>``): kept so that every site has
+    dm_control's index, though the walk and run tasks remove the rangefinder sensors that read them."""
+    sites = []
+    for row in range(4):
+        for col in range(5):
+            y = -0.02 if (row, col) == (1, 1) else (col - 2) / 100  # rf_11 repeats rf_10's y in dm_control
+            fromto = f".41 {y:g} {0.11 - row / 100:g} {0.34 + row / 50:g} 0 {0.115 - row / 200:g}"
+            sites.append(f'      <site name="rf_{row}{col}" class="rangefinder" fromto="{fromto}"/>')
+    return "\n".join(sites)
+
+
+def quadruped_xml(floor_size: float) -> str:
+    """MJCF text of dm_control's quadruped as ``quadruped.make_model(floor_size)`` builds it for the walk
+    and run tasks: without the walls, ball, target, terrain and rangefinder sensors.
+
+    Args:
+      floor_size: the floor plane's half side in metres (dm_control: the time limit times the task's
+        desired speed, 10 for walk and 100 for run).
+    """
+    legs = [leg for leg, _, _ in QUADRUPED_LEGS]
+    act = ("yaw", "joint", "yaw_{leg}"), ("lift", "tendon", "lift_{leg}"), ("extend", "tendon", "extend_{leg}")
+    actuators = "\n".join(
+        f'    <general name="{kind}_{leg}" class="{kind}_act" {target}="{name.format(leg=leg)}"/>'
+        for leg in legs
+        for kind, target, name in act
+    )
+    toe_sensors = "\n".join(
+        f'    <{kind} name="{kind}_toe_{leg}" site="toe_{leg}"/>' for kind in ("force", "torque") for leg in legs
+    )
+    parts = {
+        "floor": f"{floor_size:g}",
+        "rangefinders": _rangefinder_sites(),
+        "legs": "".join(_QUADRUPED_LEG.format(leg=leg, pos=pos, yaw=yaw) for leg, pos, yaw in QUADRUPED_LEGS),
+        "tendons": "".join(_QUADRUPED_COUPLING.format(leg=leg) for leg in legs)
+        + "".join(_QUADRUPED_TENDONS.format(leg=leg) for leg in legs),
+        "couplings": "\n".join(
+            f'    <tendon name="coupling_{leg}" tendon1="coupling_{leg}" class="coupling"/>' for leg in legs
+        ),
+        "actuators": actuators,
+        "toe_sensors": toe_sensors,
+    }
+    xml = QUADRUPED_XML
+    for key, text in parts.items():
+        xml = xml.replace("{" + key + "}", text)
+    return xml

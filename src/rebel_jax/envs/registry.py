@@ -2,7 +2,8 @@
 
 Importing :mod:`rebel_jax.envs` registers each task of :data:`rebel_jax.envs.TASKS` as
 ``rebel_<task>`` (``rebel_walker_stand``, ``rebel_walker_walk``, ``rebel_walker_run``,
-``rebel_cheetah_run``) and the test probe as ``rebel_probe_point``. A registered task follows
+``rebel_cheetah_run``, ``rebel_quadruped_walk``, ``rebel_quadruped_run``) and the test probe as
+``rebel_probe_point``. A registered task follows
 brax's convention: it has no time limit of its own (``episode_length=None``: ``done`` stays 0 and
 ``info`` holds no step count), and ``brax.envs.create(name, episode_length=1000, ...)`` adds
 brax's ``EpisodeWrapper``, which keeps the step count and sets ``done`` and ``truncation`` at

@@ -1,7 +1,8 @@
 """Clips of query segments for a person, drawn from the physics positions the buffer stored.
 
 - The MJX tasks: MuJoCo's own renderer (``mujoco.Renderer``) with dm_control's ``side``
-  camera (it tracks the centre of mass), on a copy of the task's model with dm_control's
+  camera (it tracks the centre of mass; the quadruped's side view is its camera ``y``, the one
+  DrQ-v2 renders the quadruped with), on a copy of the task's model with dm_control's
   visual assets added back (skybox, checker floor, light), which the physics model leaves out.
   Only visual elements are added, so the positions mean the same. MuJoCo needs an OpenGL
   context: ``MUJOCO_GL=egl`` (a GPU, or Mesa's software EGL) or ``MUJOCO_GL=osmesa``.
@@ -30,8 +31,14 @@ INSTRUCTIONS = {
     "walker_walk": "Which walker walks forward (to the right) better, while staying upright?",
     "walker_run": "Which walker runs forward (to the right) faster, while staying upright?",
     "cheetah_run": "Which cheetah runs forward (to the right) faster?",
+    "quadruped_walk": "Which quadruped walks forward (the way its head points) better, while staying upright?",
+    "quadruped_run": "Which quadruped runs forward (the way its head points) faster, while staying upright?",
 }
 """The question the page asks for each task."""
+
+CAMERAS = {"quadruped_walk": "y", "quadruped_run": "y"}
+"""The camera of each MJX task's clips where it is not ``side``: the quadruped's side view, ``y`` (camera 2,
+DrQ-v2's quadruped camera), which tracks the centre of mass from 4 m away."""
 
 
 class ClipError(RuntimeError):
@@ -108,11 +115,11 @@ def render_xml(task: str) -> str:
 
 
 class MujocoRenderer:
-    """An MJX task's clip: MuJoCo's renderer, dm_control's ``side`` camera."""
+    """An MJX task's clip: MuJoCo's renderer, dm_control's ``side`` camera (:data:`CAMERAS` where another)."""
 
     image_format = "JPEG"
 
-    def __init__(self, task: str, size: int = 256):
+    def __init__(self, task: str, size: int = 256, camera: int | str | None = None):
         import mujoco
 
         from rebel_jax.envs.dmc import TASKS, mj_model
@@ -124,6 +131,7 @@ class MujocoRenderer:
         self.data = mujoco.MjData(self.model)
         self.fps = 1.0 / (float(physics.opt.timestep) * TASKS[task].n_substeps)
         self.size = size
+        self.camera = CAMERAS.get(task, "side") if camera is None else camera
         self._mujoco = mujoco
         try:
             self.renderer = mujoco.Renderer(self.model, size, size)
@@ -142,7 +150,7 @@ class MujocoRenderer:
             self.data.qpos[:] = qpos
             self.data.qvel[:] = 0.0
             mujoco.mj_forward(self.model, self.data)
-            self.renderer.update_scene(self.data, camera="side")
+            self.renderer.update_scene(self.data, camera=self.camera)
             out[t] = self.renderer.render()
         return out
 
