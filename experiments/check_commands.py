@@ -47,16 +47,6 @@ EQUIVALENT = {
 skipped no query (``session_skipped`` 0 in their logs), so counting the pairs asked or answered is the same."""
 
 
-def _flatten(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            out[prefix + key] = value
-    return out
-
-
 def blocks(text: str) -> list[tuple[list[str], list[list[str]]]]:
     """(run directories, argument lists of the commands) of each block that names its logs.
 
@@ -90,13 +80,13 @@ def mismatches(run_dir: pathlib.Path, programs: list[list[str]]) -> list[str]:
     Returns:
       The differences to the closest program (the one with the fewest), as ``field (run X, command Y)``.
     """
-    saved = _flatten(json.loads((run_dir / "config.json").read_text()))
+    saved = cli.flatten(json.loads((run_dir / "config.json").read_text()))
     meta = json.loads((run_dir / "meta.json").read_text())
-    defaults = _flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
+    defaults = cli.flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
     best = None
     for flags in programs:
         args = cli.parse([*flags, "--run-dir", "unused"])
-        now = _flatten(json.loads(json.dumps(dataclasses.asdict(args.config))))
+        now = cli.flatten(json.loads(json.dumps(dataclasses.asdict(args.config))))
         unused = tuple(f"{part}." for part in args.config.unused_parts())
         diffs = []
         for name in sorted(saved.keys() | now.keys()):

@@ -245,11 +245,12 @@ def command_line(argv: list[str]) -> str:
     return shlex.join(["python", "-m", "rebel_jax.train", *redact_token(argv)])
 
 
-def _flatten(tree: dict, prefix: str = "") -> dict:
+def flatten(tree: dict, prefix: str = "") -> dict:
+    """A nested dict's leaves keyed by their dotted paths: ``{"a": {"b": 1}}`` gives ``{"a.b": 1}``."""
     out = {}
     for k, v in tree.items():
         if isinstance(v, dict):
-            out.update(_flatten(v, f"{prefix}{k}."))
+            out.update(flatten(v, f"{prefix}{k}."))
         else:
             out[prefix + k] = v
     return out
@@ -278,10 +279,10 @@ def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
     except (OSError, ValueError) as err:
         raise ConfigError(f"--resume: cannot read the saved run's config.json / meta.json ({err})") from err
     now = json.loads(json.dumps(dataclasses.asdict(args.config)))  # tuples as lists, like the saved file
-    old, new = _flatten(saved), _flatten(now)
+    old, new = flatten(saved), flatten(now)
     for name, value in _run_fields(args).items():
         old[name], new[name] = meta.get(name), json.loads(json.dumps(value))
-    defaults = _flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
+    defaults = flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
     changes = []
     for name in sorted(old.keys() | new.keys()):
         before, after = old.get(name, "<absent>"), new.get(name, "<absent>")
@@ -399,20 +400,10 @@ def keep_rounds_before(metrics: pathlib.Path, rounds: int) -> None:
     """
     if not metrics.exists():
         return
-    lines = metrics.read_text().splitlines()
-    kept = []
-    for i, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except ValueError as err:
-            if i == len(lines) - 1:
-                print(f"note: {metrics}: dropped its last line, cut mid-write ({len(line)} chars)", file=sys.stderr)
-                continue
-            raise RuntimeError(f"{metrics}: line {i + 1} is not JSON ({err}); repair or remove it") from err
-        if record["round"] < rounds:
-            kept.append(line + "\n")
+    records, cut = rundir.log_records(metrics)
+    if cut is not None:
+        print(f"note: {metrics}: dropped its last line, cut mid-write ({len(cut)} chars)", file=sys.stderr)
+    kept = [line + "\n" for line, record in records if record["round"] < rounds]
     tmp = metrics.with_name(metrics.name + ".tmp")
     tmp.write_text("".join(kept))
     os.replace(tmp, metrics)

@@ -169,14 +169,15 @@ def saved_steps(run_dir: pathlib.Path) -> list[int]:
         return []
 
 
-def logged_rounds(metrics: pathlib.Path) -> set[int]:
-    """The rounds ``metrics.jsonl`` logs; a last line cut mid-write is left out (``--resume`` drops it).
+def log_records(metrics: pathlib.Path) -> tuple[list[tuple[str, dict]], str | None]:
+    """The round records of ``metrics.jsonl`` with their lines, and its last line if it was cut mid-write (else
+    None; ``--resume`` drops it).
 
     Raises:
       ConfigError: a line before the last that is not a JSON object with an integer ``round``.
     """
     lines = metrics.read_text().splitlines()
-    rounds = set()
+    records, cut = [], None
     for i, line in enumerate(lines):
         if not line.strip():
             continue
@@ -184,6 +185,7 @@ def logged_rounds(metrics: pathlib.Path) -> set[int]:
             record = json.loads(line)
         except ValueError as err:
             if i == len(lines) - 1:
+                cut = line
                 continue
             raise ConfigError(
                 f"--resume: {metrics}: line {i + 1} is not JSON ({err}); repair or remove that line"
@@ -193,8 +195,13 @@ def logged_rounds(metrics: pathlib.Path) -> set[int]:
                 f"--resume: {metrics}: line {i + 1} is not a round's record (a JSON object with an integer "
                 "'round'); repair or remove that line"
             )
-        rounds.add(record["round"])
-    return rounds
+        records.append((line, record))
+    return records, cut
+
+
+def logged_rounds(metrics: pathlib.Path) -> set[int]:
+    """The rounds ``metrics.jsonl`` logs (:func:`log_records`)."""
+    return {record["round"] for _, record in log_records(metrics)[0]}
 
 
 def check_resumable(run_dir: pathlib.Path) -> None:
