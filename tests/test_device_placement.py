@@ -88,3 +88,18 @@ def test_sharded_compile_reports_each_part_over_two_devices():
         ("evaluate", "partitioner", "ok"),
     ]
     assert all(len(r["devices"]) == 2 and r["compile_seconds"] > 0 for r in rows)
+
+
+@pytest.mark.heavy  # make test-heavy: a tiny PEBBLE run, about 2 minutes on 2 cores
+def test_pebble_in_one_process_over_two_cpu_devices_finishes(tmp_path):
+    """The run that used to hang in the CPU runtime (one process, 2 forced CPU devices, PEBBLE), with a deadline."""
+    run_dir = tmp_path / "run"
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    command = [sys.executable, "-m", "rebel_jax.train", "--preset", "tiny", "--algo", "pebble", "--task", "probe_point"]
+    command += ["--seeds", "2", "--total-steps", "4000", "--no-progress", "--no-tensorboard", "--run-dir", str(run_dir)]
+    done = subprocess.run(command, capture_output=True, text=True, env=dict(os.environ, XLA_FLAGS=flags), timeout=900)
+    assert done.returncode == 0, done.stderr[-2000:]
+    meta = json.loads((run_dir / "meta.json").read_text())
+    assert len(meta["devices"]) == 2, meta["devices"]
+    rounds = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert rounds[-1]["labels_used"] == [20, 20]
