@@ -20,7 +20,9 @@ names are the same in jax 0.10.2 and 0.11.
 
 Several processes of one ``--distributed`` run may use the same directory: JAX writes entries from process 0 only
 (``_cache_write`` in jax-ml/jax@cec06d116c05f0d52adfceee3d3b730fdbcb0ce5:jax/_src/compiler.py:835) and every
-process reads them, so the directory must be on a file system they share for the others to hit.
+process reads them, so the directory must be on a file system they share for the others to hit. The key leaves out
+the device assignment on GPUs only (jax-ml/jax@cec06d116c05f0d52adfceee3d3b730fdbcb0ce5:jax/_src/cache_key.py:121),
+so on CPUs the other processes' keys differ from process 0's and they compile again.
 """
 
 from __future__ import annotations
