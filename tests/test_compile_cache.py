@@ -149,3 +149,40 @@ def test_an_unwritable_compile_cache_dir_is_refused(tmp_path):
     choice = compile_cache.choose(str(blocker / "cache"), False, None, True, {})
     with pytest.raises(ConfigError, match="allowed a writable directory"):
         compile_cache.apply(choice)
+
+
+@pytest.fixture
+def jax_updates(monkeypatch):
+    """The ``jax.config.update`` calls of :func:`compile_cache.apply`, recorded instead of made (and no cache reset)."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    calls: dict[str, object] = {}
+    monkeypatch.setattr(compile_cache.jax.config, "update", lambda name, value: calls.__setitem__(name, value))
+    monkeypatch.setattr(compilation_cache, "reset_cache", lambda: None)
+    return calls
+
+
+def test_apply_caches_every_program_unless_the_environment_says_otherwise(jax_updates, tmp_path):
+    choice = compile_cache.choose(None, False, None, True, {compile_cache.ENV_DIR: str(tmp_path / "c")})
+    environ = {compile_cache.MIN_ENTRY_SIZE[1]: "100"}  # the user's own: kept
+    assert compile_cache.apply(choice, environ) == choice
+    assert jax_updates == {
+        "jax_enable_compilation_cache": True,
+        "jax_compilation_cache_dir": str(tmp_path / "c"),
+        compile_cache.MIN_COMPILE_TIME[0]: compile_cache.MIN_COMPILE_TIME[2],
+    }
+
+
+def test_apply_leaves_a_users_jax_settings_alone(jax_updates):
+    choice = compile_cache.choose(None, False, "/theirs", True, {})
+    assert compile_cache.apply(choice, {}) == choice and jax_updates == {}
+
+
+def test_an_unwritable_default_dir_runs_without_the_cache_with_a_warning(jax_updates, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    choice = compile_cache.choose(None, False, None, True, {compile_cache.ENV_DIR: str(blocker / "cache")})
+    assert compile_cache.apply(choice, {}).directory is None
+    assert jax_updates == {"jax_enable_compilation_cache": False}
+    err = capsys.readouterr().err
+    assert err.startswith("warning: the compilation cache directory") and err.count("\n") == 1, err
