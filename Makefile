@@ -61,5 +61,7 @@ test: lint system-deps
 test-heavy: $(VENV)/.test
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 
+# The checkout's own files only: the tests' compilation cache (.jax_cache) and the runs. The training command's
+# per-user compilation cache (~/.cache/rebel_jax/jax, docs/training.md) is outside the repo and left alone.
 clean:
 	rm -rf $(VENV) .jax_cache runs

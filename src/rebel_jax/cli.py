@@ -58,7 +58,7 @@ import numpy as np
 import tyro
 from jax.sharding import NamedSharding
 
-from rebel_jax import api, plots, rundir, sweep, teachers, video
+from rebel_jax import api, compile_cache, plots, rundir, sweep, teachers, video
 from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.config import PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
@@ -128,6 +128,12 @@ class Args:
     """Show a progress bar."""
     tensorboard: bool = True
     """Write TensorBoard event files."""
+    compile_cache: str | None = None
+    """The persistent compilation cache's directory: a later run that compiles the same programs loads them from
+    there. Default: ``JAX_COMPILATION_CACHE_DIR`` where set, else ``$REBEL_JAX_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/rebel_jax/jax``, else ``~/.cache/rebel_jax/jax`` (:mod:`rebel_jax.compile_cache`)."""
+    no_compile_cache: Annotated[bool, tyro.conf.FlagCreatePairsOff] = False
+    """No persistent compilation cache: compile every program in this process."""
     distributed: bool = False
     """Several processes (hosts, or one per GPU) run this same command: each calls
     ``jax.distributed.initialize`` first, with ``JAX_COORDINATOR_ADDRESS`` (host:port of process 0),
@@ -374,6 +380,7 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
         "backend": jax.default_backend(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "git_commit": _git_commit(),
+        "compile_cache": compile_cache.in_use(),
         "command": command,
         **_run_fields(args),
         "columns": args.columns,
@@ -387,6 +394,7 @@ def _record_resume(run_dir: pathlib.Path, args: Args, command: str, start: int) 
     """Appends this call to meta.json's ``resumed`` list; saves the config (a larger total_steps)."""
     meta = json.loads((run_dir / "meta.json").read_text())
     resumed = {"command": command, "started": datetime.datetime.now().isoformat(timespec="seconds")}
+    resumed["compile_cache"] = compile_cache.in_use()
     meta["resumed"] = [*meta.get("resumed", []), {**resumed, "from_round": start}]
     write_json(run_dir / "meta.json", meta)
     _write_config(run_dir, args)
@@ -958,10 +966,18 @@ def _check_host_teacher(args: Args) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """The command line: parse and check everything, then prepare the run directory, then train."""
+    """The command line: parse and check everything, then prepare the run directory, then train.
+
+    The persistent compilation cache is set up first (:func:`rebel_jax.compile_cache.configure`): in JAX's
+    configuration, for the whole process.
+    """
     argv = sys.argv[1:] if argv is None else list(argv)
     avoid_cpu_deadlock()
     args = parse(argv)
+    try:
+        compile_cache.configure(args.compile_cache, args.no_compile_cache)
+    except ConfigError as err:
+        raise _usage_error(err) from err
     if args.distributed:
         try:
             sweep.initialize()

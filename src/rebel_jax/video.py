@@ -2,7 +2,9 @@
 
     python -m rebel_jax.video RUN_DIR [--out FILE.gif|FILE.mp4] [--column 0] [--steps 500] [--size 240]
 
-renders a deterministic episode of a saved run's latest checkpoint. GIFs are written with
+renders a deterministic episode of a saved run's latest checkpoint. Its compiled programs are kept in the
+persistent compilation cache of ``python -m rebel_jax.train`` (``--compile-cache DIR``, ``--no-compile-cache``;
+:mod:`rebel_jax.compile_cache`). GIFs are written with
 imageio's Pillow plugin; MP4 needs imageio's ffmpeg plugin (``pip install imageio-ffmpeg``).
 ``rebel_jax.cli`` writes ``eval.gif`` at the end of each run of a MuJoCo task. The tasks the pure-JAX
 camera cannot draw (the quadruped: ellipsoids and cylinders) are drawn by MuJoCo's renderer from the
@@ -16,13 +18,16 @@ import argparse
 import functools
 import json
 import pathlib
+import sys
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rebel_jax import render
+from rebel_jax import compile_cache, render
+from rebel_jax.errors import ConfigError
+from rebel_jax.rundir import EXIT_USAGE
 
 
 def write(path: str | pathlib.Path, frames: np.ndarray, fps: float) -> pathlib.Path:
@@ -152,7 +157,19 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
         "--camera", default=None, help="camera id or name (default: 0; the quadruped: the labelling page's, y)"
     )
     parser.add_argument("--seed", type=int, default=0, help="reset key")
+    parser.add_argument(
+        "--compile-cache",
+        metavar="DIR",
+        default=None,
+        help="the persistent compilation cache's directory (default: as python -m rebel_jax.train's)",
+    )
+    parser.add_argument("--no-compile-cache", action="store_true", help="no persistent compilation cache")
     args = parser.parse_args(argv)
+    try:
+        compile_cache.configure(args.compile_cache, args.no_compile_cache)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE) from None
     trainer, step, params = load_policy(args.run_dir, args.column)
     policy = functools.partial(trainer.mean_action, params)
     env = trainer.env
