@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from test_pixel_preference import MICRO as PIXEL_MICRO
 from test_pixel_preference import _filled_buffer as _filled_pixel_buffer
+from test_pixel_preference import _place_of
 
 from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, surf, train
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
@@ -466,6 +467,24 @@ def test_rune_pixel_bonus_is_the_members_spread_at_the_first_step_of_each_n_step
         chex.assert_trees_all_equal(got.replace(reward=batch.reward), batch)  # only the reward changes
 
 
+def _select_directly(trainer: PixelTrainer, ts, key: jax.Array, first):
+    """The pixel trainer's call for its queries before the method hooks."""
+    cfg = trainer.cfg
+    return pixel_reward.select(
+        cfg.pixel_reward,
+        key,
+        ts.reward.params,
+        ts.buffer,
+        cfg.feedback.queries,
+        trainer.stored,
+        trainer.episode_length,
+        cfg.query.recent_episodes,
+        cfg.query.sampling,
+        cfg.query.candidate_factor,
+        first,
+    )
+
+
 def test_the_default_pixel_hooks_are_the_trainers_calls():
     """PEBBLE's pixel hooks against the calls the trainer made before them, bit for bit: ``pixel_reward.select``
     with the trainer's arguments, ``frame_replay.sample`` with DrQ-v2's sizes, the batch unchanged."""
@@ -475,21 +494,7 @@ def test_the_default_pixel_hooks_are_the_trainers_calls():
     ts, method, cfg = ts.replace(buffer=filled), Method(), PIXEL_MICRO
     for first in (True, False):
         hooked = jax.jit(lambda key, first=first: method.pixel_query_segments(trainer, ts, key, first))
-        direct = jax.jit(
-            lambda key, first=first: pixel_reward.select(
-                cfg.pixel_reward,
-                key,
-                ts.reward.params,
-                ts.buffer,
-                cfg.feedback.queries,
-                trainer.stored,
-                trainer.episode_length,
-                cfg.query.recent_episodes,
-                cfg.query.sampling,
-                cfg.query.candidate_factor,
-                first,
-            )
-        )
+        direct = jax.jit(lambda key, first=first: _select_directly(trainer, ts, key, first))
         chex.assert_trees_all_equal(hooked(jax.random.key(20)), direct(jax.random.key(20)))
     sample = jax.jit(lambda key: method.pixel_sample_batch(trainer, ts, ts.buffer, key))
     d = cfg.drqv2
@@ -528,3 +533,126 @@ def test_the_pixel_round_calls_the_hooks_in_the_session_the_updates_and_the_rese
     # The session's queries; its critic reset's updates (uniform batches, the method's reward); a step's updates.
     assert sorted(spy.calls) == ["query", "reward", "reward", "sample"]
     assert spy.calls.index("sample") > spy.calls.index("reward")  # the reset (in the session) traces first
+
+
+class _DirectQueries(Method):
+    """PEBBLE whose queries are the trainer's call before the hooks; its batches are :class:`_DirectCalls`'s."""
+
+    name = "pebble"
+
+    def pixel_query_segments(self, trainer, ts, key, first):
+        return _select_directly(trainer, ts, key, first)
+
+    def pixel_sample_batch(self, trainer, ts, buffer, key):
+        raise AssertionError("the direct trainer samples by itself")
+
+    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+        raise AssertionError("the direct trainer's batches keep the learned reward")
+
+
+class _DirectCalls(PixelTrainer):
+    """The pixel trainer's DrQ-v2 updates as written before the method hooks: ``frame_replay.sample`` and the
+    learned reward in the updates of every step and in those after the critic's reset."""
+
+    def __init__(self, cfg: Config):
+        super().__init__(cfg)
+        self.method = _DirectQueries()
+
+    def _updates(self, ts, buffer, key, agent_step):
+        cfg = self.cfg.drqv2
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            return self.agent.update(state, batch, key_update, agent_step)
+
+        agent, metrics = jax.lax.scan(one, ts.sac, jax.random.split(key, self.updates_per_step))
+        return agent, jax.tree.map(jnp.mean, metrics)
+
+    def _reset_critic(self, ts, key, agent_step):
+        cfg = self.cfg.drqv2
+        key_reset, key_updates = jax.random.split(key)
+        agent = self.agent.reset_critic(ts.sac, key_reset)
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = frame_replay.sample(ts.buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            return self.agent.update(state, batch, key_update, agent_step)[0], None
+
+        return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
+
+
+PIXEL_SEEDS = 2
+
+
+def _pixel_run(trainer: PixelTrainer, rounds: int) -> tuple[PixelTrainer, list, list]:
+    """``rounds`` rounds of two seeds; the state after each (on the host) and each round's metrics."""
+    init, round_fn, _ = train.compiled(trainer)
+    state = init(train.seed_keys(0, PIXEL_SEEDS))
+    states, metrics = [], []
+    for r in range(rounds):
+        state, m = round_fn(state, jnp.int32(r))
+        states.append(jax.device_get(state.replace(key=jax.random.key_data(state.key))))
+        metrics.append(jax.device_get(m))
+    return trainer, states, metrics
+
+
+@pytest.fixture(scope="module")
+def pixel_pebble():
+    """PEBBLE's micro pixel run through the hooks: round 0 seeds, round 1 the first feedback session and its critic
+    reset, round 2 a later session."""
+    return _pixel_run(PixelTrainer(PIXEL_MICRO), 3)
+
+
+@pytest.mark.heavy  # two compiles of the pixel round; make test checks the hooks against the calls one by one
+def test_pixel_pebble_through_the_hooks_is_the_trainers_direct_calls_bit_for_bit(pixel_pebble):
+    _, states, metrics = pixel_pebble
+    _, direct_states, direct_metrics = _pixel_run(_DirectCalls(PIXEL_MICRO), 3)
+    for r in range(3):
+        chex.assert_trees_all_equal(states[r], direct_states[r])
+        chex.assert_trees_all_equal(metrics[r], direct_metrics[r])
+    assert metrics[-1]["labels_used"].tolist() == [8.0, 8.0]  # two sessions ran
+
+
+@pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores)
+def test_pixel_rune_learns_pebbles_reward_and_moves_the_agent_with_its_bonus(pixel_pebble):
+    cfg = dataclasses.replace(PIXEL_MICRO, algo="rune", rune=RUNEConfig(beta_0=0.5, rho=1e-3))
+    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 2)
+    _, pebble, _ = pixel_pebble
+    assert trainer.trace_count == 1
+    # Until the first feedback session's critic reset the runs are PEBBLE's: the same labels, the same learned reward
+    # (up to float rounding: another program); the bonus then enters the reset's updates and every later update.
+    ours, theirs = states[1], pebble[1]
+    np.testing.assert_array_equal(ours.reward.data.labels, theirs.reward.data.labels)
+    chex.assert_trees_all_close(ours.reward.params, theirs.reward.params, rtol=1e-4, atol=1e-6)
+    critic = [jax.tree.leaves(state.sac.critic_params) for state in (ours, theirs)]
+    change = max(float(np.max(np.abs(a - b))) for a, b in zip(*critic, strict=True))
+    print(f"critic after round 1: largest change {change:.2e} from PEBBLE's")
+    assert change > 1e-4  # far above float rounding
+    for m in metrics[1:]:
+        np.testing.assert_array_equal(m["diverged"], 0.0)
+        assert all(np.all(np.isfinite(m[k])) for k in ("critic_loss", "reward_loss", "reward_accuracy_all"))
+
+
+@pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores) and four rounds
+def test_pixel_qpa_labels_segments_of_the_last_complete_episodes_at_each_session():
+    cfg = dataclasses.replace(PIXEL_MICRO, algo="qpa", qpa=QPAConfig(recent_episodes=2, crop=1, her_ratio=0.5))
+    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 4)
+    assert trainer.trace_count == 1
+    assert [float(m["labels_used"][0]) for m in metrics] == [0.0, 4.0, 8.0, 12.0]
+    for m in metrics[1:]:
+        np.testing.assert_array_equal(m["diverged"], 0.0)
+        assert np.all(m["reward_epochs"] <= PIXEL_MICRO.pixel_reward.max_epochs)
+        assert all(np.all(np.isfinite(m[k])) for k in ("critic_loss", "reward_loss", "reward_accuracy_all"))
+    # Reference: the 2 envs' episodes of L = 10 agent steps start together, one per round, and the ring never wraps
+    # (40 rows); session s (at round s) finds s complete episodes per env, and the last 2 of them by (age, env) are
+    # episode s - 1 of both envs: rows 10 (s - 1) .. 10 s - 1. Its 4 pairs are stored 4 (s - 1) .. 4 s - 1.
+    final, length, horizon = states[-1], trainer.episode_length, cfg.query.segment_length
+    for seed in range(PIXEL_SEEDS):
+        buffer = jax.tree.map(lambda x, s=seed: x[s], final.buffer)
+        data = jax.tree.map(lambda x, s=seed: x[s], final.reward.data)
+        for pair in range(12):
+            session = pair // 4 + 1
+            for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b)):
+                row, _ = _place_of(buffer, frames[pair], action[pair], horizon)
+                assert row // length == session - 1 and (row + horizon - 1) // length == session - 1

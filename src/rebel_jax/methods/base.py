@@ -138,7 +138,8 @@ class Method:
 
     def pixel_query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
         """The session's query pairs on a pixel task, as replay places (``pixel_reward.SegmentPlaces``): by
-        ``query.sampling`` over the last ``query.recent_episodes`` complete episodes (uniform at the first session)."""
+        ``query.sampling`` over the last ``query.recent_episodes`` complete episodes (uniform at the first feedback
+        session)."""
         return trainer.select(ts, key, first)
 
     def pixel_sample_batch(

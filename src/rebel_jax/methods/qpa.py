@@ -100,7 +100,7 @@ class QPA(Method):
 
     def pixel_query_segments(self, trainer, ts, key, first):
         """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes of the frame ring, every session."""
-        del first  # Unused: the first session is uniform as the others.
+        del first  # Unused: the first feedback session is uniform too.
         n = trainer.cfg.feedback.queries
         sizes = (trainer.stored, trainer.episode_length, trainer.cfg.qpa.recent_episodes)
         both = pixel_reward.sample_segments(key, ts.buffer, 2 * n, *sizes)

@@ -20,8 +20,8 @@ from rebel_jax import drqv2, frame_replay, replay
 
 
 def recent_positions(count: jax.Array, labels: int, batch_size: int, her_ratio: float) -> jax.Array:
-    """(B,) bool: the batch's last ``int(her_ratio * batch_size)`` positions, while ``0 < count < labels``
-    (labels stored, the budget not spent; QPA's ``total_feedback < max_feedback`` after the first session)."""
+    """(B,) bool: the batch's last ``int(her_ratio * batch_size)`` positions, while ``0 < count < labels``: labels
+    stored, the budget not spent (QPA's ``total_feedback < max_feedback`` past its first feedback session)."""
     hybrid = (count > 0) & (count < labels)
     return hybrid & (jnp.arange(batch_size) >= batch_size - int(her_ratio * batch_size))
 
