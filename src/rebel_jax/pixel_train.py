@@ -47,6 +47,10 @@ branch ``pixel``):
   (``pixel_reward.store_bytes``); SURF's pool the same per pair. What changes against SURF is the agent's
   replay (the last 100k transitions, not the run), as for ``--algo drqv2``; the labelled frames are SURF's.
   Each session relabels every row the ring holds. ``--buffer-capacity 500000`` keeps the whole run.
+
+A method changes the session's queries, the agent's batches and their reward through its pixel hooks
+(``Method.pixel_query_segments``, ``pixel_sample_batch``, ``pixel_batch_reward``; QPA's and RUNE's), whose
+defaults are the calls above.
 """
 
 from __future__ import annotations
@@ -343,7 +347,8 @@ class PixelTrainer:
         return session_due(self.cfg, round_index)
 
     def select(self, ts: PixelTrainState, key: jax.Array, first: jax.Array):
-        """The session's query pairs as segment places (uniform at the first feedback session)."""
+        """The session's query pairs as segment places (uniform at the first feedback session): the default of
+        ``Method.pixel_query_segments``."""
         cfg = self.cfg
         return pixel_reward.select(
             cfg.pixel_reward,
