@@ -95,7 +95,7 @@ def _programs(trainer: PixelTrainer):
     step = jnp.int32(trainer.cfg.train.seed_steps)
 
     def update(ts):
-        return trainer._updates(ts.sac, ts.buffer, ts.key, step)
+        return trainer._updates(ts, ts.buffer, ts.key, step)
 
     def env_step(ts):
         key_act, _ = jax.random.split(ts.key)

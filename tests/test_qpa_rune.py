@@ -1,6 +1,8 @@
 """QPA and RUNE (``rebel_jax.methods.qpa``, ``.rune``) against NumPy and Python-loop references of their own rules:
 QPA's recent-episode query pool, its hybrid SAC batch, its cropped Bradley-Terry term and its early-stopped
-sessions; RUNE's bonus and its decay. Then their settings on the command line, and one short run of each."""
+sessions; RUNE's bonus and its decay. Then their settings on the command line, and one short run of each. Then the
+same on pixel tasks (the frame ring's query pool, the hybrid n-step batch, the bonus, a short run of each), and pixel
+PEBBLE through the method hooks against the trainer's calls before them."""
 
 from __future__ import annotations
 
@@ -17,12 +19,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pixel_preference import MICRO as PIXEL_MICRO
+from test_pixel_preference import _filled_buffer as _filled_pixel_buffer
+from test_pixel_preference import _place_of
 
-from rebel_jax import cli, replay, reward_model, surf, train
+from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, surf, train
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
+from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.methods import REGISTRY
+from rebel_jax.methods.base import Method
 from rebel_jax.methods.qpa import QPAConfig, augmented_bt_loss
 from rebel_jax.methods.rune import RUNEConfig, bonus_weight
+from rebel_jax.pixel_reward import PixelRewardConfig
+from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.reward_model import PrefBatch, RewardConfig
 
 # A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment
@@ -244,12 +253,11 @@ def test_rune_adds_the_members_spread_weighted_by_a_decaying_beta():
 
 TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tensorboard"]
 BAD = {
-    "qpa-on-pixels": (
-        ["--algo", "qpa", "--task", "probe_point_pixels"],
-        ["env.task='probe_point_pixels'", "state task"],
-    ),
-    "rune-on-pixels": (["--algo", "rune", "--task", "probe_point_pixels"], ["env.task='probe_point_pixels'", "state"]),
     "rune-one-member": (["--algo", "rune", "--reward.ensemble-size", "1"], ["reward.ensemble_size=1", ">= 2"]),
+    "rune-one-pixel-member": (
+        ["--algo", "rune", "--task", "probe_point_pixels", "--pixel-reward.ensemble-size", "1"],
+        ["pixel_reward.ensemble_size=1", ">= 2"],
+    ),
     "qpa-with-pebble": (["--algo", "pebble", "--qpa.her-ratio", "0.3"], ["qpa settings", "qpa only with --algo qpa"]),
     "rune-with-qpa": (["--algo", "qpa", "--rune.rho", "0.1"], ["rune settings", "rune only with --algo rune"]),
     "qpa-crop": (["--algo", "qpa", "--qpa.crop", "9"], ["qpa.crop=9", "3 crop < 25"]),
@@ -327,3 +335,324 @@ def test_a_short_run_through_the_cli_traces_its_round_once_and_uses_the_budget(m
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 5 and all(row["status"] == "ok" for row in rows)
     assert rows[-1]["labels_used"] == [12.0, 12.0]
+
+
+# -- pixel tasks ---------------------------------------------------------------------------------------------------
+# A frame ring of 40 rows of 2 environments with 6-step episodes, written for 57 vector steps: it holds writes 17-56,
+# so the wrap cuts episode 2 (writes 12-17), episodes 3-8 are complete and episode 9 runs (writes 54-56). Each write's
+# action is (write, env), its learned reward 10 write + env.
+PIX_LENGTH, PIX_ENVS, PIX_ROWS, PIX_WRITES, PIX_SIZE, NSTEP, GAMMA = 6, 2, 40, 57, 4, 3, 0.9
+
+
+@functools.cache
+def _marked_ring() -> tuple[frame_replay.FrameBuffer, np.ndarray, np.ndarray]:
+    """The ring above, and the stacks the environments showed before and after each write: (write, env, H, W, 9)."""
+    rng = np.random.default_rng(12)
+    buffer = frame_replay.init(PIX_ROWS * PIX_ENVS, PIX_ENVS, (PIX_SIZE, PIX_SIZE, 3), 2, PIX_LENGTH, 3, True)
+    add, envs = jax.jit(frame_replay.add), np.arange(PIX_ENVS)
+    obs, next_obs = [], []
+    for t in range(PIX_WRITES):
+        step = t % PIX_LENGTH
+        if step == 0:
+            stack = np.concatenate([rng.integers(0, 256, (PIX_ENVS, PIX_SIZE, PIX_SIZE, 3), np.uint8)] * 3, -1)
+        new = rng.integers(0, 256, (PIX_ENVS, PIX_SIZE, PIX_SIZE, 3), np.uint8)
+        nxt = np.concatenate([stack[..., 3:], new], -1)
+        row = frame_replay.FrameStep(
+            obs=jnp.asarray(stack),
+            action=jnp.asarray(np.stack([np.full(PIX_ENVS, t), envs], -1), jnp.float32),
+            next_obs=jnp.asarray(nxt),
+            reward=jnp.asarray(10.0 * t + envs, jnp.float32),
+            terminal=jnp.zeros(PIX_ENVS),
+            truncated=jnp.full(PIX_ENVS, float(step == PIX_LENGTH - 1)),
+            episode_step=jnp.int32(step),
+            true_reward=jnp.zeros(PIX_ENVS),
+        )
+        buffer = add(buffer, row)
+        obs.append(stack)
+        next_obs.append(nxt)
+        stack = nxt
+    return buffer, np.stack(obs), np.stack(next_obs)
+
+
+def _pixel_config(algo: str, **parts) -> Config:
+    return Config(
+        algo=algo,
+        env=EnvConfig(task="probe_point_pixels", num_envs=PIX_ENVS, episode_length=2 * PIX_LENGTH),
+        drqv2=DrQV2Config(batch_size=64, nstep=NSTEP, gamma=GAMMA),
+        feedback=FeedbackConfig(labels=40, per_session=64),
+        **parts,
+    )
+
+
+@pytest.mark.parametrize("first", [True, False], ids=["first-session", "later-session"])
+def test_qpa_pixel_queries_come_only_from_the_last_complete_episodes_of_the_ring(first):
+    cfg, horizon = _pixel_config("qpa", qpa=QPAConfig(recent_episodes=3)), 4
+    trainer = types.SimpleNamespace(cfg=cfg, stored=horizon, episode_length=PIX_LENGTH)
+    buffer, _, _ = _marked_ring()
+    ts = types.SimpleNamespace(buffer=buffer)
+    pixel_query_segments = jax.jit(lambda key: REGISTRY["qpa"].pixel_query_segments(trainer, ts, key, first))
+    seg_a, seg_b = pixel_query_segments(jax.random.key(13))
+    # Reference (B-Pref's FIFO of complete episodes): the episodes all of whose writes the ring holds, ordered by
+    # (episode, env), the last three; a segment is H consecutive writes of one of them.
+    held = range(PIX_WRITES - PIX_ROWS, PIX_WRITES)
+    episodes = [(b, e) for b in range(PIX_WRITES // PIX_LENGTH + 1) for e in range(PIX_ENVS)]
+    complete = [(b, e) for b, e in episodes if all(b * PIX_LENGTH + h in held for h in range(PIX_LENGTH))]
+    allowed, actions = set(complete[-3:]), np.asarray(buffer.action)
+    seen, offsets = set(), set()
+    for seg in (seg_a, seg_b):
+        assert seg.row.shape == (64,)
+        for row, env in zip(np.asarray(seg.row), np.asarray(seg.env), strict=True):
+            writes = actions[(row + np.arange(horizon)) % PIX_ROWS, env, 0].astype(int)  # the segment's writes
+            np.testing.assert_array_equal(writes, writes[0] + np.arange(horizon))
+            episode = writes[0] // PIX_LENGTH
+            assert (episode, env) in allowed and writes[-1] // PIX_LENGTH == episode
+            seen.add((episode, env))
+            offsets.add(writes[0] % PIX_LENGTH)
+    assert seen == allowed and offsets == set(range(PIX_LENGTH - horizon + 1))  # every episode, every start
+
+
+@pytest.mark.parametrize("count,hybrid", [(0, False), (20, True), (40, False)], ids=["before", "during", "after"])
+def test_qpa_pixel_batch_draws_its_last_quarter_from_the_recent_valid_rows_while_the_budget_lasts(count, hybrid):
+    cfg = _pixel_config("qpa", qpa=QPAConfig(recent_episodes=3, her_ratio=0.25))
+    trainer = types.SimpleNamespace(cfg=cfg, episode_length=PIX_LENGTH)
+    ts = types.SimpleNamespace(reward=types.SimpleNamespace(data=types.SimpleNamespace(count=jnp.int32(count))))
+    buffer, obs, next_obs = _marked_ring()
+    keys = jax.random.split(jax.random.key(14), 200)
+    batch = jax.jit(jax.vmap(lambda k: REGISTRY["qpa"].pixel_sample_batch(trainer, ts, buffer, k)))(keys)
+    writes, envs = (np.asarray(batch.action[..., i]).astype(int) for i in (0, 1))
+    # Reference (DrQ-v2's n-step windows; QPA's last 3 x 6 transitions are ceil(18 / 2) = 9 rows of 2 environments):
+    # a start is valid when its 3 steps are held writes of one episode; the recent ones are among the last 9 writes.
+    held = range(PIX_WRITES - PIX_ROWS, PIX_WRITES)
+    valid = {t for t in held if t + NSTEP - 1 in held and t % PIX_LENGTH + NSTEP - 1 < PIX_LENGTH}
+    recent = {t for t in valid if t >= PIX_WRITES - math.ceil(3 * PIX_LENGTH / PIX_ENVS)}
+    rewards = 10.0 * np.arange(PIX_WRITES)[:, None] + np.arange(PIX_ENVS)
+    returns = sum(GAMMA**i * rewards[writes + i, envs] for i in range(NSTEP))
+    np.testing.assert_allclose(np.asarray(batch.reward), returns, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(batch.discount), GAMMA**NSTEP, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(batch.obs), obs[writes, envs])
+    np.testing.assert_array_equal(np.asarray(batch.next_obs), next_obs[writes + NSTEP - 1, envs])
+    assert set(writes.ravel()) <= valid and set(envs.ravel()) == {0, 1}
+    last = int(0.25 * 64)
+    inside, share = np.isin(writes, list(recent)), len(recent) / len(valid)  # share: of uniform starts
+    tolerance = 4 * math.sqrt(share * (1 - share) / writes[:, :-last].size)
+    assert abs(inside[:, :-last].mean() - share) < tolerance
+    if hybrid:
+        assert inside[:, -last:].all() and set(writes[:, -last:].ravel()) == recent
+    else:
+        assert abs(inside[:, -last:].mean() - share) < 4 * math.sqrt(share * (1 - share) / writes[:, -last:].size)
+
+
+def test_rune_pixel_bonus_is_the_members_spread_at_the_first_step_of_each_n_step_transition():
+    rcfg = PixelRewardConfig(ensemble_size=3, hidden=8)
+    cfg = _pixel_config("rune", rune=RUNEConfig(beta_0=0.3, rho=1e-3), pixel_reward=rcfg)
+    buffer, _, _ = _marked_ring()
+    init = jax.jit(lambda key: pixel_reward.init(rcfg, key, (PIX_SIZE, PIX_SIZE, 9), 2, 4, 4).params)
+    params, rng = init(jax.random.key(15)), np.random.default_rng(16)
+    batch = jax.jit(lambda key: frame_replay.sample(buffer, key, 32, NSTEP, GAMMA))(jax.random.key(17))
+    batch = batch.replace(reward=jnp.asarray(rng.normal(size=32), jnp.float32))  # the n-step learned returns
+    trainer = types.SimpleNamespace(cfg=cfg)
+    ts = types.SimpleNamespace(reward=types.SimpleNamespace(params=params))
+    apply = jax.jit(pixel_reward.network(rcfg).apply)
+    members = [np.asarray(apply(jax.tree.map(lambda x, m=m: x[m], params), batch.obs, batch.action)) for m in range(3)]
+    members = np.stack(members).astype(np.float64)  # (M, B): each member's reward of (s_t, a_t)
+    spread = np.sqrt(np.mean((members - members.mean(0)) ** 2, axis=0))  # NumPy's std, ddof 0, as RUNE's
+    assert spread.min() > 0
+    batch_reward = jax.jit(lambda step: REGISTRY["rune"].pixel_batch_reward(trainer, ts, batch, step))
+    for step in (0, 14, 3000):
+        got = batch_reward(jnp.int32(step))
+        beta = 0.3 * (1 - 1e-3) ** step  # RUNE's beta(step), step = the seed's agent steps so far
+        np.testing.assert_allclose(
+            np.asarray(got.reward), np.asarray(batch.reward) + beta * spread, rtol=1e-5, atol=1e-7
+        )
+        chex.assert_trees_all_equal(got.replace(reward=batch.reward), batch)  # only the reward changes
+
+
+def _select_directly(trainer: PixelTrainer, ts, key: jax.Array, first):
+    """The pixel trainer's call for its queries before the method hooks."""
+    cfg = trainer.cfg
+    return pixel_reward.select(
+        cfg.pixel_reward,
+        key,
+        ts.reward.params,
+        ts.buffer,
+        cfg.feedback.queries,
+        trainer.stored,
+        trainer.episode_length,
+        cfg.query.recent_episodes,
+        cfg.query.sampling,
+        cfg.query.candidate_factor,
+        first,
+    )
+
+
+def test_the_default_pixel_hooks_are_the_trainers_calls():
+    """PEBBLE's pixel hooks against the calls the trainer made before them, bit for bit: ``pixel_reward.select``
+    with the trainer's arguments, ``frame_replay.sample`` with DrQ-v2's sizes, the batch unchanged."""
+    trainer = PixelTrainer(PIXEL_MICRO)
+    ts = jax.jit(trainer.init)(jax.random.key(18))
+    filled, _, _, _ = _filled_pixel_buffer(np.random.default_rng(19), 4 * trainer.episode_length, ts.buffer)
+    ts, method, cfg = ts.replace(buffer=filled), Method(), PIXEL_MICRO
+    for first in (True, False):
+        hooked = jax.jit(lambda key, first=first: method.pixel_query_segments(trainer, ts, key, first))
+        direct = jax.jit(lambda key, first=first: _select_directly(trainer, ts, key, first))
+        chex.assert_trees_all_equal(hooked(jax.random.key(20)), direct(jax.random.key(20)))
+    sample = jax.jit(lambda key: method.pixel_sample_batch(trainer, ts, ts.buffer, key))
+    d = cfg.drqv2
+    expected = jax.jit(lambda key: frame_replay.sample(ts.buffer, key, d.batch_size, d.nstep, d.gamma))
+    batch = sample(jax.random.key(21))
+    chex.assert_trees_all_equal(batch, expected(jax.random.key(21)))
+    assert method.pixel_batch_reward(trainer, ts, batch, jnp.int32(40)) is batch
+
+
+class _Spy(Method):
+    """PEBBLE, counting where the pixel trainer's round calls its pixel hooks (at trace time)."""
+
+    name = "pebble"
+
+    def __init__(self):
+        self.calls = []
+
+    def pixel_query_segments(self, trainer, ts, key, first):
+        self.calls.append("query")
+        return super().pixel_query_segments(trainer, ts, key, first)
+
+    def pixel_sample_batch(self, trainer, ts, buffer, key):
+        self.calls.append("sample")
+        return super().pixel_sample_batch(trainer, ts, buffer, key)
+
+    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+        self.calls.append("reward")
+        return super().pixel_batch_reward(trainer, ts, batch, agent_step)
+
+
+def test_the_pixel_round_calls_the_hooks_in_the_session_the_updates_and_the_reset_updates():
+    trainer = PixelTrainer(PIXEL_MICRO)
+    trainer.method = spy = _Spy()
+    ts = jax.eval_shape(trainer.init, jax.random.key(0))
+    jax.eval_shape(trainer.round, ts, jnp.int32(1))
+    # The session's queries; its critic reset's updates (uniform batches, the method's reward); a step's updates.
+    assert sorted(spy.calls) == ["query", "reward", "reward", "sample"]
+    assert spy.calls.index("sample") > spy.calls.index("reward")  # the reset (in the session) traces first
+
+
+class _DirectQueries(Method):
+    """PEBBLE whose queries are the trainer's call before the hooks; its batches are :class:`_DirectCalls`'s."""
+
+    name = "pebble"
+
+    def pixel_query_segments(self, trainer, ts, key, first):
+        return _select_directly(trainer, ts, key, first)
+
+    def pixel_sample_batch(self, trainer, ts, buffer, key):
+        raise AssertionError("the direct trainer samples by itself")
+
+    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+        raise AssertionError("the direct trainer's batches keep the learned reward")
+
+
+class _DirectCalls(PixelTrainer):
+    """The pixel trainer's DrQ-v2 updates as written before the method hooks: ``frame_replay.sample`` and the
+    learned reward in the updates of every step and in those after the critic's reset."""
+
+    def __init__(self, cfg: Config):
+        super().__init__(cfg)
+        self.method = _DirectQueries()
+
+    def _updates(self, ts, buffer, key, agent_step):
+        cfg = self.cfg.drqv2
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            return self.agent.update(state, batch, key_update, agent_step)
+
+        agent, metrics = jax.lax.scan(one, ts.sac, jax.random.split(key, self.updates_per_step))
+        return agent, jax.tree.map(jnp.mean, metrics)
+
+    def _reset_critic(self, ts, key, agent_step):
+        cfg = self.cfg.drqv2
+        key_reset, key_updates = jax.random.split(key)
+        agent = self.agent.reset_critic(ts.sac, key_reset)
+
+        def one(state, key):
+            key_sample, key_update = jax.random.split(key)
+            batch = frame_replay.sample(ts.buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            return self.agent.update(state, batch, key_update, agent_step)[0], None
+
+        return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
+
+
+PIXEL_SEEDS = 2
+
+
+def _pixel_run(trainer: PixelTrainer, rounds: int) -> tuple[PixelTrainer, list, list]:
+    """``rounds`` rounds of two seeds; the state after each (on the host) and each round's metrics."""
+    init, round_fn, _ = train.compiled(trainer)
+    state = init(train.seed_keys(0, PIXEL_SEEDS))
+    states, metrics = [], []
+    for r in range(rounds):
+        state, m = round_fn(state, jnp.int32(r))
+        states.append(jax.device_get(state.replace(key=jax.random.key_data(state.key))))
+        metrics.append(jax.device_get(m))
+    return trainer, states, metrics
+
+
+@pytest.fixture(scope="module")
+def pixel_pebble():
+    """PEBBLE's micro pixel run through the hooks: round 0 seeds, round 1 the first feedback session and its critic
+    reset, round 2 a later session."""
+    return _pixel_run(PixelTrainer(PIXEL_MICRO), 3)
+
+
+@pytest.mark.heavy  # two compiles of the pixel round; make test checks the hooks against the calls one by one
+def test_pixel_pebble_through_the_hooks_is_the_trainers_direct_calls_bit_for_bit(pixel_pebble):
+    _, states, metrics = pixel_pebble
+    _, direct_states, direct_metrics = _pixel_run(_DirectCalls(PIXEL_MICRO), 3)
+    for r in range(3):
+        chex.assert_trees_all_equal(states[r], direct_states[r])
+        chex.assert_trees_all_equal(metrics[r], direct_metrics[r])
+    assert metrics[-1]["labels_used"].tolist() == [8.0, 8.0]  # two sessions ran
+
+
+@pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores)
+def test_pixel_rune_learns_pebbles_reward_and_moves_the_agent_with_its_bonus(pixel_pebble):
+    cfg = dataclasses.replace(PIXEL_MICRO, algo="rune", rune=RUNEConfig(beta_0=0.5, rho=1e-3))
+    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 2)
+    _, pebble, _ = pixel_pebble
+    assert trainer.trace_count == 1
+    # Until the first feedback session's critic reset the runs are PEBBLE's: the same labels, the same learned reward
+    # (up to float rounding: another program); the bonus then enters the reset's updates and every later update.
+    ours, theirs = states[1], pebble[1]
+    np.testing.assert_array_equal(ours.reward.data.labels, theirs.reward.data.labels)
+    chex.assert_trees_all_close(ours.reward.params, theirs.reward.params, rtol=1e-4, atol=1e-6)
+    critic = [jax.tree.leaves(state.sac.critic_params) for state in (ours, theirs)]
+    change = max(float(np.max(np.abs(a - b))) for a, b in zip(*critic, strict=True))
+    print(f"critic after round 1: largest change {change:.2e} from PEBBLE's")
+    assert change > 1e-4  # far above float rounding
+    for m in metrics[1:]:
+        np.testing.assert_array_equal(m["diverged"], 0.0)
+        assert all(np.all(np.isfinite(m[k])) for k in ("critic_loss", "reward_loss", "reward_accuracy_all"))
+
+
+@pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores) and four rounds
+def test_pixel_qpa_labels_segments_of_the_last_complete_episodes_at_each_session():
+    cfg = dataclasses.replace(PIXEL_MICRO, algo="qpa", qpa=QPAConfig(recent_episodes=2, crop=1, her_ratio=0.5))
+    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 4)
+    assert trainer.trace_count == 1
+    assert [float(m["labels_used"][0]) for m in metrics] == [0.0, 4.0, 8.0, 12.0]
+    for m in metrics[1:]:
+        np.testing.assert_array_equal(m["diverged"], 0.0)
+        assert np.all(m["reward_epochs"] <= PIXEL_MICRO.pixel_reward.max_epochs)
+        assert all(np.all(np.isfinite(m[k])) for k in ("critic_loss", "reward_loss", "reward_accuracy_all"))
+    # Reference: the 2 envs' episodes of L = 10 agent steps start together, one per round, and the ring never wraps
+    # (40 rows); session s (at round s) finds s complete episodes per env, and the last 2 of them by (age, env) are
+    # episode s - 1 of both envs: rows 10 (s - 1) .. 10 s - 1. Its 4 pairs are stored 4 (s - 1) .. 4 s - 1.
+    final, length, horizon = states[-1], trainer.episode_length, cfg.query.segment_length
+    for seed in range(PIXEL_SEEDS):
+        buffer = jax.tree.map(lambda x, s=seed: x[s], final.buffer)
+        data = jax.tree.map(lambda x, s=seed: x[s], final.reward.data)
+        for pair in range(12):
+            session = pair // 4 + 1
+            for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b)):
+                row, _ = _place_of(buffer, frames[pair], action[pair], horizon)
+                assert row // length == session - 1 and (row + horizon - 1) // length == session - 1

@@ -47,6 +47,10 @@ branch ``pixel``):
   (``pixel_reward.store_bytes``); SURF's pool the same per pair. What changes against SURF is the agent's
   replay (the last 100k transitions, not the run), as for ``--algo drqv2``; the labelled frames are SURF's.
   Each session relabels every row the ring holds. ``--buffer-capacity 500000`` keeps the whole run.
+
+A method changes the session's queries, the agent's batches and their reward through its pixel hooks
+(``Method.pixel_query_segments``, ``pixel_sample_batch``, ``pixel_batch_reward``; QPA's and RUNE's), whose
+defaults are the calls above.
 """
 
 from __future__ import annotations
@@ -283,15 +287,21 @@ class PixelTrainer:
         episodes = ts.episodes.after_step(nxt.reward, nxt.done, n)
         return frame_replay.add(ts.buffer, step), episodes
 
-    def _updates(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step: jax.Array):
+    def _updates(self, ts: PixelTrainState, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step: jax.Array):
+        """DrQ-v2's updates of one vector step from ``ts.sac``: the method's batches (``Method.pixel_sample_batch``)
+        and reward (``Method.pixel_batch_reward``) on a preference run, uniform batches of the true reward else."""
         cfg = self.cfg.drqv2
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)
-            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            if not self.preference:
+                batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            else:
+                batch = self.method.pixel_sample_batch(self, ts, buffer, key_sample)
+                batch = self.method.pixel_batch_reward(self, ts, batch, agent_step)
             return self.agent.update(state, batch, key_update, agent_step)
 
-        agent, metrics = jax.lax.scan(one, agent, jax.random.split(key, self.updates_per_step))
+        agent, metrics = jax.lax.scan(one, ts.sac, jax.random.split(key, self.updates_per_step))
         return agent, jax.tree.map(jnp.mean, metrics)
 
     def vector_step(self, ts: PixelTrainState, t: jax.Array) -> tuple[PixelTrainState, dict]:
@@ -317,7 +327,7 @@ class PixelTrainer:
         zeros = {k: jnp.zeros(()) for k in METRICS}
         agent, metrics = jax.lax.cond(
             learning,
-            lambda: self._updates(ts.sac, buffer, key_update, t * self.num_train),
+            lambda: self._updates(ts, buffer, key_update, t * self.num_train),
             lambda: (ts.sac, zeros),
         )
         ts = ts.replace(sac=agent, buffer=buffer, env=nxt, episodes=episodes)
@@ -337,7 +347,8 @@ class PixelTrainer:
         return session_due(self.cfg, round_index)
 
     def select(self, ts: PixelTrainState, key: jax.Array, first: jax.Array):
-        """The session's query pairs as segment places (uniform at the first feedback session)."""
+        """The session's query pairs as segment places (uniform at the first feedback session): the default of
+        ``Method.pixel_query_segments``."""
         cfg = self.cfg
         return pixel_reward.select(
             cfg.pixel_reward,
@@ -400,21 +411,26 @@ class PixelTrainer:
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self._learned_reward(reward.params, obs, action), rcfg.relabel_rows
         )
-        agent = jax.lax.cond(first, lambda: self._reset_critic(ts.sac, buffer, key_critic, agent_step), lambda: ts.sac)
+        new = ts.replace(buffer=buffer, reward=reward)
+        agent = jax.lax.cond(first, lambda: self._reset_critic(new, key_critic, agent_step), lambda: ts.sac)
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics["reward_correlation"] = weighted_pearson(buffer.reward, buffer.true_reward, written)
         return ts.replace(sac=agent, buffer=buffer, reward=reward), metrics
 
-    def _reset_critic(self, agent: DrQV2State, buffer: frame_replay.FrameBuffer, key: jax.Array, agent_step):
-        """A fresh critic, then ``pretrain.reset_updates`` DrQ-v2 updates (pixel_train_PEBBLE.py:413-420)."""
-        cfg = self.cfg.drqv2
+    def _reset_critic(self, ts: PixelTrainState, key: jax.Array, agent_step):
+        """A fresh critic for ``ts.sac``, then ``pretrain.reset_updates`` DrQ-v2 updates on ``ts.buffer``
+        (pixel_train_PEBBLE.py:413-420): uniform batches (QPA's ``update_after_reset`` samples uniformly,
+        huxiao09/QPA@7e9e49e:agent/sac.py:334-337) with the method's reward (RUNE's ``update_after_reset`` adds
+        its bonus, rll-research/rune@8b3c77a:agent/sac_explore.py:399-411)."""
+        cfg, buffer = self.cfg.drqv2, ts.buffer
         key_reset, key_updates = jax.random.split(key)
-        agent = self.agent.reset_critic(agent, key_reset)
+        agent = self.agent.reset_critic(ts.sac, key_reset)
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)
             batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            batch = self.method.pixel_batch_reward(self, ts, batch, agent_step)
             return self.agent.update(state, batch, key_update, agent_step)[0], None
 
         return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
@@ -432,7 +448,7 @@ class PixelTrainer:
         """:meth:`feedback_session` as one batched computation under ``vmap``."""
         key, key_select, key_teach, key_learn = jax.random.split(ts.key, 4)
         ts = ts.replace(key=key)
-        seg_a, seg_b = self.select(ts, key_select, first)
+        seg_a, seg_b = self.method.pixel_query_segments(self, ts, key_select, first)
         labels, mask, info = self.teach(ts, key_teach, seg_a, seg_b, index)
         ts, metrics = self.learn(ts, key_learn, seg_a, seg_b, labels, mask, first, agent_step)
         return ts, self._session_summary(ts, dict(metrics, session=1.0, **teachers.session_metrics(info)))

@@ -15,7 +15,9 @@ only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e
   (PEBBLE's early-stopped epochs by default; SURF's fixed iterations);
 - **hooks with no effect by default**: :meth:`query_segments` (which segments the queries come from),
   :meth:`sample_batch` (the agent's minibatch from the replay) and :meth:`batch_reward` (an intrinsic reward
-  added to the learned one in that minibatch).
+  added to the learned one in that minibatch); on pixel tasks :meth:`pixel_query_segments`,
+  :meth:`pixel_sample_batch` and :meth:`pixel_batch_reward`, whose defaults make the pixel trainer's calls
+  (the same functions, arguments and keys).
 
 A new method is one file with a subclass, registered in :data:`rebel_jax.methods.REGISTRY` (or at run time
 with :func:`rebel_jax.methods.register`); ``docs/adding_a_method.md`` walks through one.
@@ -28,7 +30,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, replay, reward_model
+from rebel_jax import drqv2, frame_replay, pixel_reward, replay, reward_model
 
 
 class Method:
@@ -132,4 +134,39 @@ class Method:
           t: the vector step of the run (unbatched), for a bonus that decays.
         """
         del trainer, ts, t  # Unused.
+        return batch
+
+    def pixel_query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
+        """The session's query pairs on a pixel task, as replay places (``pixel_reward.SegmentPlaces``): by
+        ``query.sampling`` over the last ``query.recent_episodes`` complete episodes (uniform at the first feedback
+        session)."""
+        return trainer.select(ts, key, first)
+
+    def pixel_sample_batch(
+        self, trainer: Any, ts: Any, buffer: frame_replay.FrameBuffer, key: jax.Array
+    ) -> drqv2.PixelTransition:
+        """The agent's n-step minibatch in the DrQ-v2 updates of every step of a pixel task: uniform over the
+        valid rows, with the learned reward. The updates after the critic's reset sample uniformly whatever the
+        method (QPA's ``update_after_reset`` does, huxiao09/QPA@7e9e49e:agent/sac.py:334-337).
+
+        Args:
+          ts: the state before the step (``ts.reward`` the ensemble and its labels).
+          buffer: the frame replay with the step's transitions written.
+        """
+        del ts  # Unused.
+        cfg = trainer.cfg.drqv2
+        return frame_replay.sample(buffer, key, cfg.batch_size, cfg.nstep, cfg.gamma)
+
+    def pixel_batch_reward(
+        self, trainer: Any, ts: Any, batch: drqv2.PixelTransition, agent_step: jax.Array
+    ) -> drqv2.PixelTransition:
+        """A pixel minibatch's n-step reward as the agent sees it, in every DrQ-v2 update (those after the critic's
+        reset included); unchanged by default.
+
+        Args:
+          ts: the state whose ensemble (``ts.reward.params``) labelled the replay.
+          batch: n-step transitions: ``reward`` is the discounted sum of the learned rewards of their n steps.
+          agent_step: () the seed's agent steps so far, over its training environments (DrQ-v2's step).
+        """
+        del trainer, ts, agent_step  # Unused.
         return batch

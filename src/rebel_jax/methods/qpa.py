@@ -2,19 +2,17 @@
 
 QPA (huxiao09/QPA@7e9e49e, built on B-Pref) changes three things of PEBBLE:
 
-- **policy-aligned queries** (:meth:`QPA.query_segments`): every session's pairs are uniform (no scoring,
-  ``explore=false``) from the last ``qpa.recent_episodes`` complete episodes, the reward model's FIFO of
-  ``max_reward_buffer_size`` episodes (reward_model.py:198-205, ``get_queries`` :365-401, train_QPA.py:124-128);
-- **hybrid experience replay** (:meth:`QPA.sample_batch`): while the label budget lasts, ``int(her_ratio *
-  batch_size)`` transitions of each SAC batch come from the last ``recent_episodes`` episodes' worth of
-  transitions, the rest from the whole buffer; uniform batches after it (train_QPA.py:258-262,
-  agent/sac.py:274-285, replay_buffer.py:107-108);
+- **policy-aligned queries** (:meth:`QPA.query_segments`, :meth:`QPA.pixel_query_segments`): every session's pairs
+  are uniform (``explore=false``) from the last ``qpa.recent_episodes`` complete episodes, the reward model's FIFO
+  of ``max_reward_buffer_size`` episodes (reward_model.py:198-205, ``get_queries`` :365-401, train_QPA.py:124-128);
+- **hybrid experience replay** (:mod:`rebel_jax.methods.qpa_replay`): while the label budget lasts, ``int(her_ratio
+  * batch_size)`` transitions of each agent batch come from the last ``recent_episodes`` episodes' worth of
+  transitions, the rest from the whole replay (train_QPA.py:258-262, agent/sac.py:274-285);
 - **temporal-crop augmentation** (:func:`augmented_bt_loss`): every labelled pair is seen in ``data_aug_ratio``
   random crops per reward step (reward_model.py:680-695, :723-744), in sessions of at most ``ceil(reward_update *
   labels / reward.batch_size)`` steps that stop once the running accuracy reaches ``stop_accuracy``
-  (train_QPA.py:143-144, reward_model.py:761).
-
-Its other settings (one reward member, B-Pref's ``asked`` budget) are the ``qpa`` preset's. State tasks only.
+  (train_QPA.py:143-144, reward_model.py:761); on pixels one crop per step (:meth:`QPA.train_pixel_reward`).
+Its other settings (one reward member, B-Pref's ``asked`` budget) are the ``qpa`` preset's.
 """
 
 from __future__ import annotations
@@ -24,8 +22,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import queries, replay, reward_model, surf
+from rebel_jax import pixel_reward, queries, reward_model, surf
 from rebel_jax.errors import check
+from rebel_jax.methods import qpa_replay
 from rebel_jax.methods.base import Method
 
 
@@ -85,18 +84,11 @@ def augmented_bt_loss(cfg: reward_model.RewardConfig, qpa: QPAConfig) -> reward_
     return loss_fn
 
 
-def recent_rows(buffer: replay.Buffer, episodes: int, episode_length: int) -> jax.Array:
-    """Rows holding the last ``episodes`` episodes' worth of transitions, ``ceil(episodes L / E)``, at most those
-    filled: QPA's last ``episodes x L`` transitions (replay_buffer.py:108) over E environments. () int32."""
-    return jnp.clip(queries.window_rows(buffer, 1, episode_length, episodes), 1, jnp.maximum(buffer.size, 1))
-
-
 class QPA(Method):
     name = "qpa"
     config_field = "qpa"
 
     def validate(self, cfg):
-        check(not cfg.pixels, "env.task", cfg.env.task, "a state task with --algo qpa (no pixel batch hook)")
         cfg.qpa.validate(cfg.query.segment_length)
 
     def query_segments(self, trainer, ts, key, first):
@@ -106,22 +98,22 @@ class QPA(Method):
         sizes = (trainer.stored_length, cfg.env.episode_length, cfg.qpa.recent_episodes, cfg.query.pool)
         return queries.sample_pairs(ts.buffer, key, cfg.feedback.queries, *sizes)
 
+    def pixel_query_segments(self, trainer, ts, key, first):
+        """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes of the frame ring, every session."""
+        del first  # Unused: the first feedback session is uniform too.
+        n = trainer.cfg.feedback.queries
+        sizes = (trainer.stored, trainer.episode_length, trainer.cfg.qpa.recent_episodes)
+        both = pixel_reward.sample_segments(key, ts.buffer, 2 * n, *sizes)
+        return jax.tree.map(lambda x: x[:n], both), jax.tree.map(lambda x: x[n:], both)
+
     def sample_batch(self, trainer, ts, buffer, key):
-        """Uniform rows, the last ``int(her_ratio * batch_size)`` of them from :func:`recent_rows` while the budget
-        lasts (``0 < labels stored < feedback.labels``); the learned reward."""
-        cfg, size = trainer.cfg, trainer.cfg.sac.batch_size
-        count = ts.reward.data.count
-        hybrid = (count > 0) & (count < cfg.feedback.labels)
-        recent = hybrid & (jnp.arange(size) >= size - int(cfg.qpa.her_ratio * size))
-        key_row, key_back, key_env = jax.random.split(key, 3)
-        rows = recent_rows(buffer, cfg.qpa.recent_episodes, cfg.env.episode_length)
-        back = jax.random.randint(key_back, (size,), 0, rows)
-        row = jax.random.randint(key_row, (size,), 0, buffer.size)
-        row = jnp.where(recent, (buffer.ptr - 1 - back) % buffer.rows, row)
-        env = jax.random.randint(key_env, (size,), 0, buffer.num_envs)
-        fields = (buffer.obs, buffer.action, buffer.learned_reward, buffer.next_obs, buffer.terminal)
-        obs, action, reward, next_obs, terminal = (field[row, env] for field in fields)
-        return replay.Transition(obs, action, reward, next_obs, 1.0 - terminal)
+        """Uniform rows, the last ``int(her_ratio * batch_size)`` of them from the last ``recent_episodes``
+        episodes' rows while the budget lasts (``0 < labels stored < feedback.labels``); the learned reward."""
+        return qpa_replay.state_batch(trainer.cfg, ts.reward.data.count, buffer, key)
+
+    def pixel_sample_batch(self, trainer, ts, buffer, key):
+        """DrQ-v2's n-step batch, hybrid as :meth:`sample_batch`'s, over the valid rows (episodes in agent steps)."""
+        return qpa_replay.pixel_batch(trainer.cfg, ts.reward.data.count, buffer, key, trainer.episode_length)
 
     def state_terms(self, trainer, ts, key):
         del ts, key  # Unused.
@@ -148,3 +140,11 @@ class QPA(Method):
         state, steps, accuracy, loss = jax.lax.while_loop(running, one_step, start)
         ran = jnp.maximum(steps, 1)
         return state, {"epochs": steps, "train_accuracy": accuracy / ran, "loss": loss / ran}
+
+    def train_pixel_reward(self, trainer, ts, stored, keys, kept, agent_step):
+        """PEBBLE's pixel session (``pixel_reward.max_epochs``, stopped early), each labelled pair seen through one
+        QPA crop per step (none with ``data_aug_ratio`` 0): the members' convolutions bound the crops and steps."""
+        del agent_step  # Unused.
+        rcfg, qpa = trainer.cfg.pixel_reward, trainer.cfg.qpa
+        crop = qpa.crop if qpa.data_aug_ratio else 0
+        return pixel_reward.train(rcfg, stored, keys["train"], (), crop, jnp.where(kept > 0, rcfg.max_epochs, 0))

@@ -5,8 +5,19 @@ deviation over the members of their rewards for the same transition, weighted by
 with t the environment steps taken so far (rll-research/rune@8b3c77a:agent/sac_explore.py:128-132, :157, called
 with ``self.step``, train_PEBBLE_explore.py:286). RUNE stores the bonus beside the learned reward and relabels
 both after every session (replay_buffer_explore.py:75-94), so it is always the current ensemble's, as computed
-here on each minibatch. The reward itself is learnt as PEBBLE's. State tasks only: the pixel trainer has no
-hook for the agent's reward.
+here on each minibatch. The reward itself is learnt as PEBBLE's.
+
+On pixel tasks (:meth:`RUNE.pixel_batch_reward`) DrQ-v2 learns from n-step transitions whose ``reward`` is the
+discounted sum of the learned rewards of n steps; the bonus added to it is that of the transition's first step
+``(s_t, a_t)``, the one whose Q-value the update moves, once: ``sum_i gamma^i r_hat_{t+i} + beta_t std(s_t, a_t)``.
+The batch carries that step's stack and action only, so the bonus of the n - 1 later steps (their discounted sum
+would be the n-step return of RUNE's per-step reward) would need n times the members' encoder passes per update,
+which relabelling once per session avoids for the learned reward; URLB's n-step DDPG agents (DrQ-v2's) likewise
+compute their ensemble-disagreement reward once per n-step sample (rll-research/url_benchmark@bb98f0c:
+agent/disagreement.py:93-112, ``nstep: 3`` in agent/disagreement.yaml). In the value the bonus then weighs about
+``(1 - gamma) / (1 - gamma^n)`` of the per-step form's (a third at n 3, gamma 0.99); ``rune.beta_0`` times n
+restores its scale. On pixels the ``pretrain.reset_updates`` updates after the critic's reset carry the bonus too
+(RUNE's ``update_after_reset``, agent/sac_explore.py:399-411).
 """
 
 from __future__ import annotations
@@ -17,7 +28,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import replay, reward_model
+from rebel_jax import pixel_reward, replay, reward_model
 from rebel_jax.errors import check
 from rebel_jax.methods.base import Method
 
@@ -54,13 +65,20 @@ class RUNE(Method):
     config_field = "rune"
 
     def validate(self, cfg):
-        check(not cfg.pixels, "env.task", cfg.env.task, "a state task with --algo rune (no pixel reward hook)")
         cfg.rune.validate()
-        size = cfg.reward.ensemble_size
-        check(size >= 2, "reward.ensemble_size", size, ">= 2 with --algo rune (its bonus is the members' spread)")
+        field = "pixel_reward" if cfg.pixels else "reward"
+        size = getattr(cfg, field).ensemble_size
+        check(size >= 2, f"{field}.ensemble_size", size, ">= 2 with --algo rune (its bonus is the members' spread)")
 
     def batch_reward(self, trainer, ts, batch: replay.Transition, t: jax.Array) -> replay.Transition:
         """The learned reward plus ``beta_t`` times the ensemble's disagreement, t = ``t * num_envs`` env steps."""
         bonus = disagreement(trainer.reward_cfg, ts.reward.params, batch.obs, batch.action)
         weight = bonus_weight(trainer.cfg.rune, t * trainer.cfg.env.num_envs)
         return batch.replace(reward=batch.reward + weight * bonus)
+
+    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+        """The n-step learned return plus ``beta_t`` times the members' disagreement on the first step's stack and
+        action, t = ``agent_step`` (the seed's agent steps so far, RUNE's environment steps)."""
+        members = pixel_reward.predict(trainer.cfg.pixel_reward, ts.reward.params, batch.obs, batch.action)  # (M, B)
+        weight = bonus_weight(trainer.cfg.rune, agent_step)
+        return batch.replace(reward=batch.reward + weight * jnp.std(members, axis=0))
