@@ -93,7 +93,7 @@ class QPA(Method):
 
     def query_segments(self, trainer, ts, key, first):
         """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes (``query.pool``), every session."""
-        del first  # Unused: the first session is uniform as the others.
+        del first  # Unused: the first feedback session is uniform as the others.
         cfg = trainer.cfg
         sizes = (trainer.stored_length, cfg.env.episode_length, cfg.qpa.recent_episodes, cfg.query.pool)
         return queries.sample_pairs(ts.buffer, key, cfg.feedback.queries, *sizes)
