@@ -64,7 +64,13 @@ def test_reset_and_step_are_tied_to_no_device(task):
 
 
 @pytest.mark.parametrize(
-    ("algo", "task"), [("sac", "walker_walk"), ("pebble", "walker_walk"), ("drqv2", "walker_walk_pixels")]
+    ("algo", "task"),
+    [
+        ("sac", "walker_walk"),
+        ("pebble", "walker_walk"),
+        # make test-heavy: the pixel programs' trace; the pixel task's reset and step are checked above
+        pytest.param("drqv2", "walker_walk_pixels", marks=pytest.mark.heavy),
+    ],
 )
 def test_the_run_programs_are_tied_to_no_device(algo, task):
     tiny = config.PRESETS["tiny"]
