@@ -37,6 +37,7 @@ import re
 import sys
 import time
 import traceback
+import warnings
 import zlib
 from collections.abc import Callable
 
@@ -102,6 +103,9 @@ def _closed_loop_callbacks(hook: Callable) -> Callable:
 
 
 def _quiet_orbax_failures() -> None:
+    # A failed save leaves orbax's pending writes (coroutines) unawaited; Python reports each when it collects it,
+    # at times after the run's one-line error.
+    warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
     if not getattr(sys.unraisablehook, "quiet_closed_loops", False):
         sys.unraisablehook = _closed_loop_callbacks(sys.unraisablehook)
     for name in ("absl", "asyncio"):
