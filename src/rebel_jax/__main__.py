@@ -1,6 +1,19 @@
 """The command line: ``python -m rebel_jax`` (and ``python -m rebel_jax.train``), see :mod:`rebel_jax.cli`."""
 
+import os
+import sys
+
+from rebel_jax import rundir
 from rebel_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except SystemExit as end:
+        if end.code != rundir.EXIT_IO:
+            raise
+        # An I/O failure ended the run, its one line printed and every file closed: leave now, before the
+        # interpreter's shutdown reports the failed save's leftovers (orbax's pending writes) after that line.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rundir.EXIT_IO)
