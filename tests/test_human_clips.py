@@ -86,14 +86,21 @@ RENDER = textwrap.dedent(
 )
 
 
-def test_walker_clip_with_mujocos_renderer():
+def _rendered(script: str) -> dict:
+    """The JSON line a render script prints, run in a fresh process (MuJoCo reads MUJOCO_GL at import); skips
+    where MuJoCo finds no OpenGL."""
     gl = os.environ.get("MUJOCO_GL", "egl")
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"), MUJOCO_GL=gl)
-    out = subprocess.run([sys.executable, "-c", RENDER], env=env, capture_output=True, text=True, timeout=300)
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     if "error" in result:
         pytest.skip(f"no OpenGL for MuJoCo here (MUJOCO_GL={gl}): {result['error']}")
+    return result
+
+
+def test_walker_clip_with_mujocos_renderer():
+    result = _rendered(RENDER)
     assert result["shape"] == [3, 256, 256, 3] and result["fps"] == 40.0  # dm_control's walker: 25 ms per step
     assert result["body_pixels"] > 500 and 96 < result["body_centre"] < 160  # centred by the tracking camera
     assert result["floor_moved"] > 1.0 and result["leg_moved"] > 0.5
@@ -129,13 +136,7 @@ QUADRUPED_RENDER = textwrap.dedent(
 def test_quadruped_clip_with_mujocos_renderer():
     """The quadruped (ellipsoid and cylinder geoms, which the pure-JAX camera does not draw) through its side
     camera ``y``, which tracks the centre of mass."""
-    gl = os.environ.get("MUJOCO_GL", "egl")
-    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"), MUJOCO_GL=gl)
-    out = subprocess.run([sys.executable, "-c", QUADRUPED_RENDER], env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    if "error" in result:
-        pytest.skip(f"no OpenGL for MuJoCo here (MUJOCO_GL={gl}): {result['error']}")
+    result = _rendered(QUADRUPED_RENDER)
     assert result["shape"] == [3, 256, 256, 3] and result["fps"] == 50.0  # dm_control's quadruped: 20 ms per step
     assert result["camera"] == "y" and clips.INSTRUCTIONS["quadruped_walk"]
     assert result["body_pixels"] > 500 and 96 < result["body_centre"] < 160  # centred by the tracking camera
