@@ -1,7 +1,7 @@
 """Nothing traced into the run's programs is tied to one device.
 
-``train.compiled`` runs the seed-vmapped programs on every device under ``shard_map`` (several GPUs,
-one block of seeds each). A program that places data on one device (``jax.device_put(x, device)``
+``train.compiled`` runs the seed-vmapped programs on every device (several GPUs, one block of seeds
+each, ``sweep.per_device``). A program that places data on one device (``jax.device_put(x, device)``
 traced inside it), or that closes over an array committed to one device, asks every device's block
 to live on that device: on two GPUs XLA crashed with a segmentation fault in the first ``init``.
 MJX does both by default: ``mjx.put_model`` and ``mjx.make_data`` commit their arrays to the first
@@ -86,10 +86,22 @@ def test_the_run_programs_are_tied_to_no_device(algo, task):
 def test_sharded_compile_reports_each_part_over_two_devices():
     script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "sharded_compile.py"
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    command = [sys.executable, str(script), "--task", "probe_point", "--parts", "evaluate", "--seeds-per-device", "1"]
+    command = [
+        sys.executable,
+        str(script),
+        "--task",
+        "probe_point",
+        "--parts",
+        "evaluate",
+        "--seeds-per-device",
+        "1",
+        "--jobs",
+        "2",
+    ]
     done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
     rows = [json.loads(line) for line in done.stdout.splitlines()]
     assert [(r["part"], r["mode"], r["status"]) for r in rows] == [
+        ("evaluate", "per_device", "ok"),
         ("evaluate", "shard_map", "ok"),
         ("evaluate", "partitioner", "ok"),
     ]

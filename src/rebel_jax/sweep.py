@@ -3,8 +3,8 @@
 One GPU runs many seeds by ``vmap``. With several devices (``jax.devices()``; with several
 processes after :func:`initialize`, every process's devices), the leading seed axis of every
 array in the run's state is split over a 1-D ``Mesh`` named ``seeds``;
-``train.compiled(trainer, sharding)`` then runs each device's seeds where they live
-(``shard_map``), with no communication.
+``train.compiled(trainer, sharding)`` then runs each device's seeds where they live, as the
+one-device program (:func:`per_device`), with no communication.
 
 Several processes (hosts, or one process per GPU) run the same command with ``--distributed``
 (:func:`initialize`); each process holds its own devices' seeds. The host loop then needs the
@@ -20,7 +20,6 @@ import os
 from collections.abc import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -68,49 +67,60 @@ def seed_sharding(num_seeds: int, devices: list | None = None) -> NamedSharding 
     return NamedSharding(Mesh(np.array(devices), ("seeds",)), PartitionSpec("seeds"))
 
 
-def per_device(fn: Callable, sharding: NamedSharding, batched: tuple[bool, ...]) -> Callable:
-    """``fn`` (a seed-vmapped function) run by ``shard_map`` on each device's block of seeds, with no communication.
+def per_device(
+    fn: Callable, sharding: NamedSharding, batched: tuple[bool, ...], donate_argnums: tuple[int, ...] = ()
+) -> Callable:
+    """``fn`` (a seed-vmapped function) run on each device's block of seeds as its own one-device program.
 
-    Zero-size arrays (MJX's data holds several, e.g. the constraint rows of a model without
-    constraints) stay outside the ``shard_map``: they are passed in and returned as new empty
-    arrays. XLA's GPU compiler (JAX 0.11.2) crashed with a segmentation fault on a ``shard_map``
-    whose outputs mixed zero-size and other arrays (an MJX reset's ``State``, on 2 GPUs).
+    Each addressable device of ``sharding`` runs ``jax.jit(fn)`` on its block of the seed axis (the
+    ``addressable_shards`` of each argument), with no communication; the blocks' results are joined
+    into global arrays with ``sharding`` (``jax.make_array_from_single_device_arrays``). Calls return
+    at once (JAX's asynchronous dispatch), so the devices run at the same time. Every device runs the
+    program compiled for one device, the program a single-GPU run uses: the SPMD forms (``shard_map``,
+    or ``jax.jit`` with the seed sharding on its inputs) crashed XLA's GPU compiler with a segmentation
+    fault on 2 GPUs (JAX 0.11.2; ``benchmarks/sharded_compile.py`` compiles each form). On GPUs the
+    persistent compilation cache (on by default, :mod:`rebel_jax.compile_cache`) keys a one-device
+    program without its device, so the second device loads the first one's compiled program.
+
+    Called on tracers (``jax.eval_shape``, ``jax.make_jaxpr``) it is ``fn`` itself: the same shapes.
 
     Args:
       fn: the function; its outputs carry the seed axis first.
       sharding: the seed axis's sharding (:func:`seed_sharding`).
       batched: for each positional argument of ``fn``, whether it carries the seed axis (else it is
         the same on every device).
+      donate_argnums: arguments whose buffers each device's program may reuse (e.g. the replay buffer).
     """
-    mesh, seeds, same = sharding.mesh, sharding.spec, PartitionSpec()
-    blocks = mesh.size
+    program = jax.jit(fn, donate_argnums=donate_argnums)
+    devices = list(sharding.addressable_devices_indices_map((sharding.mesh.size,)))
 
     def run(*args):
-        leaves, treedef = jax.tree.flatten(args)
-        per_arg = [len(jax.tree.leaves(a)) for a in args]
-        split = np.repeat(np.asarray(batched, bool), per_arg)
-        kept = [i for i, x in enumerate(leaves) if x.size]
-        outputs, out_treedef = jax.tree.flatten(jax.eval_shape(fn, *args))
-        kept_out = [i for i, x in enumerate(outputs) if x.size]
-
-        def block(*kept_leaves):
-            full = [
-                jnp.zeros((x.shape[0] // blocks, *x.shape[1:]) if split[i] else x.shape, x.dtype)
-                for i, x in enumerate(leaves)
-            ]
-            for i, x in zip(kept, kept_leaves, strict=True):
-                full[i] = x
-            out = jax.tree.leaves(fn(*jax.tree.unflatten(treedef, full)))
-            return [out[i] for i in kept_out]
-
-        in_specs = tuple(seeds if split[i] else same for i in kept)
-        mapped = jax.shard_map(block, mesh=mesh, in_specs=in_specs, out_specs=[seeds] * len(kept_out), check_vma=False)
-        result = [jnp.zeros(x.shape, x.dtype) for x in outputs]
-        for i, x in zip(kept_out, mapped(*[leaves[i] for i in kept]), strict=True):
-            result[i] = x
-        return jax.tree.unflatten(out_treedef, result)
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+            return fn(*args)
+        args = tuple(shard_seeds(a, sharding) if seeded else a for a, seeded in zip(args, batched, strict=True))
+        blocks = [_device_blocks(args, batched, device) for device in devices]  # all before a donation deletes any
+        results = [program(*b) for b in blocks]
+        return jax.tree.map(
+            lambda *xs: jax.make_array_from_single_device_arrays(
+                (xs[0].shape[0] * sharding.mesh.size, *xs[0].shape[1:]), sharding, list(xs)
+            ),
+            *results,
+        )
 
     return run
+
+
+def _device_blocks(args: tuple, batched: tuple[bool, ...], device) -> tuple:
+    """``args`` as ``device`` holds them: its block of each seeded array, a copy of each other array."""
+
+    def block(x, seeded: bool):
+        if not isinstance(x, jax.Array):
+            return x  # NumPy or Python values: uncommitted, they follow the committed arguments.
+        if not seeded:
+            return jax.device_put(x, device)
+        return next(s.data for s in x.addressable_shards if s.device == device)
+
+    return tuple(jax.tree.map(lambda x, s=seeded: block(x, s), a) for a, seeded in zip(args, batched, strict=True))
 
 
 def shard_seeds(tree, sharding: NamedSharding | None):

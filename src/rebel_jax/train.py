@@ -758,27 +758,25 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     Args:
       trainer: the run's trainer.
       sharding: the seed axis's sharding over several devices (``sweep.seed_sharding``), or None
-        for one device. Each device then runs the vmapped program on its own seeds
-        (``shard_map``), with no communication between devices: left to XLA's partitioner, a
-        vmapped ``while_loop`` (the reward model's early stopping) reduces its condition over
-        every device at each iteration, the kNN reward's ``top_k`` gathered every seed's
-        distances on every device, and ``init`` returned its key-independent leaves (the
-        replay buffer) replicated on every device. Per seed the result is the same: under
-        ``vmap`` a seed whose loop has stopped is masked, whichever seeds share its batch.
+        for one device. Each device then runs the one-device program on its own seeds
+        (:func:`rebel_jax.sweep.per_device`), with no communication between devices. Per seed the
+        result is the same as on one device: under ``vmap`` a seed whose loop has stopped (the
+        reward model's early stopping) is masked, whichever seeds share its batch.
     """
     init = jax.vmap(trainer.init)
     round_fn = jax.vmap(trainer.round, in_axes=(0, None))
     evaluate_seeds = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))
-    if sharding is not None:
+    if sharding is None:
+        init, round_fn, evaluate_seeds = jax.jit(init), jax.jit(round_fn, donate_argnums=0), jax.jit(evaluate_seeds)
+    else:
         init = sweep.per_device(init, sharding, batched=(True,))
-        round_fn = sweep.per_device(round_fn, sharding, batched=(True, False))
+        round_fn = sweep.per_device(round_fn, sharding, batched=(True, False), donate_argnums=(0,))
         evaluate_seeds = sweep.per_device(evaluate_seeds, sharding, batched=(True, True, False))
-    evaluate_seeds = jax.jit(evaluate_seeds)
 
     def evaluate(actor_params, keys: jax.Array, random_actions: bool = False) -> jax.Array:
         return evaluate_seeds(actor_params, keys, jnp.asarray(random_actions))
 
-    return jax.jit(init), jax.jit(round_fn, donate_argnums=0), evaluate
+    return init, round_fn, evaluate
 
 
 if __name__ == "__main__":  # ``python -m rebel_jax.train`` runs the package's entry point; train never imports cli.
