@@ -16,6 +16,7 @@ are used only by these helpers (on CPU through gloo, JAX's default CPU collectiv
 
 from __future__ import annotations
 
+import concurrent.futures
 import os
 from collections.abc import Callable
 
@@ -74,8 +75,10 @@ def per_device(
 
     Each addressable device of ``sharding`` runs ``jax.jit(fn)`` on its block of the seed axis (the
     ``addressable_shards`` of each argument), with no communication; the blocks' results are joined
-    into global arrays with ``sharding`` (``jax.make_array_from_single_device_arrays``). Calls return
-    at once (JAX's asynchronous dispatch), so the devices run at the same time. Every device runs the
+    into global arrays with ``sharding`` (``jax.make_array_from_single_device_arrays``). Each device's
+    program is launched from a thread of its own: launched one after the other from one thread, the
+    devices took turns (on 2 GPUs a round of 10 seeds took twice as long as 5 seeds on one; the launch
+    of a round's program returned only when it had run). Every device runs the
     program compiled for one device, the program a single-GPU run uses: the SPMD forms (``shard_map``,
     or ``jax.jit`` with the seed sharding on its inputs) crashed XLA's GPU compiler with a segmentation
     fault on 2 GPUs (JAX 0.11.2; ``benchmarks/sharded_compile.py`` compiles each form). On GPUs the
@@ -93,13 +96,14 @@ def per_device(
     """
     program = jax.jit(fn, donate_argnums=donate_argnums)
     devices = list(sharding.addressable_devices_indices_map((sharding.mesh.size,)))
+    launcher = concurrent.futures.ThreadPoolExecutor(len(devices), thread_name_prefix="per_device")
 
     def run(*args):
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
             return fn(*args)
         args = tuple(shard_seeds(a, sharding) if seeded else a for a, seeded in zip(args, batched, strict=True))
         blocks = [_device_blocks(args, batched, device) for device in devices]  # all before a donation deletes any
-        results = [program(*b) for b in blocks]
+        results = list(launcher.map(lambda b: program(*b), blocks))
         return jax.tree.map(
             lambda *xs: jax.make_array_from_single_device_arrays(
                 (xs[0].shape[0] * sharding.mesh.size, *xs[0].shape[1:]), sharding, list(xs)
