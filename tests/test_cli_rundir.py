@@ -310,6 +310,28 @@ def test_memory_is_counted_from_the_state_s_shapes_against_the_device():
     assert rundir.tree_bytes(state) == {"state": 2 * 5 * 4 + 3}
 
 
+class _Gpu:
+    """A device with an allocator limit; ``memory_stats`` fails on another process's device."""
+
+    platform, device_kind = "gpu", "Fake GPU"
+
+    def __init__(self, limit: int | None):
+        self.limit = limit
+
+    def memory_stats(self):
+        if self.limit is None:
+            raise RuntimeError("memory_stats is not supported for non-addressable devices")
+        return {"bytes_limit": self.limit}
+
+
+def test_memory_is_checked_per_device_on_this_process_s_device():
+    gb = 10**9
+    remote, local = _Gpu(None), _Gpu(8 * gb)
+    rundir.check_memory({"buffer": 12 * gb}, [remote, local], {}, memory_of=local)  # 6 GB on each of 2
+    with pytest.raises(cli.ConfigError, match=r"needs 9\.0 GB on each of 2 devices .* more than the 8\.0 GB of Fake"):
+        rundir.check_memory({"buffer": 18 * gb}, [remote, local], {}, memory_of=local)
+
+
 @pytest.mark.parametrize("which", ["host", "port"])
 def test_a_labelling_page_that_cannot_listen_is_refused_before_the_run_starts(tmp_path, capsys, which):
     import socket

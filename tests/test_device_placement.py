@@ -63,6 +63,16 @@ def test_reset_and_step_are_tied_to_no_device(task):
     assert _device_ties(jax.make_jaxpr(env.step)(state, jnp.zeros(env.action_size))) == []
 
 
+def test_tasks_build_on_this_process_s_devices(monkeypatch):
+    """With several processes ``jax.devices()[0]`` is process 0's device, which another process cannot read."""
+    first = jax.devices()[0]
+    remote = [type("Remote", (), {"platform": first.platform, "id": 99, "process_index": 1})()]
+    monkeypatch.setattr(jax, "devices", lambda *a, **k: remote)  # what MJX places on by default
+    env = make_env("walker_walk", episode_length=10)
+    state = env.reset(jax.random.PRNGKey(0))
+    assert jnp.isfinite(state.obs).all()
+
+
 @pytest.mark.parametrize(
     ("algo", "task"),
     [

@@ -648,7 +648,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     init, round_fn, evaluate = compiled(trainer, sharding)
     keys = column_keys(args, sharding)
     sizes = rundir.tree_bytes(jax.eval_shape(init, keys))  # nothing allocated yet
-    rundir.check_memory(sizes, sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1], STATE_FLAGS)
+    devices = sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1]
+    rundir.check_memory(sizes, devices, STATE_FLAGS, memory_of=jax.local_devices()[0])
     state = initial_state(args, init, keys, sharding)
     grid = args.grid()
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit

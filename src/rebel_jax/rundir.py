@@ -350,7 +350,7 @@ def _gb(n: int) -> str:
     return f"{n / 1e9:.1f} GB" if n >= 1e8 else f"{n / 1e6:.1f} MB"
 
 
-def check_memory(sizes: dict[str, int], devices: list, flags: dict[str, str]) -> None:
+def check_memory(sizes: dict[str, int], devices: list, flags: dict[str, str], memory_of=None) -> None:
     """Refuses a state of ``sizes`` (:func:`tree_bytes`, every column) that cannot fit in ``devices``' memory.
 
     The columns are split evenly over ``devices`` (``sweep.seed_sharding``), so each holds its share; CPU devices
@@ -360,6 +360,8 @@ def check_memory(sizes: dict[str, int], devices: list, flags: dict[str, str]) ->
       sizes: bytes of each part of the state.
       devices: the devices the state is placed on.
       flags: the flags that drive each part's size (``buffer``: ``--buffer-capacity``, ...).
+      memory_of: the device whose memory is read (default ``devices[0]``); with several processes, one of
+        this process's devices (another process's device has no statistics here).
 
     Raises:
       ConfigError: naming the state's size, the largest part's flags, and the memory it exceeds.
@@ -367,7 +369,7 @@ def check_memory(sizes: dict[str, int], devices: list, flags: dict[str, str]) ->
     total = sum(sizes.values())
     on_cpu = devices[0].platform == "cpu"
     need = total if on_cpu else math.ceil(total / len(devices))
-    have, what = device_memory(devices[0])
+    have, what = device_memory(memory_of or devices[0])
     if have is None or need <= have:
         return
     largest = max(sizes, key=sizes.get)

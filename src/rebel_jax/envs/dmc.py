@@ -281,9 +281,12 @@ class DMCEnv(Env):
         # (``jax.device_put(..., jax.devices()[0])``, mujoco 3.17 mjx/_src/io.py:463 and :771). Traced into
         # the programs that ``shard_map`` runs on every GPU, such arrays pin each device's part to the
         # first GPU, and XLA crashed (a segfault on 2 GPUs). The model's arrays are kept uncommitted (they
-        # follow the program to every device), and ``reset`` builds on a host template of the data.
-        self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model))
-        self._data0 = jax.device_get(mjx.make_data(self.sys))
+        # follow the program to every device), and ``reset`` builds on a host template of the data. Both are
+        # built on this process's first device: with several processes (``--distributed``) the first device
+        # of ``jax.devices()`` belongs to process 0, and another process cannot read it back.
+        local = jax.local_devices()[0]
+        self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model, device=local))
+        self._data0 = jax.device_get(mjx.make_data(self.sys, device=local))
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
         # [-pi, pi] where the task says so (walker; dm_control's cheetah leaves its root
