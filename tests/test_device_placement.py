@@ -68,9 +68,8 @@ def test_tasks_build_on_this_process_s_devices(monkeypatch):
     first = jax.devices()[0]
     remote = [type("Remote", (), {"platform": first.platform, "id": 99, "process_index": 1})()]
     monkeypatch.setattr(jax, "devices", lambda *a, **k: remote)  # what MJX places on by default
-    env = make_env("walker_walk", episode_length=10)
-    state = env.reset(jax.random.PRNGKey(0))
-    assert jnp.isfinite(state.obs).all()
+    env = make_env("walker_walk", episode_length=10)  # MJX's default placement would fail here
+    assert not any(x.committed for x in jax.tree.leaves(env.sys) if isinstance(x, jax.Array))
 
 
 @pytest.mark.parametrize(
