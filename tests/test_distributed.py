@@ -226,3 +226,12 @@ def test_checkpoints_resume_across_process_and_device_counts(two, same_devices, 
     assert _metrics(on_one_device)[: ROUNDS - 1] == _metrics(whole)[: ROUNDS - 1]
     assert [row["round"] for row in _metrics(on_one_device)] == list(range(ROUNDS))
     _assert_close_per_seed(_saved_arrays(on_one_device, ROUNDS), _saved_arrays(one_device, ROUNDS))
+
+
+@pytest.mark.heavy  # make test-heavy: 2 processes compiling a walker run, a few minutes on 2 cores
+def test_two_processes_run_an_mjx_task(tmp_path):
+    """Each process builds MJX's model on its own device: ``jax.devices()[0]`` is process 0's, unreadable by 1."""
+    run_dir = tmp_path / "run"
+    _train(run_dir, 2, 1, "--task", "walker_walk", "--video-steps", "0")
+    assert len(_final(run_dir)["final_eval_return"]) == 2
+    assert [row["round"] for row in _metrics(run_dir)] == list(range(ROUNDS))
