@@ -25,7 +25,7 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
-from rebel_jax import cli, video
+from rebel_jax import cli, cli_outputs, video
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import seed_keys
 
@@ -127,7 +127,7 @@ def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp
     def broken(run_dir):
         raise ValueError("cannot reshape")
 
-    monkeypatch.setattr(cli.plots, "load_runs", broken)
+    monkeypatch.setattr(cli_outputs.plots, "load_runs", broken)
     _main(tmp_path / "run", "--checkpoint-every", "0")
     out = capsys.readouterr()
     assert "warning: learning_curve.png not written (ValueError: cannot reshape)" in out.err, out.err
