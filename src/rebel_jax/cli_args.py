@@ -1,8 +1,17 @@
 """The command line's argument model: the flags, their presets and the checks of their combinations.
 
-:func:`parse` reads ``python -m rebel_jax.train``'s flags into :class:`Args` (a :class:`rebel_jax.config.Config` and
-the run's own options), refusing a bad value or combination with one line (:func:`usage_error`) before anything
-is written.
+    python -m rebel_jax.train METHOD [--preset P] [--obs state|pixels] [--teacher T] [FLAGS]
+
+METHOD is an agent alone on the true reward (``sac`` on state tasks, ``drqv2`` on pixel tasks) or a preference
+method of :data:`rebel_jax.methods.REGISTRY` (``pebble``, ``surf``, ``rebel``, ...); left out, the preset's. The
+older ``--algo METHOD`` still works. ``METHOD --help`` lists the flags that apply to that method on that kind of
+observation (``--obs pixels`` or a pixel ``--task`` for the pixel ones), its common ones only; ``--help-all``
+lists every one. Each part of the config is set with its own prefix (``--sac.hidden``, ``--feedback.labels``,
+``--reward.lr``); the run's schedule (``--task``, ``--total-steps``, ``--seed``, ...) and the run's own options
+(``--seeds``, ``--run-dir``, ``--resume``, ...) carry none.
+
+:func:`parse` reads them into :class:`Args` (a :class:`rebel_jax.config.Config` and the run's own options),
+refusing a bad value or combination with one line (:func:`usage_error`) before anything is written.
 """
 
 from __future__ import annotations
@@ -13,29 +22,52 @@ import dataclasses
 import gc
 import math
 import sys
-from typing import Annotated, Literal
+import typing
+from typing import Annotated, Any, Literal
 
 import tyro
 
-from rebel_jax import rundir, teachers
-from rebel_jax.config import PRESETS, Config, ConfigError
+from rebel_jax import methods, rundir, teachers
+from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HumanOptions, is_loopback
 from rebel_jax.pixel_train import check_config
 from rebel_jax.train import session_due
 
+PROG = "python -m rebel_jax.train"
 EXIT_USAGE = rundir.EXIT_USAGE
 MAX_STEPS = 2**31 - 1
 """The largest ``--total-steps`` and ``--buffer-capacity``: the rounds count steps and index the buffer in int32."""
 OBS = ("state", "pixels")
 """``--obs``: what the agent observes; ``pixels`` runs the task's pixel version (``<task>_pixels``)."""
+UNPREFIXED = ("env", "train")
+"""Config sections whose flags carry no prefix (``--task``, ``--total-steps``): the run's task and schedule."""
+BRIEF: dict[str, tuple[str, ...]] = {
+    "run": ("seeds", "run_dir", "resume", "overwrite", "time_limit", "lam_grid", "teacher_grid", "human"),
+    "human": ("host", "port", "labels"),
+    "env": ("task", "num_envs", "episode_length"),
+    "train": ("total_steps", "seed_steps", "eval_episodes", "seed"),
+    "sac": ("hidden", "batch_size", "utd", "precision"),
+    "drqv2": ("feature_dim", "hidden", "batch_size", "nstep", "precision"),
+    "feedback": ("labels", "per_session", "interval"),
+    "query": ("segment_length", "sampling"),
+    "teacher": (),
+    "reward": ("ensemble_size", "hidden", "lr"),
+    "pixel_reward": ("ensemble_size", "hidden", "lr"),
+    "pretrain": ("steps",),
+    "rebel": ("lam", "estimator", "source", "episodes", "num_segments", "segment_length"),
+}
+"""The flags ``--help`` lists of each part (``run``: the run's own options); ``--help-all`` lists the others too. A
+part missing here (a new method's section) shows all its flags. Every flag is accepted either way."""
+HELP_ALL = "--help-all"
+PARTS = tuple(f.name for f in dataclasses.fields(Config) if f.name != "algo")
+"""The config's sections, each a group of flags."""
 
 
 @dataclasses.dataclass(frozen=True)
-class Args:
-    """Train one configuration on several seeds."""
+class RunOptions:
+    """The run's own flags (beside its config's)."""
 
-    config: Annotated[Config, tyro.conf.arg(name="")]
     seeds: int = 1
     """Seeds run together (vmapped; sharded over all devices when there are several)."""
     run_dir: str | None = None
@@ -74,7 +106,7 @@ class Args:
     The seeds are sharded over every process's devices; process 0 writes the logs, all write the
     checkpoints (orbax), so ``--run-dir`` must be given and be on a file system they share."""
     lam_grid: tuple[float, ...] = ()
-    """``--algo rebel`` only: run every seed with each of these lambdas in one vmapped program
+    """``rebel`` only: run every seed with each of these lambdas in one vmapped program
     (columns are lambda-major: lambda 0 seed 0, lambda 0 seed 1, ...; seed i uses the same key
     for every lambda). Empty: ``rebel.lam`` only."""
 
@@ -89,7 +121,15 @@ class Args:
     in one vmapped program (columns: lambda, then teacher, then seed). Empty: ``--teacher``."""
     human: HumanOptions = HumanOptions()
     """``--teacher human`` (the labelling page) and ``--teacher replay`` (its saved answers)."""
-    host_teacher: tyro.conf.Suppress[str] = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Args(RunOptions):
+    """Train one configuration on several seeds."""
+
+    config: Config = Config()
+    """The run's configuration (every section's flags)."""
+    host_teacher: str = ""
     """``human`` or ``replay`` (set from ``--teacher``), or empty for a scripted teacher."""
 
     @property
@@ -133,7 +173,7 @@ def feedback_sessions(cfg: Config) -> int:
     return sum(bool(session_due(cfg, r)[0]) for r in range(cfg.train.num_rounds))
 
 
-def _check_args(args: Args, preset: Config) -> None:
+def check_args(args: Args, preset: Config) -> None:
     """The CLI's own fields, and the config's fields that the CLI combines (raises ConfigError)."""
     cfg = args.config
     if args.seeds < 1:
@@ -155,11 +195,13 @@ def _check_args(args: Args, preset: Config) -> None:
     if not (math.isfinite(args.time_limit) and args.time_limit >= 0):
         raise ConfigError(f"time_limit={args.time_limit!r} is invalid: allowed a finite number >= 0")
     if args.lam_grid and not swept_knob(cfg):
-        raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed only with --algo rebel")
+        raise ConfigError(
+            f"lam_grid={args.lam_grid!r} is invalid: allowed only with a method that has a knob to sweep (rebel)"
+        )
     if not all(math.isfinite(lam) for lam in args.lam_grid):
         raise ConfigError(f"lam_grid={args.lam_grid!r} is invalid: allowed finite numbers")
     if args.teacher_grid and not cfg.preference:
-        raise ConfigError(f"teacher_grid={args.teacher_grid!r} is invalid: allowed only with a preference algo")
+        raise ConfigError(f"teacher_grid={args.teacher_grid!r} is invalid: allowed only with a preference method")
     unknown = [t for t in args.teacher_grid if t not in teachers.PRESETS]
     if unknown:
         raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
@@ -167,7 +209,7 @@ def _check_args(args: Args, preset: Config) -> None:
     if changed:
         allowed = "; ".join(f"{part} only with {where}" for part, where in changed.items())
         raise ConfigError(
-            f"{', '.join(changed)} settings are invalid with --algo {cfg.algo} on {cfg.env.task!r} (the run would"
+            f"{', '.join(changed)} settings are invalid with {cfg.algo} on {cfg.env.task!r} (the run would"
             f" ignore them): allowed {allowed}"
         )
     capacity = cfg.reward.label_capacity
@@ -186,7 +228,7 @@ def _warn_about(args: Args) -> None:
         if cfg.feedback.labels > most:
             print(
                 f"warning: feedback.labels={cfg.feedback.labels} is more than this run can ask: {sessions} "
-                f"session(s) x {cfg.feedback.queries} pairs = {most} (raise --total-steps or --per-session)",
+                f"session(s) x {cfg.feedback.queries} pairs = {most} (raise --total-steps or --feedback.per-session)",
                 file=sys.stderr,
             )
 
@@ -256,41 +298,169 @@ def collector_paused():
             gc.enable()
 
 
+def sections(cfg: Config) -> list[str]:
+    """The config's parts that ``cfg``'s run reads, in :class:`Config`'s order (``--help`` lists their flags)."""
+    unused = cfg.unused_parts()
+    return [name for name in PARTS if name not in unused]
+
+
+def run_options(cfg: Config, host_teacher: str) -> list[str]:
+    """The run's own options that apply to ``cfg`` (the grids to the methods they sweep, ``human`` to a person)."""
+    names = [f.name for f in dataclasses.fields(RunOptions)]
+    applies = {
+        "lam_grid": swept_knob(cfg) and not host_teacher,
+        "teacher_grid": cfg.preference and not host_teacher,
+        "human": bool(host_teacher),
+    }
+    return [name for name in names if applies.get(name, True)]
+
+
+def _hiding(cls: type, hidden: set[str]) -> type:
+    """``cls`` with the fields ``hidden`` left out of the help (a subclass; tyro reads the others' docstrings)."""
+    if not hidden:
+        return cls
+    hints = typing.get_type_hints(cls, include_extras=True)
+    fields = [(f.name, tyro.conf.Suppress[hints[f.name]], f) for f in dataclasses.fields(cls) if f.name in hidden]
+    return dataclasses.make_dataclass(cls.__name__, fields, bases=(cls,), frozen=True)
+
+
+def _shown(part: str, name: str, help_mode: str) -> bool:
+    """Whether ``--help`` (``help_mode`` ``brief``) or ``--help-all`` (``all``) lists the flag ``name`` of ``part``."""
+    return help_mode == "all" or part not in BRIEF or name in BRIEF[part]
+
+
+def _values(obj: Any) -> dict[str, Any]:
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+
+def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> tuple[type, Any]:
+    """The dataclass tyro reads the flags into (the run's options, then one field per config section), and its
+    default.
+
+    Args:
+      cfg: the preset with the run's method, task and teacher: the defaults.
+      host_teacher: ``human``, ``replay`` or empty.
+      help_mode: None to parse: every flag of every part, so that a flag of a part the run ignores is refused by
+        name in :func:`check_args`. ``brief`` or ``all`` for ``--help`` and ``--help-all``: only the parts and
+        options that apply to the run, and with ``brief`` only :data:`BRIEF`'s.
+    """
+    own = _values(RunOptions())
+    applies = {*sections(cfg), *run_options(cfg, host_teacher)}
+    hints = typing.get_type_hints(RunOptions, include_extras=True)
+    fields, values = [], {}
+    for name, default in [*own.items(), *((n, getattr(cfg, n)) for n in PARTS)]:
+        hint = hints.get(name, type(default))
+        if help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
+            hint = tyro.conf.Suppress[hint]
+        elif help_mode is not None and dataclasses.is_dataclass(default):
+            hint = _hiding(hint, {g for g in _values(default) if not _shown(name, g, help_mode)})
+            default = hint(**_values(default))
+        if name in UNPREFIXED:
+            hint = Annotated[hint, tyro.conf.OmitArgPrefixes]
+        if name not in own or hint is not hints[name]:  # RunOptions's own fields are inherited as they are
+            fields.append((name, hint, dataclasses.field(default=default)))
+        values[name] = default
+    target = dataclasses.make_dataclass("Flags", fields, bases=(RunOptions,), frozen=True)
+    return target, target(**values)
+
+
+RENAMED = {
+    **{f"--{f.name.replace('_', '-')}": f"--sac.{f.name.replace('_', '-')}" for f in dataclasses.fields(Config().sac)},
+    **{
+        f"--{f.name.replace('_', '-')}": f"--feedback.{f.name.replace('_', '-')}"
+        for f in dataclasses.fields(Config().feedback)
+    },
+}
+"""Flags that were spelt without their part's prefix before, and their spelling now."""
+
+
+def _check_spellings(flags: list[str]) -> None:
+    """Refuses the older spellings of :data:`RENAMED`, naming the new one (raises ConfigError)."""
+    for flag in flags:
+        name = flag.split("=", 1)[0].replace("_", "-")
+        if name in RENAMED:
+            pixels = " (on a pixel task the agent's flags are --drqv2.*)" if name.startswith("--sac") else ""
+            raise ConfigError(f"{flag.split('=', 1)[0]} is now {RENAMED[name]}{pixels}")
+
+
+def _method_first(argv: list[str]) -> tuple[str | None, list[str]]:
+    """The METHOD word before the flags (None if the command starts with a flag), and the flags."""
+    if not argv or argv[0].startswith("-"):
+        return None, argv
+    names = (*AGENTS, *methods.REGISTRY)
+    if argv[0] not in names:
+        raise ConfigError(f"method {argv[0]!r} is invalid: allowed {', '.join(names)} ({PROG} METHOD [FLAGS])")
+    return argv[0], argv[1:]
+
+
+def _description(cfg: Config, preset: str, help_all: bool) -> str:
+    """``--help``'s text above the flags: the method, the flags read first, and where the others are."""
+    names = ", ".join((*AGENTS, *methods.REGISTRY))
+    kind = "pixels" if cfg.pixels else "state"
+    return (
+        f"Train {cfg.algo} on {cfg.env.task} ({kind} observations) on several seeds. METHOD: {names}.\n"
+        f"  --preset NAME  the defaults: {', '.join(sorted(PRESETS))} (now {preset}; default paper, on a pixel task "
+        "its SURF protocol, on a quadruped task paper_quadruped)\n"
+        "  --obs {state,pixels}  pixels: the task's pixel version (<task>_pixels)\n"
+        f"  --teacher NAME  {', '.join(teachers.PRESETS)} (default oracle; --teacher.* override it), human (a person"
+        " on a web page, --human.*) or replay (--human.labels FILE: a human run's answers)\n"
+        f"  {HELP_ALL}  "
+        + ("every flag of this method, as below" if help_all else "every flag of this method (below: the common ones)")
+    )
+
+
 def parse(argv: list[str] | None = None) -> Args:
-    """Reads ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag as an override of
-    the preset."""
-    pre = _FirstFlags(prog="python -m rebel_jax.train", add_help=False, allow_abbrev=False)
+    """Reads METHOD (or ``--algo``), ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag
+    as an override of the preset."""
+    pre = _FirstFlags(prog=PROG, add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
     pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
     pre.add_argument("--obs", choices=OBS, default=None)
     pre.add_argument("--task", default=None)
+    pre.add_argument("--algo", choices=[*AGENTS, *methods.REGISTRY], default=None)
+    pre.add_argument(HELP_ALL, action="store_true")
     try:
+        method, argv = _method_first(list(sys.argv[1:] if argv is None else argv))
         known, rest = pre.parse_known_args(argv)
+        if method and known.algo and method != known.algo:
+            raise ConfigError(f"algo={known.algo!r} is invalid after the method {method}: allowed one of the two")
         task = observed_task(known.task or PRESETS[known.preset or "paper"].env.task, known.obs)
+        _check_spellings(rest)
     except ConfigError as err:
         raise usage_error(err) from err
     preset = known.preset or default_preset(task)
-    rest = [*rest, "--task", task]
     host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
     scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
-    description = (
-        f"{__doc__}\nPreset: --preset {{{','.join(sorted(PRESETS))}}} (default paper; on a walker or cheetah pixel"
-        " task surf_pixels_walker or surf_pixels_cheetah; on a quadruped task paper_quadruped)."
-        "\nObservations: --obs {state,pixels} (default: the task's;"
-        " pixels: the task's pixel version, <task>_pixels)."
-        f"\nTeacher: --teacher {{{','.join(teachers.PRESETS)}}} (default oracle); --teacher.* flags override it;"
-        " --teacher human asks a person on a web page (--human.*), --teacher replay --human.labels FILE"
-        " re-runs a human run's answers."
+    base = PRESETS[preset]
+    config = dataclasses.replace(
+        base,
+        algo=method or known.algo or base.algo,
+        env=dataclasses.replace(base.env, task=task),
+        teacher=teachers.PRESETS[scripted],
     )
-    config = dataclasses.replace(PRESETS[preset], teacher=teachers.PRESETS[scripted])
+    helping = known.help_all or any(flag in ("-h", "--help") for flag in rest)
+    mode = ("all" if known.help_all else "brief") if helping else None
+    target, default = flags_type(config, host_teacher, mode)
+    prog = f"{PROG} {config.algo}"
     with collector_paused():
-        args = tyro.cli(Args, prog=pre.prog, default=Args(config=config), args=rest, description=description)
-    args = dataclasses.replace(args, host_teacher=host_teacher)
+        flags, unknown = tyro.cli(
+            target,
+            prog=prog,
+            default=default,
+            args=[*rest, "--help"] if known.help_all else rest,
+            description=_description(config, preset, known.help_all),
+            return_unknown_args=True,
+        )
+    values = _values(flags)
+    run = {name: values.pop(name) for name in _values(RunOptions())}
+    args = Args(**run, config=Config(algo=config.algo, **values), host_teacher=host_teacher)
     try:
+        if unknown:
+            raise ConfigError(f"unrecognized flag {unknown[0]} ({prog} --help lists the flags, {HELP_ALL} all)")
         args.config.validate()
         if args.config.pixels:
             check_config(args.config)  # the pixel trainer's checks, in agent steps
-        _check_args(args, PRESETS[preset])
+        check_args(args, PRESETS[preset])
         if host_teacher:
             _check_host_teacher(args)
     except ConfigError as err:
@@ -303,7 +473,7 @@ def _check_host_teacher(args: Args) -> None:
     """``--teacher human|replay``: one column of a preference method; ``--human.*`` in range."""
     teacher = f"--teacher {args.host_teacher}"
     if not args.config.preference:
-        raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference algo")
+        raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference method")
     if args.config.pixels:
         raise ConfigError(f"{teacher} is invalid on the pixel task {args.config.env.task!r}: allowed on state tasks")
     if args.columns != 1:
