@@ -41,12 +41,12 @@ def _refused(argv: list[str], capsys) -> str:
 
 
 BAD = {
-    "utd-inf": (["--utd", "inf"], ["sac.utd=inf", "allowed"]),
-    "utd-absurd": (["--utd", "1000000"], ["sac.utd=1000000.0", "(0, 100]"]),
-    "init-temperature-inf": (["--init-temperature", "inf"], ["sac.init_temperature=inf", "finite"]),
+    "utd-inf": (["--sac.utd", "inf"], ["sac.utd=inf", "allowed"]),
+    "utd-absurd": (["--sac.utd", "1000000"], ["sac.utd=1000000.0", "(0, 100]"]),
+    "init-temperature-inf": (["--sac.init-temperature", "inf"], ["sac.init_temperature=inf", "finite"]),
     "lam-grid-nan": (["--algo", "rebel", "--lam-grid", "0", "nan"], ["lam_grid=(0.0, nan)", "finite"]),
     "label-capacity": (
-        ["--algo", "pebble", "--labels", "60", "--reward.label-capacity", "10"],
+        ["--algo", "pebble", "--feedback.labels", "60", "--reward.label-capacity", "10"],
         ["reward.label_capacity=10", ">= feedback.labels=60"],
     ),
     "total-steps": (["--total-steps", "3000"], ["train.total_steps=3000", "multiple of train.steps_per_round=2000"]),
@@ -56,7 +56,7 @@ BAD = {
     "distributed-without-run-dir": (["--distributed"], ["run_dir=None", "--distributed", "share"]),
     # Settings the run would silently ignore (the tiny preset's algo is sac).
     "labels-with-sac": (
-        ["--labels", "-3"],
+        ["--feedback.labels", "-3"],
         ["feedback settings", "--algo sac", "feedback only with a preference algo"],
     ),
     "teacher-with-sac": (["--teacher", "equal"], ["teacher settings", "teacher only with a preference algo"]),
@@ -89,7 +89,7 @@ BAD = {
         ["pixel_reward.relabel_rows=0 is invalid", ">= 1"],
     ),
     "precision-on-pixels": (
-        ["--task", "probe_point_pixels", "--algo", "drqv2", "--precision", "bf16", "--surf.crop", "2"],
+        ["--task", "probe_point_pixels", "--algo", "drqv2", "--sac.precision", "bf16", "--surf.crop", "2"],
         ["sac, surf settings", "'probe_point_pixels'", "sac only with a state task; surf only with --algo surf"],
     ),
 }
@@ -145,13 +145,13 @@ def test_columns_that_do_not_split_over_the_devices_are_refused(tmp_path, monkey
 
 
 def test_more_labels_than_the_run_can_ask_are_warned_about(capsys):
-    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "1000"])
+    args = cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", "1000"])
     sessions = sum(bool(Trainer(args.config).session_due(r)[0]) for r in range(args.config.train.num_rounds))
     most = sessions * args.config.feedback.queries
     assert cli.feedback_sessions(args.config) == sessions and 0 < most < 1000
     err = capsys.readouterr().err
     assert "feedback.labels=1000" in err and f"= {most}" in err, err
-    cli.parse([*TINY, "--algo", "pebble", "--labels", str(most)])
+    cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", str(most)])
     assert capsys.readouterr().err == ""
 
 
@@ -272,7 +272,7 @@ def test_a_pixel_run_without_a_preset_gets_surf_s_pixel_protocol():
 def test_the_preset_label_capacity_is_not_a_user_choice():
     # The preset's default capacity is below a large budget: not an error (the store holds the budget).
     assert PRESETS["tiny"].reward.label_capacity < 2000
-    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "2000", "--total-steps", "100000"])
+    args = cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", "2000", "--total-steps", "100000"])
     assert args.config.feedback.labels == 2000
 
 

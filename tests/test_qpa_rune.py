@@ -312,9 +312,10 @@ def test_the_qpa_preset_is_qpa_s_walker_walk_command():
 # Rounds of 20 vector steps on the probe task: 20 seed steps, 60 of pre-training, sessions at env steps 80, 120 and
 # 160 (4 pairs each), 200 steps in all.
 MICRO_FLAGS = (
-    "--preset tiny --task probe_point --num-envs 2 --episode-length 40 --hidden 16 --batch-size 16 --utd 0.5"
-    " --total-steps 200 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1 --labels 12"
-    " --per-session 4 --interval 40 --reward.hidden 32 --reward.batch-size 16 --query.segment-length 8"
+    "--preset tiny --task probe_point --num-envs 2 --episode-length 40 --sac.hidden 16 --sac.batch-size 16"
+    " --sac.utd 0.5 --total-steps 200 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
+    " --feedback.labels 12 --feedback.per-session 4 --feedback.interval 40 --reward.hidden 32 --reward.batch-size 16"
+    " --query.segment-length 8"
     " --pretrain.steps 60 --pretrain.chunk-size 64 --seeds 2 --no-tensorboard --no-progress"
 ).split()
 METHOD_FLAGS = {

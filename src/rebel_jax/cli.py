@@ -1,14 +1,14 @@
 """``python -m rebel_jax.train``: the host loop over jitted rounds, and its command line.
 
-    python -m rebel_jax.train --preset paper --algo sac --task walker_walk --seeds 5
-    python -m rebel_jax.train --preset paper --algo pebble --labels 100 --teacher noisy
+    python -m rebel_jax.train sac --preset paper --task walker_walk --seeds 5
+    python -m rebel_jax.train pebble --preset paper --feedback.labels 100 --teacher noisy
 
-``--preset`` (``paper``, ``tiny``, ``demo``, the last ``make train``'s, or SURF's pixel protocols
-``surf_pixels_walker`` and ``surf_pixels_cheetah``, the defaults on those pixel tasks) picks the defaults,
+The method comes first; ``--preset`` (``paper``, ``tiny``, ``demo``, the last ``make train``'s, or SURF's pixel
+protocols ``surf_pixels_walker`` and ``surf_pixels_cheetah``, the defaults on those pixel tasks) picks the defaults,
 ``--obs pixels`` runs the task's pixel version (``walker_walk`` -> ``walker_walk_pixels``) and
 ``--teacher`` (a B-Pref teacher: oracle, noisy, mistake, skip, equal, myopic) the teacher; every
-other flag overrides one field of :class:`rebel_jax.config.Config` (``--help`` lists them with
-their docs).
+other flag overrides one field of :class:`rebel_jax.config.Config` (``METHOD --help`` lists those that apply, with
+their docs; :mod:`rebel_jax.cli_args`).
 
 A finished run evaluates its final policy and uniform random actions on the same episodes
 (``final.json``), draws ``learning_curve.png`` (:mod:`rebel_jax.plots`) and ``eval.gif``, and
@@ -89,7 +89,7 @@ EXIT_USAGE = rundir.EXIT_USAGE
 EXIT_DIVERGED = 3
 STATE_FLAGS = {
     "buffer": "--buffer-capacity (0: --total-steps)",
-    "sac": "--hidden / --depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
+    "sac": "--sac.hidden / --sac.depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
     "reward": "--reward.hidden, --reward.label-capacity (pixels: --pixel-reward.*)",
     "env": "--num-envs / --eval-episodes",
     "eval_trajectory": "--rebel.horizon / --rebel.episodes",
