@@ -31,9 +31,11 @@ TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tens
 
 
 def _refused(argv: list[str], capsys) -> str:
-    """Runs the CLI, asserts exit status 2 and a one-line error; returns that line."""
+    """Runs the CLI (a METHOD word first, then :data:`TINY`), asserts exit status 2 and a one-line error; returns
+    that line."""
+    method = argv[:1] if argv and not argv[0].startswith("-") else []
     with pytest.raises(SystemExit) as exit_info:
-        cli.main([*TINY, *argv])
+        cli.main([*method, *TINY, *argv[len(method) :]])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
@@ -57,7 +59,7 @@ BAD = {
     # Settings the run would silently ignore (the tiny preset's algo is sac).
     "labels-with-sac": (
         ["--feedback.labels", "-3"],
-        ["feedback settings", "--algo sac", "feedback only with a preference algo"],
+        ["feedback settings", "with sac on", "feedback only with a preference algo"],
     ),
     "teacher-with-sac": (["--teacher", "equal"], ["teacher settings", "teacher only with a preference algo"]),
     "rebel-with-pebble": (
@@ -87,6 +89,18 @@ BAD = {
     "relabel-rows-zero": (
         ["--task", "probe_point_pixels", "--algo", "pebble", "--pixel-reward.relabel-rows", "0"],
         ["pixel_reward.relabel_rows=0 is invalid", ">= 1"],
+    ),
+    "old-sac-spelling": (["--hidden", "16"], ["--hidden is now --sac.hidden", "--drqv2.*"]),
+    "old-feedback-spelling": (["--per-session=4"], ["--per-session is now --feedback.per-session"]),
+    "method-unknown": (["pebbel"], ["method 'pebbel' is invalid", "pebble", "METHOD [FLAGS]"]),
+    "method-not-first": (["--seeds", "2", "pebble"], ["unrecognized flag pebble", "--help"]),
+    "flag-unknown": (["--sac.hiden", "3"], ["unrecognized flag --sac.hiden", "--help-all"]),
+    "method-and-algo-differ": (["pebble", "--algo", "surf"], ["algo='surf'", "after the method pebble"]),
+    "pixel-segment-longer-than-an-episode": (  # the pixel trainer's own check, before anything is written
+        ["pebble", "--task", "probe_point_pixels", "--num-envs", "2", "--episode-length", "20", "--total-steps", "60"]
+        + ["--seed-steps", "20", "--steps-per-round", "20", "--eval-every", "20", "--feedback.interval", "20"]
+        + ["--feedback.labels", "12", "--query.segment-length", "15"],
+        ["query.segment_length=15 is invalid", "one episode"],
     ),
     "precision-on-pixels": (
         ["--task", "probe_point_pixels", "--algo", "drqv2", "--sac.precision", "bf16", "--surf.crop", "2"],
@@ -341,11 +355,11 @@ def test_parse_survives_collections_whose_finalizers_parse_source():
 def readme_train_commands(text: str) -> list[str]:
     """The flags of every ``python -m rebel_jax.train`` command in ``text``: in indented blocks (backslash
     continuations joined, environment variables before it and a trailing ``&`` or comment left out) and in inline
-    code. Commands with ``...`` in place of flags are left out."""
+    code. Commands with ``...`` in place of flags, or ``METHOD`` in place of a method, are left out."""
     joined = re.sub(r"\\\n\s*", " ", text)
     pattern = r"(?:^ {4,}|`)(?:[A-Z_]+=\S+\s+)*python -m rebel_jax\.train((?: [^`#&\n]*)?)"
     found = [" ".join(m.group(1).split()) for m in re.finditer(pattern, joined, re.M)]
-    return [flags for flags in found if "..." not in flags]
+    return [flags for flags in found if "..." not in flags and "METHOD" not in flags]
 
 
 def test_readme_train_commands_are_found_in_blocks_and_inline_code():

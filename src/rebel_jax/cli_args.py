@@ -379,7 +379,7 @@ def _check_spellings(flags: list[str]) -> None:
     for flag in flags:
         name = flag.split("=", 1)[0].replace("_", "-")
         if name in RENAMED:
-            pixels = " (on a pixel task the agent's flags are --drqv2.*)" if name.startswith("--sac") else ""
+            pixels = " (on a pixel task the agent's flags are --drqv2.*)" if RENAMED[name].startswith("--sac") else ""
             raise ConfigError(f"{flag.split('=', 1)[0]} is now {RENAMED[name]}{pixels}")
 
 
