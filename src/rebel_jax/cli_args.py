@@ -473,7 +473,7 @@ def _check_host_teacher(args: Args) -> None:
     """``--teacher human|replay``: one column of a preference method; ``--human.*`` in range."""
     teacher = f"--teacher {args.host_teacher}"
     if not args.config.preference:
-        raise ConfigError(f"{teacher} is invalid with --algo {args.config.algo}: allowed only with a preference method")
+        raise ConfigError(f"{teacher} is invalid with {args.config.algo}: allowed only with a preference method")
     if args.config.pixels:
         raise ConfigError(f"{teacher} is invalid on the pixel task {args.config.env.task!r}: allowed on state tasks")
     if args.columns != 1:
