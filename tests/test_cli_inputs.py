@@ -94,6 +94,9 @@ BAD = {
     "old-feedback-spelling": (["--per-session=4"], ["--per-session is now --feedback.per-session"]),
     "method-unknown": (["pebbel"], ["method 'pebbel' is invalid", "pebble", "METHOD [FLAGS]"]),
     "method-not-first": (["--seeds", "2", "pebble"], ["unrecognized flag pebble", "--help"]),
+    "value-not-a-number": (["--seeds", "two"], ["Error parsing --seeds", "'two'", "--help lists the flags"]),
+    "value-not-a-choice": (["--sac.precision", "fp8"], ["'fp8'", "--sac.precision", "'bf16'"]),
+    "value-missing": (["--seeds"], ["--seeds", "Expected 1 values"]),
     "flag-unknown": (["--sac.hiden", "3"], ["unrecognized flag --sac.hiden", "--help-all"]),
     "method-and-algo-differ": (["pebble", "--algo", "surf"], ["algo='surf'", "after the method pebble"]),
     "pixel-segment-longer-than-an-episode": (  # the pixel trainer's own check, before anything is written

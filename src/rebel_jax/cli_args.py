@@ -20,6 +20,7 @@ import argparse
 import contextlib
 import dataclasses
 import gc
+import io
 import math
 import sys
 import typing
@@ -409,6 +410,17 @@ def _description(cfg: Config, preset: str, help_all: bool) -> str:
     )
 
 
+def _one_line(framed: str) -> str:
+    """The first paragraph of a message tyro prints in a frame (``Error parsing --seeds: ...``), on one line."""
+    words = []
+    for line in framed.strip().splitlines()[1:]:  # the first line is the frame's top and title
+        text = line.strip().strip("│").strip()
+        if not text or set(text) <= set("─╰╯"):
+            break
+        words.append(text)
+    return " ".join(words) or "a flag's value cannot be read"
+
+
 def parse(argv: list[str] | None = None) -> Args:
     """Reads METHOD (or ``--algo``), ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag
     as an override of the preset."""
@@ -442,15 +454,24 @@ def parse(argv: list[str] | None = None) -> Args:
     mode = ("all" if known.help_all else "brief") if helping else None
     target, default = flags_type(config, host_teacher, mode)
     prog = f"{PROG} {config.algo}"
-    with collector_paused():
-        flags, unknown = tyro.cli(
-            target,
-            prog=prog,
-            default=default,
-            args=[*rest, "--help"] if known.help_all else rest,
-            description=_description(config, preset, known.help_all),
-            return_unknown_args=True,
-        )
+    said, failure = io.StringIO(), None
+    with collector_paused(), contextlib.redirect_stderr(said):
+        try:
+            flags, unknown = tyro.cli(
+                target,
+                prog=prog,
+                default=default,
+                args=[*rest, "--help"] if known.help_all else rest,
+                description=_description(config, preset, known.help_all),
+                return_unknown_args=True,
+            )
+        except SystemExit as end:
+            if end.code in (0, None):
+                raise
+            failure = end
+    if failure is not None:  # a value tyro cannot read: its framed message as one line
+        raise usage_error(ConfigError(f"{_one_line(said.getvalue())} ({prog} --help lists the flags)")) from failure
+    print(said.getvalue(), end="", file=sys.stderr)
     values = _values(flags)
     run = {name: values.pop(name) for name in _values(RunOptions())}
     args = Args(**run, config=Config(algo=config.algo, **values), host_teacher=host_teacher)
