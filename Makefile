@@ -8,6 +8,7 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
+METHOD ?=
 ARGS ?=
 PYTEST_ARGS ?=
 
@@ -30,7 +31,7 @@ $(VENV)/.test: $(VENV)/.base
 	touch $@
 
 train: $(VENV)/.base
-	$(PY) -m rebel_jax.train --preset demo --seeds 3 $(ARGS)
+	$(PY) -m rebel_jax.train $(METHOD) --preset demo --seeds 3 $(ARGS)
 
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .

@@ -11,8 +11,8 @@ once with ``--xla-flags=--xla_gpu_deterministic_ops=true`` (a flag is read when 
 per setting). One row per run in ``benchmarks/results/determinism.json``: identical or not, how many state leaves
 differ and by how much, and the seconds of each round of both repeats (the first includes the compile).
 
-    python benchmarks/determinism.py --rounds 2 -- --preset paper --algo pebble --task walker_walk --labels 100 \\
-        --seeds 5 --precision bf16 [--xla-flags=--xla_gpu_deterministic_ops=true]
+    python benchmarks/determinism.py --rounds 2 -- pebble --preset paper --task walker_walk --feedback.labels 100 \\
+        --seeds 5 --sac.precision bf16 [--xla-flags=--xla_gpu_deterministic_ops=true]
 """
 
 from __future__ import annotations

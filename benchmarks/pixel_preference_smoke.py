@@ -49,8 +49,8 @@ TINY = [
     "--drqv2.batch-size", "16", "--drqv2.hidden", "16", "--drqv2.feature-dim", "8", "--drqv2.nstep", "1",
 ]  # fmt: skip
 TINY_PREFERENCE = [
-    "--labels", "12", "--per-session", "4", "--interval", "20", "--query.segment-length", "4",
-    "--pretrain.reset-updates", "2",
+    "--feedback.labels", "12", "--feedback.per-session", "4", "--feedback.interval", "20",
+    "--query.segment-length", "4", "--pretrain.reset-updates", "2",
 ]  # fmt: skip
 """``--tiny``: 16x16 probe_point_pixels, episodes of 10 agent steps, rounds of 20 (with a preference algo,
 ``TINY_PREFERENCE``: a session every round)."""

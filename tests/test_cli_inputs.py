@@ -31,9 +31,11 @@ TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tens
 
 
 def _refused(argv: list[str], capsys) -> str:
-    """Runs the CLI, asserts exit status 2 and a one-line error; returns that line."""
+    """Runs the CLI (a METHOD word first, then :data:`TINY`), asserts exit status 2 and a one-line error; returns
+    that line."""
+    method = argv[:1] if argv and not argv[0].startswith("-") else []
     with pytest.raises(SystemExit) as exit_info:
-        cli.main([*TINY, *argv])
+        cli.main([*method, *TINY, *argv[len(method) :]])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
@@ -41,12 +43,12 @@ def _refused(argv: list[str], capsys) -> str:
 
 
 BAD = {
-    "utd-inf": (["--utd", "inf"], ["sac.utd=inf", "allowed"]),
-    "utd-absurd": (["--utd", "1000000"], ["sac.utd=1000000.0", "(0, 100]"]),
-    "init-temperature-inf": (["--init-temperature", "inf"], ["sac.init_temperature=inf", "finite"]),
+    "utd-inf": (["--sac.utd", "inf"], ["sac.utd=inf", "allowed"]),
+    "utd-absurd": (["--sac.utd", "1000000"], ["sac.utd=1000000.0", "(0, 100]"]),
+    "init-temperature-inf": (["--sac.init-temperature", "inf"], ["sac.init_temperature=inf", "finite"]),
     "lam-grid-nan": (["--algo", "rebel", "--lam-grid", "0", "nan"], ["lam_grid=(0.0, nan)", "finite"]),
     "label-capacity": (
-        ["--algo", "pebble", "--labels", "60", "--reward.label-capacity", "10"],
+        ["--algo", "pebble", "--feedback.labels", "60", "--reward.label-capacity", "10"],
         ["reward.label_capacity=10", ">= feedback.labels=60"],
     ),
     "total-steps": (["--total-steps", "3000"], ["train.total_steps=3000", "multiple of train.steps_per_round=2000"]),
@@ -56,8 +58,8 @@ BAD = {
     "distributed-without-run-dir": (["--distributed"], ["run_dir=None", "--distributed", "share"]),
     # Settings the run would silently ignore (the tiny preset's algo is sac).
     "labels-with-sac": (
-        ["--labels", "-3"],
-        ["feedback settings", "--algo sac", "feedback only with a preference algo"],
+        ["--feedback.labels", "-3"],
+        ["feedback settings", "with sac on", "feedback only with a preference algo"],
     ),
     "teacher-with-sac": (["--teacher", "equal"], ["teacher settings", "teacher only with a preference algo"]),
     "rebel-with-pebble": (
@@ -88,8 +90,23 @@ BAD = {
         ["--task", "probe_point_pixels", "--algo", "pebble", "--pixel-reward.relabel-rows", "0"],
         ["pixel_reward.relabel_rows=0 is invalid", ">= 1"],
     ),
+    "old-sac-spelling": (["--hidden", "16"], ["--hidden is now --sac.hidden", "--drqv2.*"]),
+    "old-feedback-spelling": (["--per-session=4"], ["--per-session is now --feedback.per-session"]),
+    "method-unknown": (["pebbel"], ["method 'pebbel' is invalid", "pebble", "METHOD [FLAGS]"]),
+    "method-not-first": (["--seeds", "2", "pebble"], ["unrecognized flag pebble", "--help"]),
+    "value-not-a-number": (["--seeds", "two"], ["Error parsing --seeds", "'two'", "--help lists the flags"]),
+    "value-not-a-choice": (["--sac.precision", "fp8"], ["'fp8'", "--sac.precision", "'bf16'"]),
+    "value-missing": (["--seeds"], ["--seeds", "Expected 1 values"]),
+    "flag-unknown": (["--sac.hiden", "3"], ["unrecognized flag --sac.hiden", "--help-all"]),
+    "method-and-algo-differ": (["pebble", "--algo", "surf"], ["algo='surf'", "after the method pebble"]),
+    "pixel-segment-longer-than-an-episode": (  # the pixel trainer's own check, before anything is written
+        ["pebble", "--task", "probe_point_pixels", "--num-envs", "2", "--episode-length", "20", "--total-steps", "60"]
+        + ["--seed-steps", "20", "--steps-per-round", "20", "--eval-every", "20", "--feedback.interval", "20"]
+        + ["--feedback.labels", "12", "--query.segment-length", "15"],
+        ["query.segment_length=15 is invalid", "one episode"],
+    ),
     "precision-on-pixels": (
-        ["--task", "probe_point_pixels", "--algo", "drqv2", "--precision", "bf16", "--surf.crop", "2"],
+        ["--task", "probe_point_pixels", "--algo", "drqv2", "--sac.precision", "bf16", "--surf.crop", "2"],
         ["sac, surf settings", "'probe_point_pixels'", "sac only with a state task; surf only with --algo surf"],
     ),
 }
@@ -145,13 +162,13 @@ def test_columns_that_do_not_split_over_the_devices_are_refused(tmp_path, monkey
 
 
 def test_more_labels_than_the_run_can_ask_are_warned_about(capsys):
-    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "1000"])
+    args = cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", "1000"])
     sessions = sum(bool(Trainer(args.config).session_due(r)[0]) for r in range(args.config.train.num_rounds))
     most = sessions * args.config.feedback.queries
     assert cli.feedback_sessions(args.config) == sessions and 0 < most < 1000
     err = capsys.readouterr().err
     assert "feedback.labels=1000" in err and f"= {most}" in err, err
-    cli.parse([*TINY, "--algo", "pebble", "--labels", str(most)])
+    cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", str(most)])
     assert capsys.readouterr().err == ""
 
 
@@ -272,7 +289,7 @@ def test_a_pixel_run_without_a_preset_gets_surf_s_pixel_protocol():
 def test_the_preset_label_capacity_is_not_a_user_choice():
     # The preset's default capacity is below a large budget: not an error (the store holds the budget).
     assert PRESETS["tiny"].reward.label_capacity < 2000
-    args = cli.parse([*TINY, "--algo", "pebble", "--labels", "2000", "--total-steps", "100000"])
+    args = cli.parse([*TINY, "--algo", "pebble", "--feedback.labels", "2000", "--total-steps", "100000"])
     assert args.config.feedback.labels == 2000
 
 
@@ -341,11 +358,11 @@ def test_parse_survives_collections_whose_finalizers_parse_source():
 def readme_train_commands(text: str) -> list[str]:
     """The flags of every ``python -m rebel_jax.train`` command in ``text``: in indented blocks (backslash
     continuations joined, environment variables before it and a trailing ``&`` or comment left out) and in inline
-    code. Commands with ``...`` in place of flags are left out."""
+    code. Commands with ``...`` in place of flags, or ``METHOD`` in place of a method, are left out."""
     joined = re.sub(r"\\\n\s*", " ", text)
     pattern = r"(?:^ {4,}|`)(?:[A-Z_]+=\S+\s+)*python -m rebel_jax\.train((?: [^`#&\n]*)?)"
     found = [" ".join(m.group(1).split()) for m in re.finditer(pattern, joined, re.M)]
-    return [flags for flags in found if "..." not in flags]
+    return [flags for flags in found if "..." not in flags and "METHOD" not in flags]
 
 
 def test_readme_train_commands_are_found_in_blocks_and_inline_code():

@@ -25,7 +25,7 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
-from rebel_jax import cli, video
+from rebel_jax import cli, cli_outputs, video
 from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import seed_keys
 
@@ -127,7 +127,7 @@ def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp
     def broken(run_dir):
         raise ValueError("cannot reshape")
 
-    monkeypatch.setattr(cli.plots, "load_runs", broken)
+    monkeypatch.setattr(cli_outputs.plots, "load_runs", broken)
     _main(tmp_path / "run", "--checkpoint-every", "0")
     out = capsys.readouterr()
     assert "warning: learning_curve.png not written (ValueError: cannot reshape)" in out.err, out.err
@@ -141,7 +141,7 @@ def test_resume_refuses_changed_fields_naming_them(whole, tmp_path, capsys):
     shutil.copytree(whole, run_dir)
     before = {name: (run_dir / name).read_bytes() for name in ("config.json", "meta.json", "metrics.jsonl")}
     with pytest.raises(SystemExit) as exit_info:
-        _main(run_dir, "--resume", "--actor-lr", "0.001", "--gamma", "0.9", "--seed", "3", "--seeds", "4")
+        _main(run_dir, "--resume", "--sac.actor-lr", "0.001", "--sac.gamma", "0.9", "--seed", "3", "--seeds", "4")
     assert exit_info.value.code == 2
     line = capsys.readouterr().err.strip()
     assert "\n" not in line
@@ -334,7 +334,8 @@ PIXEL = (
     "--preset tiny --obs pixels --task probe_point --algo pebble --num-envs 2 --episode-length 20"
     " --drqv2.feature-dim 8 --drqv2.hidden 16 --drqv2.batch-size 16 --drqv2.nstep 3 --drqv2.std-steps 40"
     " --total-steps 60 --seed-steps 20 --steps-per-round 20 --eval-every 20 --eval-episodes 1"
-    " --labels 8 --per-session 4 --interval 20 --query.segment-length 4 --pretrain.reset-updates 2"
+    " --feedback.labels 8 --feedback.per-session 4 --feedback.interval 20 --query.segment-length 4"
+    " --pretrain.reset-updates 2"
     " --pixel-reward.hidden 8 --pixel-reward.batch-size 4 --pixel-reward.max-epochs 3 --pixel-reward.lr 1e-3"
     " --pixel-reward.chunk 3 --seeds 2 --seed 7 --no-tensorboard --no-progress"
 ).split()

@@ -286,7 +286,7 @@ def test_ctrl_c_prints_one_line_and_resume_finishes_the_same_run(finished, tmp_p
         (["--total-steps", "100000000000000000000"], "train.total_steps=100000000000000000000 is invalid"),
         (["--buffer-capacity", "10000000000"], "train.buffer_capacity=10000000000 is invalid"),
         (["--buffer-capacity", "2000000000"], "lower --buffer-capacity"),
-        (["--hidden", "1000000"], "lower --hidden"),
+        (["--sac.hidden", "1000000"], "lower --sac.hidden"),
     ],
     ids=["video-steps", "total-steps", "buffer-capacity-int32", "buffer-capacity-memory", "hidden-memory"],
 )

@@ -24,8 +24,8 @@ ROOT = pathlib.Path(__file__).parents[1]
 
 # The sac flags of test_train.MICRO (two seeds): the same compiled round, so the cache is shared.
 MICRO_FLAGS = (
-    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --hidden 16 --batch-size 16"
-    " --utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
+    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --sac.hidden 16 --sac.batch-size 16"
+    " --sac.utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
     " --seeds 2 --seed 7 --no-tensorboard --no-progress"
 ).split()
 ROUNDS = 3

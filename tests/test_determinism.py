@@ -17,8 +17,8 @@ import pytest
 BENCHMARKS = pathlib.Path(__file__).parents[1] / "benchmarks"
 # The sac flags of test_cli_runs.MICRO_FLAGS (its compiled round, shared through the compilation cache).
 FLAGS = (
-    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --hidden 16 --batch-size 16"
-    " --utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
+    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --sac.hidden 16 --sac.batch-size 16"
+    " --sac.utd 0.5 --total-steps 120 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
     " --seeds 2 --seed 7"
 ).split()
 

@@ -624,7 +624,7 @@ TINY = ["--preset", "tiny", "--task", "probe_point", "--algo", "pebble"]
     ("flags", "message"),
     [
         (["--teacher", "human", "--seeds", "2"], "labels one run"),
-        (["--teacher", "human", "--algo", "sac"], "preference algo"),
+        (["--teacher", "human", "--algo", "sac"], "allowed only with a preference method"),
         (["--teacher", "replay"], "needs an existing file"),
         (["--teacher", "human", "--human.labels", "x.jsonl"], "only for --teacher replay"),
         (["--teacher", "human", "--human.port", "70000"], "human.port"),

@@ -34,8 +34,9 @@ from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
 # those compiled here (the persistent compilation cache is shared with its subprocess).
 FLAGS = (
     "--preset tiny --algo rebel --rebel.lam -0.01 --task probe_point --num-envs 2 --episode-length 40"
-    " --hidden 16 --batch-size 16 --utd 0.5 --total-steps 160 --seed-steps 20 --steps-per-round 40"
-    " --eval-every 40 --eval-episodes 1 --labels 8 --per-session 4 --interval 40 --reward.hidden 32"
+    " --sac.hidden 16 --sac.batch-size 16 --sac.utd 0.5 --total-steps 160 --seed-steps 20 --steps-per-round 40"
+    " --eval-every 40 --eval-episodes 1 --feedback.labels 8 --feedback.per-session 4 --feedback.interval 40"
+    " --reward.hidden 32"
     " --reward.batch-size 16 --query.segment-length 8 --pretrain.steps 60 --pretrain.chunk-size 64"
     " --rebel.num-segments 8 --rebel.segment-length 8"
 ).split()
@@ -253,7 +254,7 @@ def test_asked_budget_shows_only_the_pairs_it_counts_and_a_skip_spends_one(tmp_p
     """``--budget asked`` with 6 labels of 4 per session: round 3's session shows 2 pairs (B-Pref's
     shrunken last batch). A skipped pair is spent: the session ends after those 2 answers, and the one
     kept label enters training."""
-    cfg = parse([*FLAGS, "--teacher", "human", "--labels", "6", "--budget", "asked"]).config
+    cfg = parse([*FLAGS, "--teacher", "human", "--feedback.labels", "6", "--feedback.budget", "asked"]).config
     trainer = Trainer(cfg, host_teacher=True)
     init, round_fn, _ = compiled(trainer)
     host = HostTeacher(trainer, "human", tmp_path, HumanOptions(port=0, labeller="robot"), resume=False)

@@ -277,14 +277,23 @@ def test_bad_or_unused_qpa_and_rune_settings_are_one_line(tmp_path, monkeypatch,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_help_lists_both_methods_and_their_settings(capsys):
+@pytest.mark.parametrize(
+    "method,flags",
+    [
+        ("qpa", ("--qpa.recent-episodes", "--qpa.her-ratio", "--qpa.data-aug-ratio")),
+        ("rune", ("--rune.beta-0", "--rune.rho")),
+    ],
+)
+def test_each_method_s_help_lists_its_settings_and_not_the_other_s(capsys, method, flags):
     with pytest.raises(SystemExit) as exit_info:
-        cli.main(["--help"])
+        cli.main([method, "--help"])
     out = capsys.readouterr().out
     assert exit_info.value.code == 0
-    assert "--algo {sac,pebble,surf,rebel,qpa,rune,drqv2}" in out
-    for flag in ("--qpa.recent-episodes", "--qpa.her-ratio", "--qpa.data-aug-ratio", "--rune.beta-0", "--rune.rho"):
+    assert "qpa, rune" in out  # the methods
+    for flag in flags:
         assert flag in out
+    other = "--rune." if method == "qpa" else "--qpa."
+    assert other not in out
 
 
 def test_the_qpa_preset_is_qpa_s_walker_walk_command():
@@ -312,9 +321,10 @@ def test_the_qpa_preset_is_qpa_s_walker_walk_command():
 # Rounds of 20 vector steps on the probe task: 20 seed steps, 60 of pre-training, sessions at env steps 80, 120 and
 # 160 (4 pairs each), 200 steps in all.
 MICRO_FLAGS = (
-    "--preset tiny --task probe_point --num-envs 2 --episode-length 40 --hidden 16 --batch-size 16 --utd 0.5"
-    " --total-steps 200 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1 --labels 12"
-    " --per-session 4 --interval 40 --reward.hidden 32 --reward.batch-size 16 --query.segment-length 8"
+    "--preset tiny --task probe_point --num-envs 2 --episode-length 40 --sac.hidden 16 --sac.batch-size 16"
+    " --sac.utd 0.5 --total-steps 200 --seed-steps 20 --steps-per-round 40 --eval-every 40 --eval-episodes 1"
+    " --feedback.labels 12 --feedback.per-session 4 --feedback.interval 40 --reward.hidden 32 --reward.batch-size 16"
+    " --query.segment-length 8"
     " --pretrain.steps 60 --pretrain.chunk-size 64 --seeds 2 --no-tensorboard --no-progress"
 ).split()
 METHOD_FLAGS = {

@@ -121,7 +121,7 @@ def test_cli_rejects_bad_values_naming_the_field(capsys):
     assert err.value.code == 2
     assert "env.num_envs=0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        parse(["--preset", "tiny", "--gamma", "1.5"])
+        parse(["--preset", "tiny", "--sac.gamma", "1.5"])
     assert "sac.gamma=1.5" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         parse(["--preset", "tiny", "--steps-per-round", "1001"])
@@ -129,7 +129,7 @@ def test_cli_rejects_bad_values_naming_the_field(capsys):
 
 
 def test_cli_overrides_preset_fields():
-    args = parse(["--preset", "tiny", "--task", "cheetah_run", "--seeds", "3", "--utd", "0.5"])
+    args = parse(["--preset", "tiny", "--task", "cheetah_run", "--seeds", "3", "--sac.utd", "0.5"])
     assert args.config.env.task == "cheetah_run" and args.seeds == 3 and args.config.sac.utd == 0.5
     assert args.config.sac.hidden == 64  # the rest of the tiny preset is kept
 
