@@ -70,9 +70,11 @@ ROUND_PARTS = (
     Rule("intrinsic reward (pre-training)", "rebel_jax/pretrain.py"),
     Rule("learned reward", "rebel_jax/reward_model.py"),
     Rule("learned reward", "rebel_jax/methods/"),
+    Rule("SAC updates", "rebel_jax/", "_updates"),  # the updates' loop: its carry's copies and casts
 )
 """The parts of one round, first match wins. The environment's task rewards and resets count as physics; the
-learned reward of the stored transitions and of the update batches as ``learned reward``."""
+learned reward of the stored transitions and of the update batches as ``learned reward``; what the loop of a vector
+step's updates does besides (its carry's copies and casts) as ``SAC updates``."""
 
 
 def update_program(sac, columns: int, per_call: int):
@@ -116,6 +118,14 @@ def sac_config(args):
     )
 
 
+def save_hlo(args, text: str, name: str) -> str:
+    """``text``, written to ``--hlo-dir``/``name``.txt if given (to look up an instruction of the profile)."""
+    if args.hlo_dir is not None:
+        args.hlo_dir.mkdir(parents=True, exist_ok=True)
+        (args.hlo_dir / f"{name}.txt").write_text(text)
+    return text
+
+
 def update_row(args, columns: int) -> dict:
     cfg = sac_config(args)
     sac = SAC(cfg, args.obs_size, args.action_size)
@@ -125,7 +135,7 @@ def update_row(args, columns: int) -> dict:
     cost = single.cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
     program = run.lower(state, jax.random.PRNGKey(1)).compile()
-    text = program.as_text()
+    text = save_hlo(args, program.as_text(), f"update_{columns}")
     state = jax.block_until_ready(program(state, jax.random.PRNGKey(2)))  # warm-up
     step = lambda state, i: program(state, jax.random.PRNGKey(10 + i))
     events, lines, wall, _ = trace(step, state, args.repeats, module_name(text))
@@ -180,7 +190,7 @@ def round_row(args, columns: int) -> dict:
     state = init(seed_keys(cfg.train.seed, columns))
     index = jnp.int32(args.round_index)
     program = round_fn.lower(state, index).compile()
-    text = program.as_text()
+    text = save_hlo(args, program.as_text(), f"round_{cfg.algo}_{cfg.env.task}_{columns}")
     state = jax.block_until_ready(program(state, index)[0])  # warm-up: the same round, once
     step = lambda state, i: program(state, index)[0]
     events, lines, wall, _ = trace(step, state, args.repeats, module_name(text))
@@ -222,6 +232,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=5, help="traced calls (rounds for --part round)")
     p.add_argument("--top", type=int, default=20, help="instructions listed by time")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    p.add_argument("--hlo-dir", type=pathlib.Path, default=None, help="write each profiled program's HLO text here")
     update = p.add_argument_group("--part update")
     update.add_argument("--hidden", type=int, default=0, help="hidden width (0: the preset's)")
     update.add_argument("--depth", type=int, default=0, help="hidden layers (0: the preset's)")
