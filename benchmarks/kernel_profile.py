@@ -35,6 +35,7 @@ _OPCODE = re.compile(r"(?:^|\s)([a-z][a-z0-9\-]*)\(")
 _TARGET = re.compile(r'custom_call_target="([^"]+)"')
 _KIND = re.compile(r"kind=(k\w+)")
 _SHAPE = re.compile(r"[a-z]+\d*\[([\d,]*)\]")
+_OPERAND = re.compile(r"\s*(?:([a-z]+\d*\[[\d,]*\])\S*\s+)?%?([\w.\-]+)")
 _FRAME_ID = re.compile(r"stack_frame_id=(\d+)")
 _FIELDS = re.compile(r"(\w+)=(\d+)")
 CONVOLUTIONS = {
@@ -120,8 +121,8 @@ def dot_flops(hlo: str) -> float:
         contracting = re.search(r"lhs_contracting_dim\w*\W+([\d,\"\s]*)", rest)
         contracting = [int(d) for d in re.findall(r"\d+", contracting.group(1))] if contracting else []
         operands = rest[rest.index(opcode + "(") + len(opcode) + 1 :]
-        lhs = operands.split(",")[0].strip()
-        lhs_shape = _dims(lhs) if "[" in lhs.split("%")[0] else _dims(found.get(lhs.lstrip("%"), ""))
+        lhs = _OPERAND.match(operands)  # ``f32[2,3]{1,0} %a, ...`` or ``%a, ...``
+        lhs_shape = _dims(lhs.group(1)) if lhs.group(1) else _dims(found.get(lhs.group(2), ""))
         total += 2.0 * math.prod(out) * math.prod(lhs_shape[d] for d in contracting)
     return total
 
