@@ -202,8 +202,8 @@ def test_summarize_splits_the_total_by_category_by_part_and_both(kp):
 
 def test_a_traced_cpu_run_of_the_update_splits_it_into_its_parts(sp, tmp_path):
     out = tmp_path / "profile.json"
-    sp.main(["--hidden", "16", "--batch-size", "8", "--columns", "2", "--repeats", "1", "--updates-per-call", "2",
-             "--peak-tflops", "1", "--out", str(out)])  # fmt: skip
+    sp.main(["--hidden", "16", "--depth", "1", "--batch-size", "8", "--columns", "2", "--repeats", "1",
+             "--updates-per-call", "2", "--peak-tflops", "1", "--out", str(out)])  # fmt: skip
     (row,) = json.loads(out.read_text())["rows"]
     assert row["device"] == "cpu" and row["part"] == "update" and row["columns"] == 2 and row["updates"] == 2
     assert row["traced_ms_per_update"] > 0 and row["wall_ms_per_update"] > 0
