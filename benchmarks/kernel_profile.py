@@ -30,6 +30,7 @@ import jax
 
 NOT_IN_HLO = "not in the HLO"
 OTHER = "other"
+NO_STACK = "XLA's own (no call stack)"
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
 _OPCODE = re.compile(r"(?:^|\s)([a-z][a-z0-9\-]*)\(")
 _TARGET = re.compile(r'custom_call_target="([^"]+)"')
@@ -197,14 +198,14 @@ class Rule:
 
 def parts(hlo: str, rules: Iterable[Rule]) -> dict[str, str]:
     """HLO instruction name -> the part of the program it belongs to: the ``part`` of the first of ``rules`` that
-    matches its call stack (:func:`call_stacks`), else ``other`` (also for instructions without a stack: XLA's
-    copies, loop counters, parameters)."""
+    matches its call stack (:func:`call_stacks`), else ``other``; :data:`NO_STACK` for the instructions XLA made
+    without one (its copies and layout changes, casts it inserted, loop counters, parameters)."""
     rules = list(rules)
     stacks = call_stacks(hlo)
     found = {}
     for name in instructions(hlo):
-        stack = stacks.get(name, ())
-        found[name] = next((rule.part for rule in rules if rule.matches(stack)), OTHER)
+        stack = stacks.get(name)
+        found[name] = next((rule.part for rule in rules if rule.matches(stack)), OTHER) if stack else NO_STACK
     return found
 
 

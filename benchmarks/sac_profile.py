@@ -19,9 +19,11 @@ category by its opcode (matrix products, fusions by kind: ``kLoop`` elementwise,
 a part of the program by the Python call stack XLA kept for it (:data:`UPDATE_PARTS`, :data:`ROUND_PARTS`): for the
 update the critic's and actor's losses (forward and backward), the temperature, the optimiser (optax's Adam) and the
 target critic's Polyak step; for the round the physics, the SAC updates, acting, replay, the rewards and the feedback
-session. The row (merged into ``benchmarks/results/sac_profile.json``) gives milliseconds per update (or per round)
-in all, per category, per part and part by category, for the ``--top`` instructions, the traced events (on a GPU,
-kernels) per update, and the wall time of the same calls: what the kernels leave of it is launch gaps and the host.
+session; in both, what XLA made without a call stack (copies, layout changes and casts it inserted: where float32
+master copies and bf16 casts would show) apart from the ``other`` instructions of the code. The row (merged into
+``benchmarks/results/sac_profile.json``) gives milliseconds per update (or per round) in all, per category, per part
+and part by category, for the ``--top`` instructions, the traced events (on a GPU, kernels) per update, and the wall
+time of the same calls: what the kernels leave of it is launch gaps and the host.
 The update's row also gives the FLOPs of the matrix products of one compiled update (``kernel_profile.dot_flops``),
 XLA's own count of all its FLOPs (``cost_analysis``), the analytic count ``rebel_jax.sac.update_flops``, the
 compiled update's launches (``train_throughput.hlo_counts``), and the achieved TFLOP/s of the matrix products against
@@ -57,6 +59,7 @@ UPDATE_PARTS = (
     Rule("critic loss", "rebel_jax/sac.py", "make_critic_loss"),
     Rule("actor loss", "rebel_jax/sac.py", "make_actor_loss"),
     Rule("temperature", "rebel_jax/sac.py", "alpha"),  # make_alpha_loss, SAC._alpha_step
+    Rule("SAC.update itself (keys, counters)", "rebel_jax/sac.py", "SAC.update"),
 )
 """The parts of one SAC update, first match wins (Polyak's step calls optax's ``incremental_update``)."""
 ROUND_PARTS = (

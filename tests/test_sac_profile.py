@@ -113,7 +113,8 @@ def test_parts_take_the_first_rule_that_matches_the_stack(kp, sp):
     assert found["loop_add_fusion"] == "target update (Polyak)"  # optax's incremental_update, called by polyak
     assert found["input_reduce_fusion.2"] == "optimiser (Adam)"
     assert found["gemm_fusion.4"] == found["custom-call.7"] == "critic loss"
-    assert found["copy.5"] == found["tuple.1"] == kp.OTHER
+    assert found["copy.5"] == found["tuple.1"] == kp.NO_STACK
+    assert kp.parts(HLO, [])["gemm_fusion.4"] == kp.OTHER
 
 
 def test_call_stacks_of_a_compiled_program_name_its_python_functions(kp):
@@ -227,6 +228,17 @@ def test_a_traced_cpu_round_splits_it_into_physics_updates_and_the_rest(sp, tmp_
     for split in ("categories", "parts"):
         assert sum(row[split].values()) == pytest.approx(row["traced_ms_per_round"], abs=1e-2)
     assert {"physics", "SAC updates", "acting", "replay"} <= set(row["parts"])
+
+
+@pytest.mark.heavy
+def test_a_traced_cpu_pebble_round_with_a_session_shows_the_reward_parts(sp, tmp_path):
+    out = tmp_path / "round.json"
+    sp.main(["--part", "round", "--preset", "tiny", "--task", "probe_point", "--columns", "2", "--steps-per-round",
+             "400", "--round-index", "5", "--repeats", "1", "--out", str(out)])  # fmt: skip
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["algo"] == "pebble"
+    assert sum(row["parts"].values()) == pytest.approx(row["traced_ms_per_round"], abs=1e-2)
+    assert {"physics", "SAC updates", "feedback session", "learned reward"} <= set(row["parts"])
 
 
 @pytest.mark.parametrize(
