@@ -265,7 +265,14 @@ def top_segments(returns: jax.Array, filled: jax.Array, k: int) -> tuple[jax.Arr
 
 
 def optimal_value(
-    cfg: Any, params: Any, best: Any, valid: jax.Array, gamma: float | jax.Array, estimator: str, horizon: int
+    cfg: Any,
+    params: Any,
+    best: Any,
+    valid: jax.Array,
+    gamma: float | jax.Array,
+    estimator: str,
+    horizon: int,
+    best_predict_fn: Callable | None = None,
 ) -> jax.Array:
     """Each member's estimate of ``V(pi*(nu))``: the best segments' mean reward, sustained over the horizon.
 
@@ -285,12 +292,14 @@ def optimal_value(
       gamma: discount.
       estimator: ``"discounted"`` or ``"mean"``.
       horizon: steps T of the discounted sum.
+      best_predict_fn: ``(params, best) -> (M, K, H)`` the members' rewards on ``best``; default the
+        ensemble's ``predict`` on ``best.inputs()``.
 
     Returns:
       (M,) values.
     """
     _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-    rewards = predict(cfg, params, *best.inputs())  # (M, K, H)
+    rewards = best_predict_fn(params, best) if best_predict_fn else predict(cfg, params, *best.inputs())  # (M, K, H)
     valid = valid.astype(rewards.dtype)
     weight = jnp.broadcast_to(valid[:, None], rewards.shape[1:])
     per_step = jnp.sum(rewards * weight, axis=(1, 2)) / jnp.maximum(jnp.sum(weight), 1.0)
@@ -310,6 +319,7 @@ def value_gap_term(
     estimator: str = "discounted",
     normalize: bool = False,
     predict_fn: Callable | None = None,
+    best_predict_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's un-relaxed penalty ``lambda * sum_m (V*_m - V_m)`` (the paper's eq. "bilevel_rlhf_fo").
 
@@ -335,6 +345,7 @@ def value_gap_term(
       normalize: divide both values by each member's spread of the per-step reward on the
         batch's labelled segments, as ``agent_value_term``.
       predict_fn: the members' rewards on ``obs`` (:func:`agent_value`); default the ensemble's ``predict``.
+      best_predict_fn: the same on ``best`` (:func:`optimal_value`).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (mean V),
@@ -350,7 +361,9 @@ def value_gap_term(
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
         values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator, predict_fn)
-        best_values = optimal_value(cfg, params, fixed(best), fixed(best_valid), gamma, estimator, horizon)
+        best_values = optimal_value(
+            cfg, params, fixed(best), fixed(best_valid), gamma, estimator, horizon, best_predict_fn
+        )
         if normalize:
             spread = fixed(reward_spread(batch.rewards_a, batch.rewards_b, batch.weight))
             values, best_values = values / spread, best_values / spread

@@ -298,6 +298,12 @@ def pair_rewards(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> tuple[jax.Arr
     return jax.vmap(one)(params, seg_a, seg_b)
 
 
+def with_rewards(cfg: Any, params: Any, batch: PrefBatch) -> PrefBatch:
+    """``batch`` with the per-step rewards of ``params``' members on its pairs (what a training step gives terms)."""
+    rewards_a, rewards_b = pair_rewards(cfg, params, batch.a, batch.b)
+    return batch.replace(rewards_a=rewards_a, rewards_b=rewards_b)
+
+
 def pref_probs(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> jax.Array:
     """Bradley-Terry preference probabilities of each member (``pref_prob_fn`` of queries).
 

@@ -33,8 +33,8 @@ from rebel_jax.reward_model import (
     RewardState,
     bt_loss,
     hard_correct,
-    pair_rewards,
     total_loss,
+    with_rewards,
 )
 
 
@@ -73,9 +73,9 @@ def loss_and_logits(cfg: Any, terms: Sequence[LossTerm]) -> LossTerm:
     total = total_loss(tuple(terms))
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array):
-        rewards_a, rewards_b = pair_rewards(cfg, params, batch.a, batch.b)
-        loss, metrics = total(params, batch.replace(rewards_a=rewards_a, rewards_b=rewards_b), key)
-        whole = jnp.sum(rewards_b, -1) - jnp.sum(rewards_a, -1)
+        batch = with_rewards(cfg, params, batch)
+        loss, metrics = total(params, batch, key)
+        whole = jnp.sum(batch.rewards_b, -1) - jnp.sum(batch.rewards_a, -1)
         return loss, dict(metrics, accuracy_logits=metrics.get("accuracy_logits", whole))
 
     return loss_fn

@@ -133,11 +133,11 @@ def pseudo_labels(logits: jax.Array, threshold: float | jax.Array) -> tuple[jax.
 def pseudo_label_term(cfg: Any, surf: SURFConfig, pool: PairStore) -> LossTerm:
     """SURF's semi-supervised term on unlabelled pairs with confident pseudo-labels, on states or pixels.
 
-    Each call draws, per member, ``ratio * batch_size`` pairs among the first ``pool.count`` of the pool
-    uniformly with replacement (SURF walks through a shuffled order of its pool instead, which differs only in
-    that a pair may repeat within a pass), for the whole ensemble, keeping ``batch.members``' rows. Each member
-    labels them itself from its sums over the central H steps, without gradient (``pseudo_labels``), and is
-    trained on fresh crops of them (:func:`rebel_jax.reward_model.crop_masks`):
+    Each call draws, per member, ``ratio * B`` pairs (B the batch's labelled pairs per member) among the first
+    ``pool.count`` of the pool uniformly with replacement (SURF walks through a shuffled order of its pool
+    instead, which differs only in that a pair may repeat within a pass), for the whole ensemble, keeping
+    ``batch.members``' rows. Each member labels them itself from its sums over the central H steps, without
+    gradient (``pseudo_labels``), and is trained on fresh crops of them (:func:`rebel_jax.reward_model.crop_masks`):
     ``loss_m = mean over the drawn pairs of CE(cropped logits, label) * confident`` (the mean
     counts the unconfident pairs too, as SURF's ``mean(CE * mask)``); the term is
     ``weight * sum_m loss_m`` (alinlab/SURF@214bc1d:pixel_reward_model_semi.py:291-301 on pixels).
@@ -159,7 +159,7 @@ def pseudo_label_term(cfg: Any, surf: SURFConfig, pool: PairStore) -> LossTerm:
     central = slice(surf.crop, surf.crop + length)
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        shape = (cfg.ensemble_size, surf.ratio * cfg.batch_size)
+        shape = (cfg.ensemble_size, surf.ratio * batch.labels.shape[1])
         key_index, key_crop = jax.random.split(key)
         index = jax.random.randint(key_index, shape, 0, jnp.maximum(pool.count, 1))
         mask_a, mask_b = crop_masks(key_crop, shape, stored_length, surf.crop)
