@@ -836,6 +836,42 @@ def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     np.testing.assert_allclose(sum(float(a[2]) for a in alone), float(whole_pseudo), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.heavy  # about 90 s on 2 cores; make test checks the same term on a state pool (test_surf_rebel.py)
+def test_pseudo_label_term_on_frames_matches_numpy_with_the_same_draws():
+    """SURF's one pseudo-label term on a pool of frame segments (the state pool's check: test_surf_rebel.py): each
+    member labels its drawn pool pairs from its own sums over the central steps and is trained on their crops."""
+    state, _, _ = _stored_labels(np.random.default_rng(14), 4, 4, 4)
+    pool, members, pairs = state.pool, REWARD.ensemble_size, 3
+    surf_cfg = SURFConfig(crop=1, ratio=2, threshold=0.52, weight=0.7)
+    zeros = jnp.zeros((members, pairs))
+    batch = rm.PrefBatch(None, None, zeros, zeros + 1, jnp.arange(members))
+    key = jax.random.PRNGKey(15)
+    loss, metrics = jax.jit(surf.pseudo_label_term(REWARD, surf_cfg, pool))(state.params, batch, key)
+    key_index, key_crop = jax.random.split(key)
+    index = np.asarray(jax.random.randint(key_index, (members, 2 * pairs), 0, int(pool.count)))
+    masks = np.stack(rm.crop_masks(key_crop, (members, 2 * pairs), 4, 1))
+    net, expected, confident_count = REWARD.network(), 0.0, 0
+    for m in range(members):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        ce, confident = [], []
+        for j, i in enumerate(index[m]):
+            rewards = [
+                np.asarray(net.apply(member, *pixel_reward.SegmentFrames(side.frames[i], side.action[i]).inputs()))
+                for side in (pool.a, pool.b)
+            ]
+            central = rewards[1][1:3].sum() - rewards[0][1:3].sum()
+            prob = 1 / (1 + np.exp(-np.float64(central)))
+            assert abs(max(prob, 1 - prob) - surf_cfg.threshold) > 1e-5  # no float32 borderline case
+            label, sure = float(prob > 0.5), float(max(prob, 1 - prob) >= surf_cfg.threshold)
+            z = np.float64((rewards[1] * masks[1, m, j]).sum() - (rewards[0] * masks[0, m, j]).sum())
+            ce.append(label * np.log1p(np.exp(-z)) + (1 - label) * np.log1p(np.exp(z)))
+            confident.append(sure)
+        expected += surf_cfg.weight * np.mean(np.array(ce) * np.array(confident))
+        confident_count += sum(confident)
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(float(metrics["pseudo_fraction"]), confident_count / (members * 2 * pairs), rtol=1e-6)
+
+
 def test_a_session_trains_the_traced_number_of_epochs():
     """``pixel_train`` passes ``max_epochs`` 0 for a session without new labels (SURF and B-Pref hold none once
     the budget is spent): no epoch runs and the members stay; a traced 2 runs exactly 2."""

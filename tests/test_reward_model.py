@@ -253,3 +253,37 @@ def test_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"reward.{field}"):
         dataclasses.replace(rm.RewardConfig(), **{field: value}).validate()
     rm.RewardConfig().validate()
+
+
+@pytest.mark.parametrize("crop", [0, 2])
+def test_one_bt_loss_reads_the_batchs_rewards_alike_for_state_and_frame_segments(crop):
+    """``bt_loss`` is one term for both networks: on a batch of state segments and on one of frame segments with
+    the same members' per-step rewards it gives the same loss, and that loss is NumPy's soft cross-entropy of the
+    (cropped) return differences, each member's weighted mean, summed over members."""
+    from rebel_jax.pixel_reward import PixelRewardConfig, SegmentFrames  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    members, pairs, steps = 3, 5, 8
+    rewards_a, rewards_b = (jnp.asarray(rng.uniform(-1, 1, (members, pairs, steps)), jnp.float32) for _ in "ab")
+    labels = jnp.asarray(rng.choice([0.0, 0.5, 1.0], (members, pairs)), jnp.float32)
+    weight = jnp.asarray(rng.uniform(size=(members, pairs)) < 0.8, jnp.float32).at[:, 0].set(1.0)
+    states = rm.Steps(jnp.zeros((members, pairs, steps, OBS)), jnp.zeros((members, pairs, steps, ACT)))
+    frames = SegmentFrames(
+        jnp.zeros((members, pairs, steps + 2, 4, 4, 3), jnp.uint8), jnp.zeros((members, pairs, steps, 1))
+    )
+    key, losses = jax.random.key(4), []
+    for cfg, segments in ((rm.RewardConfig(ensemble_size=members), states), (PixelRewardConfig(), frames)):
+        batch = rm.PrefBatch(segments, segments, labels, weight, jnp.arange(members), rewards_a, rewards_b)
+        losses.append(jax.jit(rm.bt_loss(cfg, crop))(None, batch, key))
+    chex.assert_trees_all_equal(*losses)
+    masks = np.ones((2, members, pairs, steps))
+    if crop:  # the term's draws: one crop length per pair, a start per segment (``crop_masks``)
+        masks = np.stack(rm.crop_masks(key, (members, pairs), steps, crop))
+        assert np.any(masks.sum(-1) < steps)
+    logits = (np.asarray(rewards_b, np.float64) * masks[1]).sum(-1) - (
+        np.asarray(rewards_a, np.float64) * masks[0]
+    ).sum(-1)
+    y, w = np.asarray(labels, np.float64), np.asarray(weight, np.float64)
+    ce = y * np.log1p(np.exp(-logits)) + (1 - y) * np.log1p(np.exp(logits))
+    expected = np.sum((ce * w).sum(1) / w.sum(1))
+    np.testing.assert_allclose(float(losses[0][0]), expected, rtol=1e-5)
