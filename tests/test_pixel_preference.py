@@ -633,7 +633,7 @@ def test_looped_session_writes_the_columns_in_place_not_a_stacked_copy_of_the_st
 
 
 def test_members_forward_one_at_a_time_is_the_member_vmap():
-    """``pixel_reward.over_members`` (``member_loop``): the looped members' rewards and segment returns are the
+    """``reward_model.over_members`` (``member_loop``): the looped members' rewards and segment returns are the
     vmapped ones, and each row is that member's own network."""
     rng = np.random.default_rng(21)
     state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)

@@ -35,7 +35,7 @@ branch ``pixel``):
   otherwise run the 3 encoders on every one of its ``batch_size x 2`` stacks at every update;
 - at the first feedback session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
   follow (``agent.reset_critic()``, ``update_after_reset(gradient_update=reset_update)``, :413-420);
-- the label store keeps copies of its segments (:class:`rebel_jax.pixel_reward.PixelLabels`: the
+- the label store keeps copies of its segments (a :class:`rebel_jax.reward_model.PairStore` of frames: the
   ``H + stack - 1`` frames of an ``H``-step segment, each once as uint8, and its actions), taken from the
   replay when the teacher answers; SURF keeps replay indices (``buffer_seg*_index``,
   pixel_reward_model.py:200-203) in a replay of 1M transitions (config_pebble.yaml:18), which never evicts in
