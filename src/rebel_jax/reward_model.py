@@ -414,7 +414,8 @@ def bt_loss(cfg: Any, crop: int = 0, copies: int = 0, crop_accuracy: bool = Fals
       crop: the crop c of :func:`crop_masks` (0 with ``copies`` 0: the whole segments).
       copies: crops per pair (0: one, without a copy axis in the draws).
       crop_accuracy: the training accuracy counts the cropped logits (SURF's pixel code,
-        alinlab/SURF@214bc1d:pixel_reward_model.py:909-919); off, the whole segments' (B-Pref's, SURF's state code).
+        alinlab/SURF@214bc1d:pixel_reward_model.py:909-919; one crop per pair only); off, the whole segments'
+        (B-Pref's, SURF's state code).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``bt_loss`` (the term), ``bt_accuracy``
@@ -444,7 +445,7 @@ def bt_loss(cfg: Any, crop: int = 0, copies: int = 0, crop_accuracy: bool = Fals
             logits = logits.reshape(members, -1)
             labels, weight = jnp.tile(labels, (1, copies)), jnp.tile(weight, (1, copies))
         loss, metrics = bt_term(logits, labels, weight)
-        return loss, dict(metrics, accuracy_logits=logits) if crop_accuracy else metrics
+        return loss, dict(metrics, accuracy_logits=logits) if crop_accuracy and not copies else metrics
 
     return loss_fn
 
