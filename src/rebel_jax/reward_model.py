@@ -293,10 +293,7 @@ def pair_rewards(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> tuple[jax.Arr
     """(M, B, S) each member's per-step rewards on both segments of its own pairs (fields of ``seg_*`` lead (M, B))."""
 
     def one(member_params, a, b):
-        # b's first: a parameter's gradient sums its uses' parts in reverse order, so with a third term (REBEL's V)
-        # the order of the two segments moves the last bit; this is the order state runs have always summed in.
-        rewards_b = step_rewards(cfg, member_params, b)
-        return step_rewards(cfg, member_params, a), rewards_b
+        return step_rewards(cfg, member_params, a), step_rewards(cfg, member_params, b)
 
     return jax.vmap(one)(params, seg_a, seg_b)
 
