@@ -44,7 +44,7 @@ from pixel_memory import CONFIGS  # noqa: E402 - benchmarks/ is not a package
 from pixel_preference_smoke import Results, job_flags, peak_gib  # noqa: E402
 from timing import provenance  # noqa: E402
 
-from rebel_jax import frame_replay, pixel_reward  # noqa: E402
+from rebel_jax import frame_replay, reward_model, reward_train  # noqa: E402
 from rebel_jax.cli import parse  # noqa: E402
 from rebel_jax.pixel_train import PixelTrainer, PixelTrainState  # noqa: E402
 from rebel_jax.train import seed_keys  # noqa: E402
@@ -75,16 +75,16 @@ def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
     agent_step = jnp.int32(trainer.cfg.train.total_steps // 2)  # any step past the seed steps
 
     def epoch_bt(ts, key):
-        return pixel_reward.train_epoch(rcfg, ts.reward, key)[0].params
+        return reward_train.train_epoch(rcfg, ts.reward, key)[0].params
 
     def epoch_rebel(ts, key):
         # The trainer's own REBEL term, as ``PixelTrainer.learn`` builds it (``--rebel.form`` and source included).
-        terms = trainer.method.pixel_terms(trainer, ts, jax.random.fold_in(key, 1), agent_step)
-        return pixel_reward.train_epoch(rcfg, ts.reward, key, terms)[0].params
+        terms = trainer.method.reward_terms(trainer, ts, jax.random.fold_in(key, 1), agent_step)
+        return reward_train.train_epoch(rcfg, ts.reward, key, terms)[0].params
 
     def relabel(rows, ts, key):
         del key  # Deterministic.
-        reward = lambda obs, action: pixel_reward.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
+        reward = lambda obs, action: reward_model.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
         return frame_replay.relabel(ts.buffer, reward, rows).reward
 
     out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.relabel_rows)}

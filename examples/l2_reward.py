@@ -36,29 +36,17 @@ def l2_penalty(weight: float, rewards_a: jax.Array, rewards_b: jax.Array, mask: 
 
 
 class L2Reward(Method):
-    """PEBBLE plus :func:`l2_penalty` on state and pixel tasks alike."""
+    """PEBBLE plus :func:`l2_penalty`, on state and pixel tasks alike."""
 
     name = "l2_reward"
 
     def __init__(self, weight: float = 0.1):
         self.weight = weight
 
-    def state_terms(self, trainer, ts, key):
-        net = reward_model.network(trainer.reward_cfg)
-
+    def reward_terms(self, trainer, ts, key, agent_step):
         def term(params, batch: reward_model.PrefBatch, key):
-            del key  # Unused.
-            rewards_a = jax.vmap(net.apply)(params, batch.obs_a, batch.act_a)  # each member its own pairs
-            rewards_b = jax.vmap(net.apply)(params, batch.obs_b, batch.act_b)
-            loss = l2_penalty(self.weight, rewards_a, rewards_b, batch.weight)
+            del params, key  # Unused: the training step computed the members' rewards on the batch already.
+            loss = l2_penalty(self.weight, batch.rewards_a, batch.rewards_b, batch.weight)
             return loss, {"l2_penalty": loss}
 
-        return [*super().state_terms(trainer, ts, key), term]
-
-    def pixel_terms(self, trainer, ts, key, agent_step):
-        def term(params, bt: dict, key):
-            del params, key  # Unused: the Bradley-Terry term computed the rewards already.
-            loss = l2_penalty(self.weight, bt["rewards_a"], bt["rewards_b"], bt["weight"])
-            return loss, {"l2_penalty": loss}
-
-        return (*super().pixel_terms(trainer, ts, key, agent_step), term)
+        return [*super().reward_terms(trainer, ts, key, agent_step), term]

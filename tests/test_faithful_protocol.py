@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import agent_preference, queries, surf
+from rebel_jax import agent_preference, queries, reward_train, surf
 from rebel_jax import reward_model as rm
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
@@ -151,7 +151,7 @@ def test_surf_session_runs_ceil_reward_update_times_labels_over_batch_steps(coun
     cfg = RewardConfig(hidden=8, depth=1, batch_size=128, label_capacity=400)
     state, _ = _labelled_state(cfg, count, 4, 0)
     steps = surf.surf_iterations(7, state.data.count, cfg.batch_size, jnp.asarray(1))  # Few steps: a quick test.
-    train = jax.jit(lambda state, key, steps: rm.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
+    train = jax.jit(lambda state, key, steps: reward_train.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
     trained, metrics = train(state, jax.random.key(1), steps)
     assert int(metrics["epochs"]) == math.ceil(7 * count / 128)
     pairs = zip(jax.tree.leaves(state.params), jax.tree.leaves(trained.params), strict=True)
@@ -167,8 +167,8 @@ def test_surf_pool_grows_by_each_session_and_keeps_the_older_pairs():
     assert int(state.pool.count) == 5
     state = surf.add_unlabelled(state, second_a, second_b)
     assert int(state.pool.count) == 10 and int(state.pool.ptr) == 10
-    np.testing.assert_array_equal(np.asarray(state.pool.obs_a[:5]), np.asarray(first_a.obs))
-    np.testing.assert_array_equal(np.asarray(state.pool.act_b[5:10]), np.asarray(second_b.action))
+    np.testing.assert_array_equal(np.asarray(state.pool.a.obs[:5]), np.asarray(first_a.obs))
+    np.testing.assert_array_equal(np.asarray(state.pool.b.action[5:10]), np.asarray(second_b.action))
     state = surf.add_unlabelled(state, first_a, first_b)  # Full: wraps over the oldest, as SURF's ring.
     assert int(state.pool.count) == 12 and int(state.pool.ptr) == 3
 
@@ -245,7 +245,7 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
         ts, _ = step(ts, jnp.int32(t))
         if t >= length:
             after.append(np.asarray(ts.env.obs[n:]))
-    obs, actions = trainer.method.value_trajectories(trainer, ts, jax.random.key(0))
+    obs, actions, _ = trainer.method.value_trajectories(trainer, ts, jax.random.key(0), None)
     kept, steps = episodes or cfg.train.eval_episodes, horizon or length
     assert obs.shape[:2] == (kept, steps)
     # A trajectory of the environment: each observation is the one the previous step led to...

@@ -226,7 +226,7 @@ def test_label_store_keeps_its_frames_after_the_replay_wraps():
 
     def check(store):
         for pair, slot in slots.items():
-            for side, frames, action in ((0, store.frames_a, store.action_a), (1, store.frames_b, store.action_b)):
+            for side, frames, action in ((0, store.a.frames, store.a.action), (1, store.b.frames, store.b.action)):
                 stacks, actions = references[side * pairs + pair]
                 got = pixel_reward.SegmentFrames(frames[slot], action[slot])
                 np.testing.assert_array_equal(got.stacks(), stacks, err_msg=f"pair {pair} side {side}")

@@ -15,6 +15,8 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from rebel_jax import agent_preference, frame_replay, pixel_reward, surf, teachers
+from rebel_jax import reward_model as rm
+from rebel_jax import reward_train as rt
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
@@ -106,15 +108,15 @@ def test_bt_loss_matches_numpy_on_naive_stacks(crop):
     seg_b = SegmentPlaces(jnp.asarray(rows[1], jnp.int32), jnp.asarray(envs[1], jnp.int32))
     key = jax.random.PRNGKey(7)
     seg_a, seg_b = _frames(buffer, seg_a, horizon), _frames(buffer, seg_b, horizon)
-    loss, metrics = pixel_reward.bt_loss(
-        REWARD, state.params, seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), crop, key
-    )
+    pairs = rm.PrefBatch(seg_a, seg_b, jnp.asarray(labels), jnp.asarray(weight), members=jnp.arange(members))
+    pairs = rm.with_rewards(REWARD, state.params, pairs)
+    loss, metrics = rm.bt_loss(REWARD, crop, crop_accuracy=True)(state.params, pairs, key)
     masks = np.ones((2, members, batch, horizon), np.float32)
     if crop:  # SURF's crops, drawn from the same key: every member sums over its own masked steps
-        masks = np.stack(surf.crop_masks(key, (members, batch), horizon, crop))
+        masks = np.stack(rm.crop_masks(key, (members, batch), horizon, crop))
         assert np.all(masks.sum(-1)[0] == masks.sum(-1)[1]) and np.any(masks.sum(-1) != horizon)
 
-    net = pixel_reward.network(REWARD)
+    net = REWARD.network()
     expected = 0.0
     for m in range(members):
         member = jax.tree.map(lambda x, m=m: x[m], state.params)
@@ -133,7 +135,7 @@ def test_bt_loss_matches_numpy_on_naive_stacks(crop):
             count += weight[m, i]
         expected += total / count
     np.testing.assert_allclose(float(loss), expected, rtol=1e-5, atol=1e-6)
-    assert metrics["logits"].shape == (members, batch)
+    assert crop == 0 or metrics["accuracy_logits"].shape == (members, batch)
 
 
 def test_relabel_and_row_stacks_match_naive_stacks():
@@ -143,10 +145,10 @@ def test_relabel_and_row_stacks_match_naive_stacks():
         frame_replay.row_stacks(buffer, jnp.arange(2 * LENGTH)[:, None], jnp.arange(ENVS)[None]), stacks
     )
     state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
-    expected = pixel_reward.mean_reward(REWARD, state.params, jnp.asarray(stacks), jnp.asarray(actions))
+    expected = rm.mean_reward(REWARD, state.params, jnp.asarray(stacks), jnp.asarray(actions))
     for chunk_rows in (5, 10 * LENGTH):  # a ragged last chunk; a chunk larger than the replay
         relabelled = frame_replay.relabel(
-            buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=chunk_rows
+            buffer, lambda o, a: rm.mean_reward(REWARD, state.params, o, a), chunk_rows=chunk_rows
         )
         np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
 
@@ -205,7 +207,7 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
         params = jax.tree.map(lambda x, s=seed: x[s], state.reward.params)
         rows = jnp.arange(int(buffer.size))[:, None]
         obs = frame_replay.row_stacks(buffer, rows, jnp.arange(buffer.num_envs)[None])
-        expected = pixel_reward.mean_reward(MICRO.pixel_reward, params, obs, buffer.action[: int(buffer.size)])
+        expected = rm.mean_reward(MICRO.pixel_reward, params, obs, buffer.action[: int(buffer.size)])
         np.testing.assert_allclose(buffer.reward[: int(buffer.size)], expected, rtol=1e-4, atol=1e-5)
         assert not np.allclose(buffer.reward[: int(buffer.size)], buffer.true_reward[: int(buffer.size)])
 
@@ -227,7 +229,7 @@ def test_oracle_labels_are_numpy_segment_returns_of_the_stored_true_rewards(run)
         buffer = jax.tree.map(lambda x, s=seed: x[s], state.buffer)
         for i in range(count):
             returns = []
-            for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b)):
+            for frames, action in ((data.a.frames, data.a.action), (data.b.frames, data.b.action)):
                 # The stored copy is the replay's segment at the place the teacher saw.
                 start, e = _place_of(buffer, frames[seed, i], action[seed, i], horizon)
                 assert start % length <= length - horizon  # inside one episode
@@ -309,7 +311,7 @@ def test_value_term_on_pixels_matches_numpy_on_naive_stacks():
         REWARD, -0.5, jnp.asarray(place), jnp.asarray(actions), gamma, "discounted", False, predict_fn
     )
     loss, metrics = term(state.params, None, jax.random.PRNGKey(0))
-    net = pixel_reward.network(REWARD)
+    net = REWARD.network()
     values = []
     for m in range(REWARD.ensemble_size):
         member = jax.tree.map(lambda x, m=m: x[m], state.params)
@@ -359,14 +361,14 @@ def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
     np.testing.assert_array_equal(state.reward.pool.count, 3 * SURF_MICRO.surf.pool_size)  # 3 sessions
     true, crop, horizon = state.buffer.true_reward, SURF_MICRO.surf.crop, SURF_MICRO.query.segment_length
     data, stored = state.reward.data, horizon + 2 * crop
-    assert data.frames_a.shape[2] == stored + STACK - 1 and state.reward.pool.action_a.shape[2] == stored
+    assert data.a.frames.shape[2] == stored + STACK - 1 and state.reward.pool.a.action.shape[2] == stored
     for seed in range(SEEDS):
         assert int(data.count[seed]) == 12
         buffer = jax.tree.map(lambda x, s=seed: x[s], state.buffer)
         for i in range(12):
             places = [
                 _place_of(buffer, frames[seed, i], action[seed, i], stored)
-                for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b))
+                for frames, action in ((data.a.frames, data.a.action), (data.b.frames, data.b.action))
             ]
             # the teacher sees the central H of the stored H + 2c steps
             returns = [sum(float(true[seed, row + crop + h, env]) for h in range(horizon)) for row, env in places]
@@ -457,7 +459,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
     trainer, ts, after, frozen = two_episodes
     horizon, gamma, lam = 6, 0.9, -0.5
     assert trainer.trajectory_size == (1, horizon)
-    frames, actions, predict_fn = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
+    frames, actions, predict_fn = trainer.method.value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     assert frames.shape == (1, horizon, SIZE, SIZE, 3) and frames.dtype == jnp.uint8
     frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
     # The environment's own stacks: the reset frame three times, then each step's observation after the last.
@@ -468,9 +470,9 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
     expected = trainer.mean_action(frozen, jnp.asarray(naive))
     np.testing.assert_allclose(actions, np.asarray(expected), rtol=1e-5, atol=1e-6)
     # V: each member's own apply on each step, looped in Python, discounted over the horizon.
-    (term,) = trainer.method.pixel_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
+    (_, term) = trainer.method.reward_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
     loss, metrics = term(ts.reward.params, None, jax.random.key(2))
-    net = pixel_reward.network(REWARD)
+    net = REWARD.network()
     values = []
     for m in range(REWARD.ensemble_size):
         member = jax.tree.map(lambda x, m=m: x[m], ts.reward.params)
@@ -487,7 +489,7 @@ def test_pixel_onpolicy_value_is_the_discounted_sum_over_the_kept_evaluation_epi
 @pytest.mark.heavy  # make test checks this for the state-based term (test_surf_rebel.py)
 def test_pixel_onpolicy_value_gradients_reach_only_the_reward_parameters(two_episodes):
     trainer, ts, _, _ = two_episodes
-    frames, actions, predict_fn = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
+    frames, actions, predict_fn = trainer.method.value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     params = ts.reward.params
 
     def loss_of(p, frames, actions):
@@ -523,18 +525,19 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
     tile = lambda x: jnp.tile(x[None], (members, 1))  # noqa: E731
     seg_m = [SegmentPlaces(tile(s.row), tile(s.env)) for s in (seg_a, seg_b)]
     seg_m = [_frames(buffer, seg, h) for seg in seg_m]
-    _, bt = pixel_reward.bt_loss(REWARD, params, *seg_m, jnp.ones((members, pairs)), jnp.ones((members, pairs)))
-    (term,) = trainer.method.pixel_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
+    ones = jnp.ones((members, pairs))
+    bt = rm.with_rewards(REWARD, params, rm.PrefBatch(*seg_m, ones, ones, members=jnp.arange(members)))
+    (_, term) = trainer.method.reward_terms(trainer, ts, jax.random.key(1), jnp.int32(0))
     loss, metrics = term(params, bt, jax.random.key(2))
 
-    net = pixel_reward.network(REWARD)
+    net = REWARD.network()
     member = [jax.tree.map(lambda x, m=m: x[m], params) for m in range(members)]
 
     def step_rewards(m, row, env, length):
         obs = frame_replay.row_stacks(buffer, jnp.arange(row, row + length), jnp.int32(env))
         return np.asarray(net.apply(member[m], obs, buffer.action[row : row + length, env]))
 
-    frames, actions, _ = trainer.method.pixel_value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
+    frames, actions, _ = trainer.method.value_trajectories(trainer, ts, jax.random.key(0), jnp.int32(0))
     frames, actions = np.asarray(frames[0]), np.asarray(actions[0])
     naive = np.stack([np.tile(frames[0], (1, 1, 3)), *after[: horizon - 1]])
     segments = [(int(starts[s, i]), int(envs[s, i])) for s in range(2) for i in range(pairs)]
@@ -572,11 +575,11 @@ def _stored_labels(rng, count: int, capacity: int, horizon: int):
 
 
 def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentPlaces, horizon: int):
-    """The loss terms pixel_train passes to ``train_epoch`` for ``kind`` (REBEL: its V term on the replay
+    """The loss terms of ``kind`` passed to ``train_epoch`` on pixels (REBEL: its V term on the replay
     segments ``seg``, normalised)."""
     if kind == "surf":
         surf_cfg = SURFConfig(crop=1, ratio=1, threshold=0.5, weight=0.7)
-        return (pixel_reward.pseudo_label_term(cfg, surf_cfg, state.pool),)
+        return rm.bt_loss(cfg, 1, crop_accuracy=True), surf.pseudo_label_term(cfg, surf_cfg, state.pool)
     if kind == "rebel":
         length = 3
         rows = pixel_reward.segment_rows(seg.row, length)
@@ -585,16 +588,10 @@ def _epoch_terms(kind: str, cfg: PixelRewardConfig, state, buffer, seg: SegmentP
         def predict_fn(params, place, action):
             return pixel_reward.place_rewards(cfg, params, buffer, place, action)
 
-        def spread_fn(params, bt):
-            del params  # Unused.
-            return agent_preference.reward_spread(bt["rewards_a"], bt["rewards_b"], bt["weight"])
-
         actions = buffer.action[rows, where[..., 1]]
-        term = agent_preference.agent_value_term(
-            cfg, -0.5, where, actions, 0.9, normalize=True, predict_fn=predict_fn, spread_fn=spread_fn
-        )
-        return (term,)
-    return ()
+        term = agent_preference.agent_value_term(cfg, -0.5, where, actions, 0.9, normalize=True, predict_fn=predict_fn)
+        return rm.bt_loss(cfg), term
+    return (rm.bt_loss(cfg),)
 
 
 def _session_loop(config: Config, loop: bool) -> Config:
@@ -636,16 +633,16 @@ def test_looped_session_writes_the_columns_in_place_not_a_stacked_copy_of_the_st
 
 
 def test_members_forward_one_at_a_time_is_the_member_vmap():
-    """``pixel_reward.over_members`` (``member_loop``): the looped members' rewards and segment returns are the
+    """``reward_model.over_members`` (``member_loop``): the looped members' rewards and segment returns are the
     vmapped ones, and each row is that member's own network."""
     rng = np.random.default_rng(21)
     state = pixel_reward.init(REWARD, jax.random.PRNGKey(3), (SIZE, SIZE, 3 * STACK), ACTIONS, 4, 2)
     obs = jnp.asarray(rng.integers(0, 256, (5, SIZE, SIZE, 3 * STACK)), jnp.uint8)
     action = jnp.asarray(rng.uniform(-1, 1, (5, ACTIONS)), jnp.float32)
-    looped = pixel_reward.predict(REWARD, state.params, obs, action)
-    vmapped = pixel_reward.predict(dataclasses.replace(REWARD, member_loop=False), state.params, obs, action)
+    looped = rm.predict(REWARD, state.params, obs, action)
+    vmapped = rm.predict(dataclasses.replace(REWARD, member_loop=False), state.params, obs, action)
     np.testing.assert_allclose(looped, vmapped, rtol=1e-5, atol=1e-6)
-    net = pixel_reward.network(REWARD)
+    net = REWARD.network()
     for m in range(REWARD.ensemble_size):
         member = jax.tree.map(lambda x, m=m: x[m], state.params)
         np.testing.assert_allclose(looped[m], net.apply(member, obs, action), rtol=1e-5, atol=1e-6)
@@ -665,9 +662,9 @@ def test_bf16_members_are_the_float32_members_up_to_bfloat16_rounding():
     weights = jnp.asarray(rng.normal(size=64), jnp.float32)
 
     def objective(cfg, params):
-        return jnp.sum(pixel_reward.predict(cfg, params, obs, action) * weights)
+        return jnp.sum(rm.predict(cfg, params, obs, action) * weights)
 
-    rewards = {cfg.precision: pixel_reward.predict(cfg, state.params, obs, action) for cfg in (exact, half)}
+    rewards = {cfg.precision: rm.predict(cfg, state.params, obs, action) for cfg in (exact, half)}
     assert rewards["bf16"].dtype == jnp.float32 and float(jnp.std(rewards["highest"])) > 1e-3
     np.testing.assert_allclose(rewards["bf16"], rewards["highest"], atol=2e-2)
     assert not np.array_equal(rewards["bf16"], rewards["highest"])  # bf16 did round
@@ -707,7 +704,6 @@ def test_session_loop_rounds_equal_the_batched_rounds(run):
 @pytest.mark.heavy  # three more compiles of the pixel reward's epoch (~20 s each on 2 cores): make test-heavy
 @pytest.mark.parametrize("kind", ["pebble", "surf", "rebel"])
 def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
-    crop = 1 if kind == "surf" else 0
     horizon = 4
     state, buffer, places = _stored_labels(np.random.default_rng(9), 10, 12, horizon)  # 3 minibatches of 4
     value_segments = places(3)
@@ -715,7 +711,7 @@ def test_member_loop_trains_the_ensemble_as_the_member_vmap(kind):
     for loop in (False, True):
         cfg = dataclasses.replace(REWARD, member_loop=loop)
         terms = _epoch_terms(kind, cfg, state, buffer, value_segments, horizon)
-        epoch = jax.jit(lambda st, key, cfg=cfg, terms=terms: pixel_reward.train_epoch(cfg, st, key, terms, crop))
+        epoch = jax.jit(lambda st, key, cfg=cfg, terms=terms: rt.train_epoch(cfg, st, key, terms))
         out[loop] = jax.device_get(epoch(state, jax.random.PRNGKey(12)))
     (vmapped, metrics_vmap), (looped, metrics_loop) = out[False], out[True]
     for name in ("accuracy", "loss"):
@@ -766,9 +762,9 @@ def test_member_adam_steps_as_torch_1_9_adam_after_each_members_backward():
         for _ in range(4)
         for m in range(members)
     ]
-    state, ours = pixel_reward.member_adam_init(params), params
+    state, ours = rm.member_adam_init(params), params
     for m, g in calls:
-        ours, state = pixel_reward.member_adam_step(lr, state, ours, g, jnp.int32(m))
+        ours, state = rt.member_adam_step(lr, state, ours, g, jnp.int32(m))
     reference = [(m, _per_member(jax.tree.map(lambda x: x[None], g))[0]) for m, g in calls]
     expected, steps = _torch_adam_after_each_backward(_per_member(params), reference, lr)
     np.testing.assert_allclose(_per_member(ours), expected, rtol=1e-5, atol=1e-6)
@@ -778,11 +774,11 @@ def test_member_adam_steps_as_torch_1_9_adam_after_each_members_backward():
     # One member alone is plain Adam (optax's).
     one = jax.tree.map(lambda x: x[:1], params)
     adam = optax.adam(lr)
-    opt, mine, mine_state = adam.init(one), one, pixel_reward.member_adam_init(one)
+    opt, mine, mine_state = adam.init(one), one, rm.member_adam_init(one)
     for _, g in calls[:3]:
         updates, opt = adam.update(jax.tree.map(lambda x: x[None], g), opt, one)
         one = optax.apply_updates(one, updates)
-        mine, mine_state = pixel_reward.member_adam_step(lr, mine_state, mine, g, jnp.int32(0))
+        mine, mine_state = rt.member_adam_step(lr, mine_state, mine, g, jnp.int32(0))
     jax.tree.map(functools.partial(np.testing.assert_allclose, rtol=1e-6, atol=1e-7), mine, one)
 
 
@@ -794,10 +790,10 @@ def test_per_member_adam_epoch_steps_each_member_after_its_own_backward():
     of torch's Adam gives every member's parameters (member 0 three steps, member 2 one)."""
     state, _, _ = _stored_labels(np.random.default_rng(22), REWARD.batch_size, REWARD.batch_size, 4)
     per_member = dataclasses.replace(REWARD, per_member_adam=True)
-    fresh = state.replace(opt_state=pixel_reward.member_adam_init(state.params))
+    fresh = state.replace(opt_state=rm.member_adam_init(state.params))
     key = jax.random.PRNGKey(23)
-    summed, _ = jax.jit(lambda st: pixel_reward.train_epoch(REWARD, st, key))(state)
-    ours, metrics = jax.jit(lambda st: pixel_reward.train_epoch(per_member, st, key))(fresh)
+    summed, _ = jax.jit(lambda st: rt.train_epoch(REWARD, st, key))(state)
+    ours, metrics = jax.jit(lambda st: rt.train_epoch(per_member, st, key))(fresh)
     np.testing.assert_array_equal(ours.opt_state.count, [3, 2, 1])
     grads = _per_member(summed.opt_state[0].mu) / 0.1
     calls = [(m, grads[m]) for m in range(REWARD.ensemble_size)]
@@ -818,13 +814,14 @@ def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     seg_a, seg_b = _frames(buffer, seg_a, horizon), _frames(buffer, seg_b, horizon)
     labels, weight = jnp.ones((members, 4)), jnp.ones((members, 4))
     key = jax.random.PRNGKey(13)
-    pseudo = pixel_reward.pseudo_label_term(REWARD, SURFConfig(crop=1, threshold=0.5), state.pool)
+    pseudo = surf.pseudo_label_term(REWARD, SURFConfig(crop=1, threshold=0.5), state.pool)
 
     def losses(params, seg_a, seg_b, labels, weight, chosen):
-        loss, bt = pixel_reward.bt_loss(REWARD, params, seg_a, seg_b, labels, weight, 1, key, chosen)
-        return loss, bt["logits"], pseudo(params, bt, key)[0]
+        batch = rm.with_rewards(REWARD, params, rm.PrefBatch(seg_a, seg_b, labels, weight, members=chosen))
+        loss, bt = rm.bt_loss(REWARD, 1, crop_accuracy=True)(params, batch, key)
+        return loss, bt["accuracy_logits"], pseudo(params, batch, key)[0]
 
-    whole, whole_logits, whole_pseudo = losses(state.params, seg_a, seg_b, labels, weight, None)
+    whole, whole_logits, whole_pseudo = losses(state.params, seg_a, seg_b, labels, weight, jnp.arange(members))
     alone = []
     for m in range(members):
         row = lambda x, m=m: x[m : m + 1]  # noqa: E731
@@ -839,11 +836,47 @@ def test_one_member_sees_its_own_rows_of_the_ensembles_draws():
     np.testing.assert_allclose(sum(float(a[2]) for a in alone), float(whole_pseudo), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.heavy  # about 90 s on 2 cores; make test checks the same term on a state pool (test_surf_rebel.py)
+def test_pseudo_label_term_on_frames_matches_numpy_with_the_same_draws():
+    """SURF's one pseudo-label term on a pool of frame segments (the state pool's check: test_surf_rebel.py): each
+    member labels its drawn pool pairs from its own sums over the central steps and is trained on their crops."""
+    state, _, _ = _stored_labels(np.random.default_rng(14), 4, 4, 4)
+    pool, members, pairs = state.pool, REWARD.ensemble_size, 3
+    surf_cfg = SURFConfig(crop=1, ratio=2, threshold=0.52, weight=0.7)
+    zeros = jnp.zeros((members, pairs))
+    batch = rm.PrefBatch(None, None, zeros, zeros + 1, jnp.arange(members))
+    key = jax.random.PRNGKey(15)
+    loss, metrics = jax.jit(surf.pseudo_label_term(REWARD, surf_cfg, pool))(state.params, batch, key)
+    key_index, key_crop = jax.random.split(key)
+    index = np.asarray(jax.random.randint(key_index, (members, 2 * pairs), 0, int(pool.count)))
+    masks = np.stack(rm.crop_masks(key_crop, (members, 2 * pairs), 4, 1))
+    net, expected, confident_count = REWARD.network(), 0.0, 0
+    for m in range(members):
+        member = jax.tree.map(lambda x, m=m: x[m], state.params)
+        ce, confident = [], []
+        for j, i in enumerate(index[m]):
+            rewards = [
+                np.asarray(net.apply(member, *pixel_reward.SegmentFrames(side.frames[i], side.action[i]).inputs()))
+                for side in (pool.a, pool.b)
+            ]
+            central = rewards[1][1:3].sum() - rewards[0][1:3].sum()
+            prob = 1 / (1 + np.exp(-np.float64(central)))
+            assert abs(max(prob, 1 - prob) - surf_cfg.threshold) > 1e-5  # no float32 borderline case
+            label, sure = float(prob > 0.5), float(max(prob, 1 - prob) >= surf_cfg.threshold)
+            z = np.float64((rewards[1] * masks[1, m, j]).sum() - (rewards[0] * masks[0, m, j]).sum())
+            ce.append(label * np.log1p(np.exp(-z)) + (1 - label) * np.log1p(np.exp(z)))
+            confident.append(sure)
+        expected += surf_cfg.weight * np.mean(np.array(ce) * np.array(confident))
+        confident_count += sum(confident)
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(float(metrics["pseudo_fraction"]), confident_count / (members * 2 * pairs), rtol=1e-6)
+
+
 def test_a_session_trains_the_traced_number_of_epochs():
     """``pixel_train`` passes ``max_epochs`` 0 for a session without new labels (SURF and B-Pref hold none once
     the budget is spent): no epoch runs and the members stay; a traced 2 runs exactly 2."""
     state, _, _ = _stored_labels(np.random.default_rng(5), 8, 12, 4)
-    train = jax.jit(lambda st, most: pixel_reward.train(REWARD, st, jax.random.PRNGKey(3), (), 0, most, float("inf")))
+    train = jax.jit(lambda st, most: rt.train(REWARD, st, jax.random.PRNGKey(3), None, most, float("inf")))
     for most in (0, 2):
         trained, metrics = train(state, jnp.int32(most))
         assert int(metrics["epochs"]) == most

@@ -138,7 +138,7 @@ def test_stored_pairs_labels_and_loss_equal_a_numpy_bpref_on_the_same_buffer(peb
         assert count == MICRO_PEBBLE.feedback.labels
         returns = {}
         for side in ("a", "b"):
-            seg_obs, seg_act = np.asarray(getattr(data, f"obs_{side}")), np.asarray(getattr(data, f"act_{side}"))
+            seg_obs, seg_act = np.asarray(getattr(data, side).obs), np.asarray(getattr(data, side).action)
             sums = []
             for i in range(count):
                 # Where the segment's first step is in the buffer, then the H steps from there.
@@ -164,21 +164,25 @@ def test_stored_pairs_labels_and_loss_equal_a_numpy_bpref_on_the_same_buffer(peb
         logits = []
         for m in range(members):
             params = jax.tree.map(lambda x, m=m: np.asarray(x[m]), seed.reward.params)
-            r_a = _numpy_member(params, np.concatenate([data.obs_a[:count], data.act_a[:count]], -1)).sum(-1)
-            r_b = _numpy_member(params, np.concatenate([data.obs_b[:count], data.act_b[:count]], -1)).sum(-1)
+            r_a = _numpy_member(params, np.concatenate([data.a.obs[:count], data.a.action[:count]], -1)).sum(-1)
+            r_b = _numpy_member(params, np.concatenate([data.b.obs[:count], data.b.action[:count]], -1)).sum(-1)
             logits.append(np.stack([r_a, r_b], -1))
         logits = np.stack(logits)  # (M, N, 2)
         log_softmax = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
         target = expected_labels.astype(int)
         numpy_loss = -np.take_along_axis(log_softmax, target[None, :, None], -1)[..., 0].mean(-1).sum()
+
+        def every_member(x, count=count, members=members):
+            return jnp.broadcast_to(x[:count], (members, *x[:count].shape))
+
         batch = reward_model.PrefBatch(
-            obs_a=jnp.broadcast_to(data.obs_a[:count], (members, *data.obs_a[:count].shape)),
-            act_a=jnp.broadcast_to(data.act_a[:count], (members, *data.act_a[:count].shape)),
-            obs_b=jnp.broadcast_to(data.obs_b[:count], (members, *data.obs_b[:count].shape)),
-            act_b=jnp.broadcast_to(data.act_b[:count], (members, *data.act_b[:count].shape)),
-            labels=jnp.broadcast_to(data.labels[:count], (members, count)),
+            a=jax.tree.map(every_member, data.a),
+            b=jax.tree.map(every_member, data.b),
+            labels=every_member(data.labels),
             weight=jnp.ones((members, count)),
+            members=jnp.arange(members),
         )
+        batch = reward_model.with_rewards(cfg, seed.reward.params, batch)
         loss, _ = reward_model.bt_loss(cfg)(seed.reward.params, batch, None)
         np.testing.assert_allclose(float(loss), numpy_loss, rtol=1e-4)
 
@@ -226,7 +230,7 @@ def test_surf_with_disagreement_queries_a_skipping_teacher_and_the_asked_budget(
     )
     trainer, state, metrics = _run(cfg, seed_keys(4, 2))
     assert trainer.stored_length == cfg.query.segment_length + 2 * cfg.surf.crop
-    assert state.reward.data.obs_a.shape[2] == trainer.stored_length
+    assert state.reward.data.a.obs.shape[2] == trainer.stored_length
     sessions = [m for m in metrics if np.all(m["session"] == 1.0)]
     assert len(sessions) == 2 and sum(bool(trainer.session_due(r)[0]) for r in range(ROUNDS)) == 2
     skipped = sum(m["session_skipped"] for m in sessions)

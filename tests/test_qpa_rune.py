@@ -23,16 +23,16 @@ from test_pixel_preference import MICRO as PIXEL_MICRO
 from test_pixel_preference import _filled_buffer as _filled_pixel_buffer
 from test_pixel_preference import _place_of
 
-from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, surf, train
+from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, reward_train, train
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
 from rebel_jax.drqv2 import DrQV2Config
 from rebel_jax.methods import REGISTRY
 from rebel_jax.methods.base import Method
-from rebel_jax.methods.qpa import QPAConfig, augmented_bt_loss
+from rebel_jax.methods.qpa import QPAConfig
 from rebel_jax.methods.rune import RUNEConfig, bonus_weight
 from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.reward_model import PrefBatch, RewardConfig
+from rebel_jax.reward_model import PrefBatch, RewardConfig, Steps
 
 # A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment
 # (rows 0-139) and the running ones (rows 140-149). Each cell's observation is its (row, env).
@@ -126,7 +126,13 @@ def _init_params(rcfg: RewardConfig, seed: int, obs_size: int, act_size: int):
 @functools.partial(jax.jit, static_argnums=0)
 def _member_rewards(rcfg: RewardConfig, params, obs, action):
     """Each member's rewards of its own (obs, action) (leading member axis on all three): (M, ...)."""
-    return jax.vmap(reward_model.network(rcfg).apply)(params, obs, action)
+    return jax.vmap(rcfg.network().apply)(params, obs, action)
+
+
+def _qpa_terms(rcfg: RewardConfig, qpa: QPAConfig):
+    """QPA's reward terms on a state task."""
+    cfg = dataclasses.replace(_qpa_config(), qpa=qpa)
+    return REGISTRY["qpa"].reward_terms(types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg), None, None, None)
 
 
 def test_augmented_bt_loss_is_the_mean_cross_entropy_over_every_crop_of_every_pair():
@@ -136,16 +142,17 @@ def test_augmented_bt_loss_is_the_mean_cross_entropy_over_every_crop_of_every_pa
     obs_a, obs_b = (jnp.asarray(rng.normal(size=(members, pairs, length, 3)), jnp.float32) for _ in "ab")
     act_a, act_b = (jnp.asarray(rng.normal(size=(members, pairs, length, 2)), jnp.float32) for _ in "ab")
     batch = PrefBatch(
-        obs_a=obs_a,
-        act_a=act_a,
-        obs_b=obs_b,
-        act_b=act_b,
+        a=Steps(obs_a, act_a),
+        b=Steps(obs_b, act_b),
         labels=jnp.array([[1.0, 0.0, 0.5, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0, 0.5]]),
         weight=jnp.array([[1.0, 1.0, 1.0, 1.0, 0.0], [1.0] * 5]),  # one padded pair
+        members=jnp.arange(members),
     )
+    batch = jax.jit(reward_model.with_rewards, static_argnums=0)(rcfg, params, batch)
     key = jax.random.key(4)
-    loss, metrics = jax.jit(augmented_bt_loss(rcfg, qpa))(params, batch, key)
-    masks = jax.jit(lambda key: surf.crop_masks(key, (members, 3, pairs), length, qpa.crop))(key)
+    (term,) = _qpa_terms(rcfg, qpa)
+    loss, metrics = jax.jit(term)(params, batch, key)
+    masks = jax.jit(lambda key: reward_model.crop_masks(key, (members, 3, pairs), length, qpa.crop))(key)
     mask_a, mask_b = (np.asarray(m) for m in masks)
     rewards_a = np.asarray(_member_rewards(rcfg, params, obs_a, act_a), np.float64)
     rewards_b = np.asarray(_member_rewards(rcfg, params, obs_b, act_b), np.float64)
@@ -166,13 +173,14 @@ def test_augmented_bt_loss_is_the_mean_cross_entropy_over_every_crop_of_every_pa
     np.testing.assert_allclose(float(loss), expected, rtol=1e-5)
     np.testing.assert_allclose(float(metrics["bt_accuracy"]), correct / counted, rtol=1e-6)
     plain = jax.jit(reward_model.bt_loss(rcfg))(params, batch, key)[0]
-    once = jax.jit(augmented_bt_loss(rcfg, dataclasses.replace(qpa, data_aug_ratio=0)))(params, batch, key)[0]
+    (uncropped,) = _qpa_terms(rcfg, dataclasses.replace(qpa, data_aug_ratio=0))
+    once = jax.jit(uncropped)(params, batch, key)[0]
     assert float(once) == float(plain)
 
 
 def test_qpa_crops_are_qpa_s_35_to_45_of_50_steps_one_length_per_pair():
     # QPA's get_cropping_mask: length = randint(S - 15, S - 5 + 1), each segment's start randint(0, S + 1 - length).
-    masks = jax.jit(lambda key: surf.crop_masks(key, (3000,), 50, QPAConfig().crop))(jax.random.key(5))
+    masks = jax.jit(lambda key: reward_model.crop_masks(key, (3000,), 50, QPAConfig().crop))(jax.random.key(5))
     mask_a, mask_b = (np.asarray(m) for m in masks)
     lengths = mask_a.sum(-1)
     np.testing.assert_array_equal(lengths, mask_b.sum(-1))
@@ -211,12 +219,12 @@ def test_qpa_session_runs_one_step_at_a_time_until_the_running_accuracy_reaches_
     stored = _labelled_state(rcfg, 12, 8)
     trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg)
     keys = {"terms": jax.random.key(8), "train": jax.random.key(9)}
-    session = jax.jit(lambda s: REGISTRY["qpa"].train_state_reward(trainer, _State(None), s, keys, jnp.int32(kept)))
+    session = jax.jit(lambda s: REGISTRY["qpa"].train_reward(trainer, _State(None), s, keys, jnp.int32(kept), None))
     state, metrics = session(stored)
     # Reference: QPA's loop (train_QPA.py:143, reward_model.py:707-762) with this project's one-step training.
     most = math.ceil(20 * 12 / 8) if kept else 0
-    terms = [augmented_bt_loss(rcfg, qpa)]
-    one_step = jax.jit(lambda s, key: reward_model.train_iterations(rcfg, s, key, terms, jnp.ones((), jnp.int32)))
+    terms = _qpa_terms(rcfg, qpa)
+    one_step = jax.jit(lambda s, key: reward_train.train_iterations(rcfg, s, key, terms, jnp.ones((), jnp.int32)))
     expected, accuracy, steps = stored, 0.0, 0
     for step in range(most):
         expected, m = one_step(expected, jax.random.fold_in(keys["train"], step))
@@ -462,7 +470,7 @@ def test_rune_pixel_bonus_is_the_members_spread_at_the_first_step_of_each_n_step
     batch = batch.replace(reward=jnp.asarray(rng.normal(size=32), jnp.float32))  # the n-step learned returns
     trainer = types.SimpleNamespace(cfg=cfg)
     ts = types.SimpleNamespace(reward=types.SimpleNamespace(params=params))
-    apply = jax.jit(pixel_reward.network(rcfg).apply)
+    apply = jax.jit(rcfg.network().apply)
     members = [np.asarray(apply(jax.tree.map(lambda x, m=m: x[m], params), batch.obs, batch.action)) for m in range(3)]
     members = np.stack(members).astype(np.float64)  # (M, B): each member's reward of (s_t, a_t)
     spread = np.sqrt(np.mean((members - members.mean(0)) ** 2, axis=0))  # NumPy's std, ddof 0, as RUNE's
@@ -663,6 +671,6 @@ def test_pixel_qpa_labels_segments_of_the_last_complete_episodes_at_each_session
         data = jax.tree.map(lambda x, s=seed: x[s], final.reward.data)
         for pair in range(12):
             session = pair // 4 + 1
-            for frames, action in ((data.frames_a, data.action_a), (data.frames_b, data.action_b)):
+            for frames, action in ((data.a.frames, data.a.action), (data.b.frames, data.b.action)):
                 row, _ = _place_of(buffer, frames[pair], action[pair], horizon)
                 assert row // length == session - 1 and (row + horizon - 1) // length == session - 1

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rebel_jax import reward_model as rm
+from rebel_jax import reward_train as rt
 from rebel_jax.queries import Segments
 
 OBS, ACT, H = 4, 2, 6
@@ -95,7 +96,9 @@ def test_bt_loss_equals_hand_computation_with_soft_and_masked_pairs():
     act = np.zeros((members, batch, 3, ACT), np.float32)
     labels = np.array([[1.0, 0.0, 0.5, 1.0], [0.0, 0.5, 1.0, 1.0]], np.float32)
     weight = np.array([[1.0, 1.0, 1.0, 0.0], [1.0, 1.0, 1.0, 0.0]], np.float32)
-    pref = rm.PrefBatch(*map(jnp.asarray, (obs_a, act, obs_b, act, labels, weight)))
+    a, b = rm.Steps(jnp.asarray(obs_a), jnp.asarray(act)), rm.Steps(jnp.asarray(obs_b), jnp.asarray(act))
+    pref = rm.PrefBatch(a, b, jnp.asarray(labels), jnp.asarray(weight), members=jnp.arange(members))
+    pref = jax.jit(rm.with_rewards, static_argnums=0)(cfg, params, pref)
     loss, metrics = jax.jit(rm.bt_loss(cfg))(params, pref, jax.random.key(0))
 
     expected, correct, hard = 0.0, 0, 0
@@ -118,8 +121,9 @@ def test_bt_loss_equals_hand_computation_with_soft_and_masked_pairs():
 def test_total_loss_sums_terms_and_merges_metrics():
     cfg = SMALL
     state = _state_with_labels(cfg, 0, 40)
-    minibatch = jax.jit(rm._minibatch, static_argnums=3)
+    minibatch = jax.jit(rt._minibatch, static_argnums=3)
     pref = minibatch(state.data, jnp.tile(jnp.arange(64), (2, 1)), jnp.asarray(0), 32)
+    pref = jax.jit(rm.with_rewards, static_argnums=0)(cfg, state.params, pref)
 
     def extra(params, batch, key):
         del batch, key  # Unused.
@@ -149,7 +153,7 @@ def test_add_labels_drops_skipped_pairs_and_wraps_like_a_ring():
             ptr = (ptr + 1) % 5
         assert int(state.data.count) == len(ring) and int(state.data.ptr) == ptr
         stored = [
-            (float(state.data.obs_a[j, 0, 0]), float(state.data.act_b[j, 1, 1]), float(state.data.labels[j]))
+            (float(state.data.a.obs[j, 0, 0]), float(state.data.b.action[j, 1, 1]), float(state.data.labels[j]))
             for j in range(len(ring))
         ]
         assert stored == ring
@@ -169,7 +173,7 @@ def test_accuracy_matches_numpy():
 
 
 def _python_loop(cfg, state, key):
-    epoch_fn = jax.jit(rm.train_epoch, static_argnums=0)
+    epoch_fn = jax.jit(rt.train_epoch, static_argnums=0)
     for epoch in range(cfg.max_epochs):
         state, metrics = epoch_fn(cfg, state, jax.random.fold_in(key, epoch))
         if float(metrics["accuracy"]) > cfg.stop_accuracy:
@@ -180,7 +184,7 @@ def _python_loop(cfg, state, key):
 def test_early_stopping_stops_where_a_python_loop_does():
     state = _state_with_labels(SMALL, 2, 100)
     key = jax.random.key(3)
-    trained, metrics = jax.jit(rm.train, static_argnums=0)(SMALL, state, key)
+    trained, metrics = jax.jit(rt.train, static_argnums=0)(SMALL, state, key)
     expected_state, expected_epochs = _python_loop(SMALL, state, key)
     assert 1 < expected_epochs < SMALL.max_epochs  # Stops early, but not at once.
     assert int(metrics["epochs"]) == expected_epochs
@@ -193,7 +197,7 @@ def test_vmap_over_seeds_with_different_stop_epochs_equals_each_run():
     states = [_state_with_labels(SMALL, 4, 100), _state_with_labels(SMALL, 5, 100, mistake=0.2)]
     keys = jax.random.split(jax.random.key(6), 2)
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *states)
-    train = functools.partial(rm.train, SMALL)
+    train = functools.partial(rt.train, SMALL)
     batched, batched_metrics = jax.jit(jax.vmap(train))(stacked, keys)
     epochs = []
     for i in range(2):
@@ -206,7 +210,7 @@ def test_vmap_over_seeds_with_different_stop_epochs_equals_each_run():
 
 def test_no_labels_no_training():
     state = _init(SMALL, jax.random.key(0), OBS, ACT, H)
-    trained, metrics = jax.jit(rm.train, static_argnums=0)(SMALL, state, jax.random.key(1))
+    trained, metrics = jax.jit(rt.train, static_argnums=0)(SMALL, state, jax.random.key(1))
     assert int(metrics["epochs"]) == 0
     _assert_trees_close(trained.params, state.params, rtol=0, atol=0)
 
@@ -214,7 +218,7 @@ def test_no_labels_no_training():
 def test_learns_a_linear_reward_from_an_oracle():
     cfg = dataclasses.replace(SMALL, ensemble_size=3, hidden=32, stop_accuracy=0.99, max_epochs=60, label_capacity=400)
     state = _state_with_labels(cfg, 7, 400)
-    state, metrics = jax.jit(rm.train, static_argnums=0)(cfg, state, jax.random.key(8))
+    state, metrics = jax.jit(rt.train, static_argnums=0)(cfg, state, jax.random.key(8))
     seg_a, seg_b, labels, mask = _labelled(9, 500)
     held_out = float(_accuracy(cfg, state.params, seg_a, seg_b, labels, mask))
     assert held_out > 0.9, held_out
@@ -249,3 +253,37 @@ def test_validate_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"reward.{field}"):
         dataclasses.replace(rm.RewardConfig(), **{field: value}).validate()
     rm.RewardConfig().validate()
+
+
+@pytest.mark.parametrize("crop", [0, 2])
+def test_one_bt_loss_reads_the_batchs_rewards_alike_for_state_and_frame_segments(crop):
+    """``bt_loss`` is one term for both networks: on a batch of state segments and on one of frame segments with
+    the same members' per-step rewards it gives the same loss, and that loss is NumPy's soft cross-entropy of the
+    (cropped) return differences, each member's weighted mean, summed over members."""
+    from rebel_jax.pixel_reward import PixelRewardConfig, SegmentFrames  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    members, pairs, steps = 3, 5, 8
+    rewards_a, rewards_b = (jnp.asarray(rng.uniform(-1, 1, (members, pairs, steps)), jnp.float32) for _ in "ab")
+    labels = jnp.asarray(rng.choice([0.0, 0.5, 1.0], (members, pairs)), jnp.float32)
+    weight = jnp.asarray(rng.uniform(size=(members, pairs)) < 0.8, jnp.float32).at[:, 0].set(1.0)
+    states = rm.Steps(jnp.zeros((members, pairs, steps, OBS)), jnp.zeros((members, pairs, steps, ACT)))
+    frames = SegmentFrames(
+        jnp.zeros((members, pairs, steps + 2, 4, 4, 3), jnp.uint8), jnp.zeros((members, pairs, steps, 1))
+    )
+    key, losses = jax.random.key(4), []
+    for cfg, segments in ((rm.RewardConfig(ensemble_size=members), states), (PixelRewardConfig(), frames)):
+        batch = rm.PrefBatch(segments, segments, labels, weight, jnp.arange(members), rewards_a, rewards_b)
+        losses.append(jax.jit(rm.bt_loss(cfg, crop))(None, batch, key))
+    chex.assert_trees_all_equal(*losses)
+    masks = np.ones((2, members, pairs, steps))
+    if crop:  # the term's draws: one crop length per pair, a start per segment (``crop_masks``)
+        masks = np.stack(rm.crop_masks(key, (members, pairs), steps, crop))
+        assert np.any(masks.sum(-1) < steps)
+    logits = (np.asarray(rewards_b, np.float64) * masks[1]).sum(-1) - (
+        np.asarray(rewards_a, np.float64) * masks[0]
+    ).sum(-1)
+    y, w = np.asarray(labels, np.float64), np.asarray(weight, np.float64)
+    ce = y * np.log1p(np.exp(-logits)) + (1 - y) * np.log1p(np.exp(logits))
+    expected = np.sum((ce * w).sum(1) / w.sum(1))
+    np.testing.assert_allclose(float(losses[0][0]), expected, rtol=1e-5)

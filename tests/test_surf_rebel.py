@@ -13,6 +13,7 @@ import pytest
 
 from rebel_jax import agent_preference, surf
 from rebel_jax import reward_model as rm
+from rebel_jax import reward_train as rt
 from rebel_jax.queries import Segments
 
 OBS, ACT, H = 3, 2, 6
@@ -24,7 +25,7 @@ SMALL = rm.RewardConfig(
 
 _init = jax.jit(rm.init, static_argnums=(0, 2, 3, 4))
 _add_labels = jax.jit(rm.add_labels)
-_train = jax.jit(rm.train, static_argnums=0)
+_train = jax.jit(rt.train, static_argnums=0)
 
 
 def _segments(seed, n, length=H):
@@ -66,8 +67,8 @@ def _tiny_params(cfg=TINY, seed=0):
 
 
 def _empty_batch(members=2, size=4):
-    zeros = jnp.zeros((members, size, H, OBS)), jnp.zeros((members, size, H, ACT))
-    return rm.PrefBatch(zeros[0], zeros[1], zeros[0], zeros[1], jnp.zeros((members, size)), jnp.ones((members, size)))
+    zeros = rm.Steps(jnp.zeros((members, size, H, OBS)), jnp.zeros((members, size, H, ACT)))
+    return rm.PrefBatch(zeros, zeros, jnp.zeros((members, size)), jnp.ones((members, size)), jnp.arange(members))
 
 
 # Reward head.
@@ -140,7 +141,7 @@ def test_agent_value_term_gradients_reach_only_the_reward_params():
 def _session_with_lambda(state, key, lam, agent_obs, agent_action):
     """A BT + REBEL session with lambda traced: one compilation serves every lambda."""
     terms = [rm.bt_loss(SMALL), agent_preference.agent_value_term(SMALL, lam, agent_obs, agent_action, 0.99)]
-    return rm.train(SMALL, state, key, terms)
+    return rt.train(SMALL, state, key, terms)
 
 
 def test_zero_lambda_adds_an_exactly_zero_gradient_and_trains_like_bt_alone():
@@ -177,7 +178,7 @@ def test_lambda_sign_moves_the_agents_reward():
 def test_crop_masks_match_a_python_reference_with_the_same_draws():
     key, shape, stored, crop = jax.random.key(5), (3, 7), 14, 3
     central = stored - 2 * crop
-    mask_a, mask_b = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
+    mask_a, mask_b = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, shape, stored, crop)
 
     @jax.jit
     def draws(key):  # The documented draws: one length per pair, then a start per segment.
@@ -198,7 +199,7 @@ def test_crop_masks_match_a_python_reference_with_the_same_draws():
 def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     shape, stored, crop = (4000,), 12, 2
     central = stored - 2 * crop
-    masks = np.stack(jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
+    masks = np.stack(jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(6), shape, stored, crop))
     assert set(np.unique(masks)) == {0.0, 1.0}
     edges = np.diff(np.pad(masks, ((0, 0), (0, 0), (1, 1))), axis=-1)
     assert np.all((edges == 1).sum(-1) == 1) and np.all((edges == -1).sum(-1) == 1)  # One contiguous run.
@@ -208,7 +209,7 @@ def test_crop_masks_are_single_runs_of_allowed_lengths_covering_all_crops():
     starts = np.argmax(masks, axis=-1)
     for length in range(central - crop, central + crop + 1):  # Every start in [0, L - length] occurs.
         assert set(starts[0][lengths[0] == length]) == set(range(stored - length + 1))
-    full = jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
+    full = jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(jax.random.key(7), (2, 3), 5, 0)
     np.testing.assert_array_equal(np.stack(full), 1.0)
 
 
@@ -223,17 +224,21 @@ def _surf_batch(seed, members, size, stored):
     def split(x):
         return jnp.asarray(x.reshape((members, size) + x.shape[1:]))
 
-    return rm.PrefBatch(*map(split, (seg_a.obs, seg_a.action, seg_b.obs, seg_b.action, labels, weight)))
+    a, b = rm.Steps(split(seg_a.obs), split(seg_a.action)), rm.Steps(split(seg_b.obs), split(seg_b.action))
+    return rm.PrefBatch(a, b, split(labels), split(weight), members=jnp.arange(members))
 
 
-def test_cropped_bt_loss_without_crop_is_bt_loss_exactly():
+_with_rewards = jax.jit(rm.with_rewards, static_argnums=0)
+
+
+def test_one_uncropped_copy_is_bt_loss_exactly():
+    """The crop path with crop 0 and one copy (masks of ones) gives the whole segments' loss and gradient."""
     params = _init(SMALL, jax.random.key(8), OBS, ACT, H).params
     batch, key = _surf_batch(9, 2, 5, H), jax.random.key(10)
-    surf_cfg = surf.SURFConfig(crop=0)
     value_and_grad = functools.partial(jax.value_and_grad, has_aux=True)
-    plain = jax.jit(value_and_grad(rm.bt_loss(SMALL)))(params, batch, key)
-    cropped = jax.jit(value_and_grad(surf.cropped_bt_loss(SMALL, surf_cfg)))(params, batch, key)
-    chex.assert_trees_all_equal(plain, cropped)
+    plain = jax.jit(value_and_grad(rt.loss_and_logits(SMALL, [rm.bt_loss(SMALL)])))(params, batch, key)
+    copied = jax.jit(value_and_grad(rt.loss_and_logits(SMALL, [rm.bt_loss(SMALL, 0, copies=1)])))(params, batch, key)
+    chex.assert_trees_all_equal(plain, copied)
 
 
 def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
@@ -241,15 +246,15 @@ def test_cropped_bt_loss_sums_each_member_over_its_own_crops():
     stored = H + 2 * surf_cfg.crop
     params = _tiny_params(seed=12)
     batch, key = _surf_batch(13, 2, 5, stored), jax.random.key(14)
-    loss, metrics = jax.jit(surf.cropped_bt_loss(TINY, surf_cfg))(params, batch, key)
+    loss, metrics = jax.jit(rm.bt_loss(TINY, surf_cfg.crop))(params, _with_rewards(TINY, params, batch), key)
     mask_a, mask_b = map(
-        np.asarray, jax.jit(surf.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf_cfg.crop)
+        np.asarray, jax.jit(rm.crop_masks, static_argnums=(1, 2, 3))(key, (2, 5), stored, surf_cfg.crop)
     )
     assert not np.array_equal(mask_a[0], mask_a[1])  # Members see different crops.
     expected = 0.0
     for m in range(2):
-        rewards_a = _numpy_rewards(params, np.asarray(batch.obs_a[m]), np.asarray(batch.act_a[m]))[m]
-        rewards_b = _numpy_rewards(params, np.asarray(batch.obs_b[m]), np.asarray(batch.act_b[m]))[m]
+        rewards_a = _numpy_rewards(params, np.asarray(batch.a.obs[m]), np.asarray(batch.a.action[m]))[m]
+        rewards_b = _numpy_rewards(params, np.asarray(batch.b.obs[m]), np.asarray(batch.b.action[m]))[m]
         logits = (rewards_b * mask_b[m]).sum(-1) - (rewards_a * mask_a[m]).sum(-1)
         weight = np.asarray(batch.weight[m])
         expected += (_numpy_ce(logits, np.asarray(batch.labels[m])) * weight).sum() / weight.sum()
@@ -273,7 +278,11 @@ def test_pseudo_labels_match_numpy():
 
 def _pool(seed, size, stored):
     seg_a, seg_b = _segments(seed, size, stored), _segments(seed + 1, size, stored)
-    return tuple(map(jnp.asarray, (seg_a.obs, seg_a.action, seg_b.obs, seg_b.action)))
+    a, b = (
+        rm.Steps(jnp.asarray(seg_a.obs), jnp.asarray(seg_a.action)),
+        rm.Steps(jnp.asarray(seg_b.obs), jnp.asarray(seg_b.action)),
+    )
+    return rm.PairStore(a, b, jnp.zeros(size), jnp.zeros((), jnp.int32), jnp.asarray(size, jnp.int32))
 
 
 def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
@@ -283,18 +292,20 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
     params = jax.tree.map(lambda x: 3.0 * x, params)  # Sharper preferences: some pairs pass the threshold.
     pool = _pool(16, 30, stored)
     batch, key = _surf_batch(17, 2, 4, stored), jax.random.key(18)
-    term = surf.pseudo_label_term(TINY, surf_cfg, *pool)
+    term = surf.pseudo_label_term(TINY, surf_cfg, pool)
     (loss, metrics), grads = jax.jit(jax.value_and_grad(term, has_aux=True))(params, batch, key)
 
     @jax.jit
     def draws(key):  # The documented draws: pool indices, then crops.
         key_index, key_crop = jax.random.split(key)
-        return jax.random.randint(key_index, (2, 12), 0, 30), *surf.crop_masks(key_crop, (2, 12), stored, surf_cfg.crop)
+        return jax.random.randint(key_index, (2, 12), 0, 30), *rm.crop_masks(key_crop, (2, 12), stored, surf_cfg.crop)
 
     index, mask_a, mask_b = map(np.asarray, draws(key))
     expected, confident_count, fixed_labels, fixed_confident = 0.0, 0, [], []
     for m in range(2):
-        obs_a, act_a, obs_b, act_b = (np.asarray(x)[index[m]] for x in pool)
+        obs_a, act_a, obs_b, act_b = (
+            np.asarray(x)[index[m]] for x in (pool.a.obs, pool.a.action, pool.b.obs, pool.b.action)
+        )
         rewards_a, rewards_b = _numpy_rewards(params, obs_a, act_a)[m], _numpy_rewards(params, obs_b, act_b)[m]
         central = slice(surf_cfg.crop, surf_cfg.crop + H)
         prob = 1.0 / (1.0 + np.exp(-(rewards_b[:, central].sum(-1) - rewards_a[:, central].sum(-1))))
@@ -316,8 +327,8 @@ def test_pseudo_label_term_matches_a_numpy_reference_with_the_same_draws():
 
     def fixed_loss(params):
         def one(member_params, member_index, member_mask_a, member_mask_b):
-            reward_a = rm.network(TINY).apply(member_params, pool[0][member_index], pool[1][member_index])
-            reward_b = rm.network(TINY).apply(member_params, pool[2][member_index], pool[3][member_index])
+            reward_a = TINY.network().apply(member_params, pool.a.obs[member_index], pool.a.action[member_index])
+            reward_b = TINY.network().apply(member_params, pool.b.obs[member_index], pool.b.action[member_index])
             return jnp.sum(reward_b * member_mask_b, -1) - jnp.sum(reward_a * member_mask_a, -1)
 
         logits = jax.vmap(one)(params, jnp.asarray(index), jnp.asarray(mask_a), jnp.asarray(mask_b))
@@ -331,8 +342,8 @@ def test_surf_session_runs_under_jit_and_vmap_over_keys():
     surf_cfg = surf.SURFConfig(threshold=0.7, ratio=2, crop=2)
     stored = H + 2 * surf_cfg.crop
     state = _state_with_labels(SMALL, 19, 40, stored)
-    terms = [surf.cropped_bt_loss(SMALL, surf_cfg), surf.pseudo_label_term(SMALL, surf_cfg, *_pool(20, 50, stored))]
-    session = functools.partial(rm.train, SMALL, terms=terms)
+    terms = [rm.bt_loss(SMALL, surf_cfg.crop), surf.pseudo_label_term(SMALL, surf_cfg, _pool(20, 50, stored))]
+    session = functools.partial(rt.train, SMALL, terms=terms)
     keys = jax.random.split(jax.random.key(21), 2)
     batched, batched_metrics = jax.jit(jax.vmap(session, in_axes=(None, 0)))(state, keys)
     assert np.all(np.asarray(batched_metrics["epochs"]) == SMALL.max_epochs)
@@ -377,7 +388,7 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     batch = _surf_batch(23, 2, 5, H)  # The last pair is padding: excluded from the spread.
     lam, gamma = -0.3, 0.95
     term = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted", normalize=True)
-    loss, _ = jax.jit(term)(params, batch, jax.random.key(0))
+    loss, _ = jax.jit(term)(params, _with_rewards(TINY, params, batch), jax.random.key(0))
     rewards = _numpy_rewards(params, seg.obs, seg.action)  # (M, N, H)
     values = (rewards * gamma ** np.arange(H)).sum(-1).mean(-1)
     expected = 0.0
@@ -385,8 +396,8 @@ def test_scale_free_value_term_matches_a_numpy_reference():
         w = np.asarray(batch.weight[m]) > 0
         labelled = np.concatenate(
             [
-                _numpy_rewards(params, np.asarray(batch.obs_a[m])[w], np.asarray(batch.act_a[m])[w])[m],
-                _numpy_rewards(params, np.asarray(batch.obs_b[m])[w], np.asarray(batch.act_b[m])[w])[m],
+                _numpy_rewards(params, np.asarray(batch.a.obs[m])[w], np.asarray(batch.a.action[m])[w])[m],
+                _numpy_rewards(params, np.asarray(batch.b.obs[m])[w], np.asarray(batch.b.action[m])[w])[m],
             ]
         )
         expected += lam * values[m] / labelled.std()
@@ -396,7 +407,8 @@ def test_scale_free_value_term_matches_a_numpy_reference():
     small = jax.tree.map(lambda x: x, params)
     small["params"]["Dense_1"] = jax.tree.map(lambda x: 0.01 * x, params["params"]["Dense_1"])
     literal = agent_preference.agent_value_term(TINY, lam, seg.obs, seg.action, gamma, "discounted")
-    ratio_free = float(term(small, batch, None)[0]) / float(term(params, batch, None)[0])
+    batch_small, batch = _with_rewards(TINY, small, batch), _with_rewards(TINY, params, batch)
+    ratio_free = float(term(small, batch_small, None)[0]) / float(term(params, batch, None)[0])
     ratio_literal = float(literal(small, batch, None)[0]) / float(literal(params, batch, None)[0])
     assert abs(ratio_literal) < 0.2 and abs(ratio_free - 1.0) < abs(ratio_literal - 1.0)
 
@@ -430,9 +442,10 @@ def _store(cfg, seed, pairs, capacity):
 def test_best_segments_are_the_highest_learned_returns_of_either_side(k):
     params = _tiny_params(seed=30)
     data = _store(TINY, 31, pairs=3, capacity=8)  # 6 stored segments among 16 slots.
-    obs, action, valid = jax.jit(agent_preference.best_segments, static_argnums=(0, 3))(TINY, params, data, k)
-    candidates_obs = np.concatenate([np.asarray(data.obs_a)[:3], np.asarray(data.obs_b)[:3]])
-    candidates_act = np.concatenate([np.asarray(data.act_a)[:3], np.asarray(data.act_b)[:3]])
+    best, valid = jax.jit(agent_preference.best_segments, static_argnums=(0, 3))(TINY, params, data, k)
+    obs, action = best.obs, best.action
+    candidates_obs = np.concatenate([np.asarray(data.a.obs)[:3], np.asarray(data.b.obs)[:3]])
+    candidates_act = np.concatenate([np.asarray(data.a.action)[:3], np.asarray(data.b.action)[:3]])
     returns = _numpy_rewards(params, candidates_obs, candidates_act).mean(0).sum(-1)  # Ensemble mean, summed.
     order = sorted(range(6), key=lambda i: -returns[i])[: min(k, 6)]
     chex.assert_shape([obs], (k, H, OBS))
@@ -447,10 +460,11 @@ def test_value_gap_term_matches_a_numpy_reference(estimator, normalize):
     params = _tiny_params(seed=32)
     agent, best = _segments(33, 3, length=7), _segments(34, 4)
     valid = np.array([1.0, 1.0, 1.0, 0.0], np.float32)  # The last one is an empty slot: ignored.
-    batch = _surf_batch(35, 2, 5, H)
+    batch = _with_rewards(TINY, params, _surf_batch(35, 2, 5, H))
     lam, gamma = 0.7, 0.9
+    best_steps = rm.Steps(jnp.asarray(best.obs), jnp.asarray(best.action))
     term = agent_preference.value_gap_term(
-        TINY, lam, agent.obs, agent.action, best.obs, best.action, valid, gamma, estimator, normalize
+        TINY, lam, agent.obs, agent.action, best_steps, valid, gamma, estimator, normalize
     )
     loss, metrics = jax.jit(term)(params, batch, jax.random.key(0))
 
@@ -468,8 +482,8 @@ def test_value_gap_term_matches_a_numpy_reference(estimator, normalize):
             w = np.asarray(batch.weight[m]) > 0
             labelled = np.concatenate(
                 [
-                    _numpy_rewards(params, np.asarray(batch.obs_a[m])[w], np.asarray(batch.act_a[m])[w])[m],
-                    _numpy_rewards(params, np.asarray(batch.obs_b[m])[w], np.asarray(batch.act_b[m])[w])[m],
+                    _numpy_rewards(params, np.asarray(batch.a.obs[m])[w], np.asarray(batch.a.action[m])[w])[m],
+                    _numpy_rewards(params, np.asarray(batch.b.obs[m])[w], np.asarray(batch.b.action[m])[w])[m],
                 ]
             )
             value, best_value = value / labelled.std(), best_value / labelled.std()
@@ -487,8 +501,9 @@ def test_value_gap_term_gradient_reaches_only_the_reward_parameters():
     agent, best = _segments(37, 3), _segments(38, 2)
     valid = jnp.ones(2)
 
-    def loss(params, *inputs):
-        return agent_preference.value_gap_term(TINY, 0.5, *inputs, valid, 0.9)(params, None, None)[0]
+    def loss(params, obs, action, best_obs, best_action):
+        best = rm.Steps(best_obs, best_action)
+        return agent_preference.value_gap_term(TINY, 0.5, obs, action, best, valid, 0.9)(params, None, None)[0]
 
     inputs = tuple(map(jnp.asarray, (agent.obs, agent.action, best.obs, best.action)))
     grads = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(params, *inputs)
@@ -497,7 +512,8 @@ def test_value_gap_term_gradient_reaches_only_the_reward_parameters():
     def total(fn, *args):
         return jax.grad(lambda p: jnp.sum(fn(TINY, p, *args)))(params)
 
-    optimal = total(agent_preference.optimal_value, best.obs, best.action, valid, 0.9, "discounted", H)
+    best_steps = rm.Steps(jnp.asarray(best.obs), jnp.asarray(best.action))
+    optimal = total(agent_preference.optimal_value, best_steps, valid, 0.9, "discounted", H)
     value = total(agent_preference.agent_value, agent.obs, agent.action, 0.9, "discounted")
     expected = jax.tree.map(lambda a, b: 0.5 * (a - b), optimal, value)
     chex.assert_trees_all_close(grads[0], expected, rtol=1e-5, atol=1e-7)
@@ -515,7 +531,8 @@ def test_the_lower_bound_holds_with_sigmoid_rewards_and_can_fail_with_tanh(outpu
     params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] - 3.0
     agent, best = _segments(40, 3), _segments(41, 2)
     lam = 0.5
-    term = agent_preference.value_gap_term(cfg, lam, agent.obs, agent.action, best.obs, best.action, jnp.ones(2), 0.9)
+    best_steps = rm.Steps(jnp.asarray(best.obs), jnp.asarray(best.action))
+    term = agent_preference.value_gap_term(cfg, lam, agent.obs, agent.action, best_steps, jnp.ones(2), 0.9)
     penalty, metrics = term(params, None, None)
     lower_bound = lam * cfg.ensemble_size * float(metrics["optimal_value"])  # lambda * sum_m V*_m
     rewards = _numpy_rewards(params, agent.obs, agent.action, output)
@@ -555,8 +572,8 @@ def test_a_constant_shift_of_the_reward_moves_the_lower_bound_and_not_the_penalt
             TINY, lam, agent.obs, agent.action, gamma, estimator, predict_fn=predict(c)
         )(params, None, None)[0]
         penalty = agent_preference.value_gap_term(
-            TINY, lam, agent.obs, agent.action, best.obs, best.action, jnp.ones(4), gamma, estimator,
-            predict_fn=predict(c), best_predict_fn=predict(c),
+            TINY, lam, agent.obs, agent.action, rm.Steps(best.obs, best.action), jnp.ones(4), gamma, estimator,
+            predict_fn=predict(c), best_predict_fn=lambda p, seg: predict(c)(p, seg.obs, seg.action),
         )(params, None, None)[0]  # fmt: skip
         return float(lower), float(penalty)
 

@@ -8,8 +8,9 @@ with ``V(pi*(nu))`` estimated from the best labelled segments (``best_segments``
 ``optimal_value``); ``AgentPreferenceConfig.form`` picks one.
 
 Each term is one more loss term of :mod:`rebel_jax.reward_model` (``(params, batch, key) ->
-(loss, metrics)``), passed to ``reward_model.train`` beside ``bt_loss``. Which trajectories V
-is computed on (``rebel.source``) is the trainer's choice; this module takes them as arrays.
+(loss, metrics)``), passed to ``reward_train.train`` beside ``bt_loss``, on state and pixel tasks
+alike. Which trajectories V is computed on (``rebel.source``) is the method's choice
+(:mod:`rebel_jax.methods.rebel`); this module takes them as arrays and a ``predict_fn``.
 
 References:
   REBEL: Reward Regularization-Based Approach for Robotic Reinforcement Learning from Human
@@ -28,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from rebel_jax.errors import check as _check
-from rebel_jax.reward_model import LabelData, LossTerm, PrefBatch, RewardConfig, mean_reward, network, predict
+from rebel_jax.reward_model import LossTerm, PairStore, PrefBatch, Steps, mean_reward, predict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,7 +124,7 @@ discount weight of a 500-step walker episode)."""
 
 
 def agent_value(
-    cfg: RewardConfig,
+    cfg: Any,
     params: Any,
     obs: jax.Array,
     action: jax.Array,
@@ -171,14 +172,8 @@ def reward_spread(rewards_a: jax.Array, rewards_b: jax.Array, weight: jax.Array)
     return jnp.maximum(jnp.sqrt(var), 1e-6)
 
 
-def _labelled_spread(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
-    """(M,) :func:`reward_spread` of the state ensemble on a minibatch's labelled segments."""
-    apply = jax.vmap(network(cfg).apply)
-    return reward_spread(apply(params, batch.obs_a, batch.act_a), apply(params, batch.obs_b, batch.act_b), batch.weight)
-
-
 def agent_value_term(
-    cfg: RewardConfig,
+    cfg: Any,
     lam: float | jax.Array,
     obs: jax.Array,
     action: jax.Array,
@@ -186,7 +181,6 @@ def agent_value_term(
     estimator: str = "discounted",
     normalize: bool = False,
     predict_fn: Callable | None = None,
-    spread_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's agent-preference term ``lambda * sum_m V_m`` (the paper's eq. "mle_new").
 
@@ -206,13 +200,10 @@ def agent_value_term(
       estimator: ``"discounted"`` or ``"mean"``, see ``agent_value``.
       normalize: the scale-free form ``lambda * sum_m V_m / s_m`` (``rebel.normalize``): ``s_m``
         is member m's standard deviation of the per-step reward over the steps of the batch's
-        labelled segments (both of each pair, padding excluded), held fixed (no gradient). The
+        labelled segments (both of each pair, padding excluded; ``batch.rewards_*``), held fixed (no gradient). The
         BT loss fixes the reward's scale only up to what the labels demand, so with it one
         lambda weighs V alike on tasks whose learned rewards spread differently.
       predict_fn: as :func:`agent_value`.
-      spread_fn: ``(params, batch) -> (M,)`` the spread ``s_m`` of ``normalize``; default the state
-        ensemble's on a :class:`PrefBatch`. The pixel trainer passes :func:`reward_spread` of the per-step
-        rewards its BT term computed (``batch`` is then that term's metrics).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (the members'
@@ -228,7 +219,7 @@ def agent_value_term(
         obs_fixed, action_fixed = jax.lax.stop_gradient(obs), jax.lax.stop_gradient(action)
         values = agent_value(cfg, params, obs_fixed, action_fixed, gamma, estimator, predict_fn)
         if normalize:
-            spread = (spread_fn or functools.partial(_labelled_spread, cfg))(params, batch)
+            spread = reward_spread(batch.rewards_a, batch.rewards_b, batch.weight)
             values = values / jax.lax.stop_gradient(spread)
         loss = lam * jnp.sum(values)
         return loss, {"agent_value": jnp.mean(values), "agent_term": loss}
@@ -239,30 +230,31 @@ def agent_value_term(
 # The un-relaxed penalty (eq. "bilevel_rlhf_fo").
 
 
-def best_segments(cfg: RewardConfig, params: Any, data: LabelData, k: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The ``k`` labelled segments of highest learned return: the behaviour ``V(pi*(nu))`` is estimated from.
+def best_segments(cfg: Any, params: Any, data: PairStore, k: int) -> tuple[Steps, jax.Array]:
+    """The ``k`` labelled state segments of highest learned return: the behaviour ``V(pi*(nu))`` is estimated from.
 
     Both segments of every stored pair are candidates (the label does not matter: a segment
     the teacher rejected may still be the best one in another pair); each is scored by the
     ensemble-mean learned return ``sum_h r(s_h, a_h)`` under ``params`` (the reward at the start
     of the session). Empty slots of the store never win; with fewer than ``k`` stored segments
-    the rest of the ``k`` are marked invalid.
+    the rest of the ``k`` are marked invalid. (On pixels, ``pixel_reward.stored_returns`` scores them
+    by chunks and ``pixel_reward.stored_side`` gathers them.)
 
     Args:
       cfg: the reward settings.
       params: ensemble parameters the segments are ranked with.
-      data: the label store.
+      data: the label store of :class:`Steps`.
       k: segments to keep (at most ``2 * capacity``).
 
     Returns:
-      ``(obs (k, H, obs_size), action (k, H, act_size), valid (k,) float)``, best first.
+      ``(segments (k, H, ...), valid (k,) float)``, best first.
     """
-    obs = jnp.concatenate([data.obs_a, data.obs_b])
-    action = jnp.concatenate([data.act_a, data.act_b])
-    filled = jnp.tile(jnp.arange(data.labels.shape[0]) < data.count, 2)
+    obs = jnp.concatenate([data.a.obs, data.b.obs])
+    action = jnp.concatenate([data.a.action, data.b.action])
+    filled = jnp.tile(jnp.arange(data.capacity) < data.count, 2)
     returns = jnp.sum(mean_reward(cfg, params, obs, action), axis=-1)
     index, valid = top_segments(returns, filled, k)
-    return obs[index], action[index], valid.astype(obs.dtype)
+    return Steps(obs[index], action[index]), valid.astype(obs.dtype)
 
 
 def top_segments(returns: jax.Array, filled: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
@@ -273,15 +265,14 @@ def top_segments(returns: jax.Array, filled: jax.Array, k: int) -> tuple[jax.Arr
 
 
 def optimal_value(
-    cfg: RewardConfig,
+    cfg: Any,
     params: Any,
-    obs: jax.Array,
-    action: jax.Array,
+    best: Any,
     valid: jax.Array,
     gamma: float | jax.Array,
     estimator: str,
     horizon: int,
-    predict_fn: Callable | None = None,
+    best_predict_fn: Callable | None = None,
 ) -> jax.Array:
     """Each member's estimate of ``V(pi*(nu))``: the best segments' mean reward, sustained over the horizon.
 
@@ -295,19 +286,20 @@ def optimal_value(
     Args:
       cfg: the reward settings.
       params: ensemble parameters.
-      obs: (K, H, obs_size) the best segments (``best_segments``).
-      action: (K, H, act_size) their actions.
+      best: (K, H) the best segments (``best_segments``; ``pixel_reward.stored_side`` on pixels), with
+        ``inputs()``.
       valid: (K,) 1 for real segments, 0 for empty slots.
       gamma: discount.
       estimator: ``"discounted"`` or ``"mean"``.
       horizon: steps T of the discounted sum.
-      predict_fn: as :func:`agent_value` (the pixel trainer's ``obs`` are replay places).
+      best_predict_fn: ``(params, best) -> (M, K, H)`` the members' rewards on ``best``; default the
+        ensemble's ``predict`` on ``best.inputs()``.
 
     Returns:
       (M,) values.
     """
     _check(estimator in ("discounted", "mean"), "rebel.estimator", estimator, "discounted, mean")
-    rewards = (predict_fn or functools.partial(predict, cfg))(params, obs, action)  # (M, K, H)
+    rewards = best_predict_fn(params, best) if best_predict_fn else predict(cfg, params, *best.inputs())  # (M, K, H)
     valid = valid.astype(rewards.dtype)
     weight = jnp.broadcast_to(valid[:, None], rewards.shape[1:])
     per_step = jnp.sum(rewards * weight, axis=(1, 2)) / jnp.maximum(jnp.sum(weight), 1.0)
@@ -317,19 +309,17 @@ def optimal_value(
 
 
 def value_gap_term(
-    cfg: RewardConfig,
+    cfg: Any,
     lam: float | jax.Array,
     obs: jax.Array,
     action: jax.Array,
-    best_obs: jax.Array,
-    best_action: jax.Array,
+    best: Any,
     best_valid: jax.Array,
     gamma: float | jax.Array,
     estimator: str = "discounted",
     normalize: bool = False,
     predict_fn: Callable | None = None,
     best_predict_fn: Callable | None = None,
-    spread_fn: Callable | None = None,
 ) -> LossTerm:
     """REBEL's un-relaxed penalty ``lambda * sum_m (V*_m - V_m)`` (the paper's eq. "bilevel_rlhf_fo").
 
@@ -346,18 +336,16 @@ def value_gap_term(
     Args:
       cfg: the reward settings.
       lam: signed weight lambda.
-      obs: (N, T, obs_size) states of the current policy's trajectories.
+      obs: (N, T, obs_size) states of the current policy's trajectories (or what ``predict_fn`` reads).
       action: (N, T, act_size) its actions.
-      best_obs: (K, H, obs_size) the best labelled segments (``best_segments``).
-      best_action: (K, H, act_size) their actions.
+      best: (K, H) the best labelled segments (:func:`best_segments`), with ``inputs()``.
       best_valid: (K,) 1 for real segments.
       gamma: discount of both values.
       estimator: ``"discounted"`` or ``"mean"``; ``V*`` is summed over T steps (``discounted``).
       normalize: divide both values by each member's spread of the per-step reward on the
         batch's labelled segments, as ``agent_value_term``.
-      predict_fn: the members' rewards on ``obs`` (:func:`agent_value`); default the state ensemble's.
-      best_predict_fn: the same on ``best_obs`` (:func:`optimal_value`); default the state ensemble's.
-      spread_fn: ``normalize``'s spread, as :func:`agent_value_term`.
+      predict_fn: the members' rewards on ``obs`` (:func:`agent_value`); default the ensemble's ``predict``.
+      best_predict_fn: the same on ``best`` (:func:`optimal_value`).
 
     Returns:
       ``(params, batch, key) -> (loss, metrics)`` with metrics ``agent_value`` (mean V),
@@ -373,21 +361,14 @@ def value_gap_term(
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         del key  # Unused.
         values = agent_value(cfg, params, fixed(obs), fixed(action), gamma, estimator, predict_fn)
-        best = optimal_value(
-            cfg,
-            params,
-            fixed(best_obs),
-            fixed(best_action),
-            fixed(best_valid),
-            gamma,
-            estimator,
-            horizon,
-            best_predict_fn,
+        best_values = optimal_value(
+            cfg, params, fixed(best), fixed(best_valid), gamma, estimator, horizon, best_predict_fn
         )
         if normalize:
-            spread = fixed((spread_fn or functools.partial(_labelled_spread, cfg))(params, batch))
-            values, best = values / spread, best / spread
-        loss = lam * jnp.sum(best - values)
-        return loss, {"agent_value": jnp.mean(values), "optimal_value": jnp.mean(best), "agent_term": loss}
+            spread = fixed(reward_spread(batch.rewards_a, batch.rewards_b, batch.weight))
+            values, best_values = values / spread, best_values / spread
+        loss = lam * jnp.sum(best_values - values)
+        metrics = {"agent_value": jnp.mean(values), "optimal_value": jnp.mean(best_values), "agent_term": loss}
+        return loss, metrics
 
     return loss_fn

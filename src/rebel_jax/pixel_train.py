@@ -35,7 +35,7 @@ branch ``pixel``):
   otherwise run the 3 encoders on every one of its ``batch_size x 2`` stacks at every update;
 - at the first feedback session the critic is re-initialised and ``pretrain.reset_updates`` DrQ-v2 updates
   follow (``agent.reset_critic()``, ``update_after_reset(gradient_update=reset_update)``, :413-420);
-- the label store keeps copies of its segments (:class:`rebel_jax.pixel_reward.PixelLabels`: the
+- the label store keeps copies of its segments (a :class:`rebel_jax.reward_model.PairStore` of frames: the
   ``H + stack - 1`` frames of an ``H``-step segment, each once as uint8, and its actions), taken from the
   replay when the teacher answers; SURF keeps replay indices (``buffer_seg*_index``,
   pixel_reward_model.py:200-203) in a replay of 1M transitions (config_pebble.yaml:18), which never evicts in
@@ -62,7 +62,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import frame_replay, pixel_reward, teachers
+from rebel_jax import frame_replay, pixel_reward, reward_model, teachers
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2, DrQV2State
 from rebel_jax.envs import State, make_env
@@ -135,7 +135,7 @@ class PixelTrainState:
     episodes: EpisodeStats
     key: jax.Array
     eval_policy: Any
-    reward: pixel_reward.PixelRewardState | None = None
+    reward: reward_model.RewardState | None = None
     teacher: dict | None = None
     lam: jax.Array | None = None
     eval_trajectory: dict | None = None
@@ -199,6 +199,7 @@ class PixelTrainer:
         self.update_period = max(1, every // self.num_train)  # vector steps between updates
         self.preference = cfg.preference
         self.method = cfg.method
+        self.reward_cfg = cfg.pixel_reward
         self.capacity = cfg.train.buffer_capacity or min(cfg.train.total_steps, DEFAULT_CAPACITY)
         check_config(cfg)
         if self.preference:  # The label store keeps copies: the replay is a ring of recent episodes.
@@ -340,7 +341,7 @@ class PixelTrainer:
 
     # -- feedback session (--algo pebble) --------------------------------------------------
     def _learned_reward(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
-        return pixel_reward.mean_reward(self.cfg.pixel_reward, params, obs, action)
+        return reward_model.mean_reward(self.cfg.pixel_reward, params, obs, action)
 
     def session_due(self, round_index: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Whether round ``round_index`` starts with a feedback session, and whether it is the first."""
@@ -403,8 +404,8 @@ class PixelTrainer:
         accuracy_new = jnp.sum(correct) / jnp.maximum(jnp.sum(hard) * rcfg.ensemble_size, 1.0)
         kept = jnp.sum(mask)
         stored = pixel_reward.add_labels(ts.reward, ts.buffer, seg_a, seg_b, labels, mask)
-        keys = {"train": key_train, "value": key_value}
-        trained, train_metrics = self.method.train_pixel_reward(self, ts, stored, keys, kept, agent_step)
+        keys = {"train": key_train, "terms": key_value, "pool": key_value}
+        trained, train_metrics = self.method.train_reward(self, ts, stored, keys, kept, agent_step)
         # A session without a kept label trains no epoch (``epochs`` above; SURF and B-Pref hold no session
         # once the budget is spent), so its members and Adam state come back as they were: no select needed.
         reward = trained

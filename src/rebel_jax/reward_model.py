@@ -1,23 +1,28 @@
-"""Reward ensemble learned from preferences with the Bradley-Terry model (PEBBLE / B-Pref).
+"""The reward ensemble learned from preferences with the Bradley-Terry model, on states or on pixels.
 
-The model is an ensemble of M MLPs ``r(s, a)`` over ``concat(s, a)`` (LeakyReLU hidden layers,
-tanh output, or sigmoid for a non-negative reward) whose parameters are stacked on a leading
-member axis and trained by ONE Adam (B-Pref sums the members' losses into one backward pass;
-Adam being per-coordinate, this equals M separate optimisers). The reward used by the agent is
-the ensemble mean.
+The model is an ensemble of M reward networks ``r(s, a)`` whose parameters are stacked on a leading
+member axis: on a state task each is :class:`RewardMLP` (PEBBLE / B-Pref's ``gen_net``, configured by
+:class:`RewardConfig`), on a pixel task an encoder plus an MLP over frame stacks
+(:class:`rebel_jax.pixel_reward.PixelRewardNet`, configured by
+:class:`rebel_jax.pixel_reward.PixelRewardConfig`). Everything else is written once here, for both: the
+label store (:class:`PairStore`, pairs of segments as copies), the minibatch every loss term sees
+(:class:`PrefBatch`), the members' predictions, the Bradley-Terry loss with its optional temporal crops
+(:func:`bt_loss`, :func:`crop_masks`) and, in :mod:`rebel_jax.reward_train`, the training loops. The
+reward used by the agent is the ensemble mean.
+
+A segment is a pytree with a leading shape and a method ``inputs() -> (obs, action)`` giving the
+network's inputs per step: :class:`Steps` on states, :class:`rebel_jax.pixel_reward.SegmentFrames`
+(frames stored once, stacks rebuilt) on pixels. A config says which network it builds (``network()``)
+and how its members are computed (``member_loop``, ``per_member_adam``).
 
 Label convention (``teachers``): ``label = P(seg_b preferred to seg_a)`` in {0, 0.5, 1}.
 
-The training loss is a sum of *terms*, each a pure ``(params, batch, key) -> (loss, metrics)``
-over the whole ensemble's ``params`` and a ``PrefBatch`` of labelled pairs (with a leading
-member axis: every member sees its own shuffle, as in B-Pref). ``bt_loss`` is the
-Bradley-Terry term. The methods' further terms live in their own modules, which import this
-one (never the other way round), close over their own data and are passed to ``train``:
-
-- :mod:`rebel_jax.agent_preference`: REBEL's agent preference ``lambda * V``, the learned
-  reward's value on trajectories of the current policy;
-- :mod:`rebel_jax.surf`: SURF's temporal cropping of the labelled pairs, its
-  confidence-thresholded pseudo-labels on unlabelled pairs and the pool that holds them.
+The training loss is a sum of *terms*, each a pure ``(params, batch, key) -> (loss, metrics)`` over
+the members in ``params`` (leading axis) and a :class:`PrefBatch` of labelled pairs whose per-step
+rewards under ``params`` the training step has already computed (``batch.rewards_a``, ``rewards_b``).
+:func:`bt_loss` is the Bradley-Terry term; the methods' further terms (SURF's pseudo-labels,
+:mod:`rebel_jax.surf`; REBEL's agent preference, :mod:`rebel_jax.agent_preference`) live in their
+own modules, which import this one (never the other way round).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import flax.linen as nn
 import flax.struct
@@ -40,7 +45,7 @@ LossTerm = Callable[[Any, "PrefBatch", jax.Array], tuple[jax.Array, dict[str, ja
 
 @dataclasses.dataclass(frozen=True)
 class RewardConfig:
-    """The reward ensemble and its per-session training (B-Pref's walker settings by default)."""
+    """The state reward ensemble and its per-session training (B-Pref's walker settings by default)."""
 
     ensemble_size: int = 3
     """Ensemble members M."""
@@ -66,6 +71,11 @@ class RewardConfig:
     (kernel and bias uniform in +-1/sqrt(fan_in)); ``lecun``, flax's default (lecun-normal
     kernels, zero biases; this project's earlier rule, about 9x the initial reward spread)."""
 
+    member_loop: ClassVar[bool] = False
+    """The members are computed together (``vmap``); see ``PixelRewardConfig.member_loop``."""
+    per_member_adam: ClassVar[bool] = False
+    """One Adam step of all members on the sum of their losses; see ``PixelRewardConfig.per_member_adam``."""
+
     def validate(self) -> None:
         for name in ("ensemble_size", "hidden", "depth", "batch_size", "max_epochs", "label_capacity"):
             _check(getattr(self, name) >= 1, f"reward.{name}", getattr(self, name), ">= 1")
@@ -73,6 +83,10 @@ class RewardConfig:
         _check(0 <= self.stop_accuracy <= 1, "reward.stop_accuracy", self.stop_accuracy, "[0, 1]")
         _check(self.output in ("tanh", "sigmoid"), "reward.output", self.output, "tanh, sigmoid")
         _check(self.init in ("torch", "lecun"), "reward.init", self.init, "torch, lecun")
+
+    def network(self) -> RewardMLP:
+        """One member's flax module."""
+        return RewardMLP(hidden=self.hidden, depth=self.depth, output=self.output, initializer=self.init)
 
 
 def torch_linear_init(fan_in: int) -> tuple[Callable, Callable]:
@@ -92,7 +106,7 @@ def torch_linear_init(fan_in: int) -> tuple[Callable, Callable]:
 
 
 class RewardMLP(nn.Module):
-    """One member: ``squash(MLP(concat(obs, action)))``, a scalar per step (B-Pref's ``gen_net``).
+    """One state member: ``squash(MLP(concat(obs, action)))``, a scalar per step (B-Pref's ``gen_net``).
 
     ``squash`` is ``tanh`` (B-Pref's ``activation='tanh'``) or ``sigmoid`` (its ``'sig'``);
     ``initializer`` is ``RewardConfig.init``.
@@ -119,203 +133,322 @@ class RewardMLP(nn.Module):
 
 
 @flax.struct.dataclass
-class LabelData:
-    """Fixed-capacity store of labelled pairs; only kept (unskipped) pairs are stored."""
+class Steps:
+    """State segments: observations and actions, any leading shape, S steps each."""
 
-    obs_a: jax.Array
-    """(C, H, obs_size) observations of the first segments."""
-    act_a: jax.Array
-    """(C, H, act_size) actions of the first segments."""
-    obs_b: jax.Array
-    """(C, H, obs_size) observations of the second segments."""
-    act_b: jax.Array
-    """(C, H, act_size) actions of the second segments."""
+    obs: jax.Array
+    """(..., S, obs_size)."""
+    action: jax.Array
+    """(..., S, act_size)."""
+
+    def inputs(self) -> tuple[jax.Array, jax.Array]:
+        """The network's inputs per step: ``(obs, action)``."""
+        return self.obs, self.action
+
+
+@flax.struct.dataclass
+class PairStore:
+    """Fixed-capacity store of pairs of segments (copies); the label store, and SURF's unlabelled pool."""
+
+    a: Any
+    """The first segments: :class:`Steps` or ``SegmentFrames``, leading (C,)."""
+    b: Any
+    """The second segments."""
     labels: jax.Array
-    """(C,) ``P(seg_b preferred)`` in {0, 0.5, 1}."""
+    """(C,) ``P(seg_b preferred)`` in {0, 0.5, 1} (unused in a pool)."""
     ptr: jax.Array
     """Next slot to write (wraps at C)."""
     count: jax.Array
     """Filled slots, <= C."""
 
+    @property
+    def capacity(self) -> int:
+        """C, pairs (static)."""
+        return self.labels.shape[0]
+
 
 @flax.struct.dataclass
 class RewardState:
-    """The ensemble's parameters (leading member axis), its Adam state, its labels and (SURF) its pool."""
+    """The ensemble's parameters (leading member axis), its optimiser state, its labels and (SURF) its pool."""
 
     params: Any
     opt_state: Any
-    data: LabelData
-    pool: Any = None
-    """SURF's unlabelled pairs (:class:`rebel_jax.surf.UnlabelledPool`, ``surf.init_pool``), or None."""
+    data: PairStore
+    pool: PairStore | None = None
+    """SURF's unlabelled pairs (``labels`` unused), or None."""
 
 
 @flax.struct.dataclass
 class PrefBatch:
-    """A minibatch of labelled pairs per member: every field has leading axes (M, B)."""
+    """A minibatch of labelled pairs per member, the input of every loss term."""
 
-    obs_a: jax.Array
-    act_a: jax.Array
-    obs_b: jax.Array
-    act_b: jax.Array
+    a: Any
+    """The first segments, leading (M, B)."""
+    b: Any
+    """The second segments, leading (M, B)."""
     labels: jax.Array
     """(M, B) soft targets ``P(seg_b preferred)``."""
     weight: jax.Array
     """(M, B) 1 for real pairs, 0 for padding of the last minibatch."""
+    members: jax.Array
+    """(M,) int32 the ensemble indices of the members in ``params`` (all of them, or one with ``member_loop``):
+    a term that draws from its key draws for the whole ensemble and keeps these rows, so that a member's draws
+    do not depend on which other members are computed with it."""
+    rewards_a: jax.Array | None = None
+    """(M, B, S) each member's per-step rewards on its ``a`` segments, computed from ``params`` by the step."""
+    rewards_b: jax.Array | None = None
+    """(M, B, S) the same on its ``b`` segments."""
 
 
-def network(cfg: RewardConfig) -> RewardMLP:
-    """One member's flax module (apply it per member, or ``vmap`` it over the member axis)."""
-    return RewardMLP(hidden=cfg.hidden, depth=cfg.depth, output=cfg.output, initializer=cfg.init)
+def empty_store(segment: Any, capacity: int) -> PairStore:
+    """An empty store of ``capacity`` pairs of segments shaped and typed as ``segment`` (one, no leading axis)."""
+    zeros = jax.tree.map(lambda x: jnp.zeros((capacity, *x.shape), x.dtype), segment)
+    scalar = jnp.zeros((), jnp.int32)
+    return PairStore(a=zeros, b=zeros, labels=jnp.zeros(capacity), ptr=scalar, count=scalar)
 
 
-def _optimizer(cfg: RewardConfig) -> optax.GradientTransformation:
-    return optax.adam(cfg.lr)
+def init_params(cfg: Any, key: jax.Array, obs: jax.Array, action: jax.Array) -> Any:
+    """Fresh parameters of the ``cfg.ensemble_size`` members (one init key each) from example inputs."""
+    keys = jax.random.split(key, cfg.ensemble_size)
+    return jax.vmap(cfg.network().init, in_axes=(0, None, None))(keys, obs, action)
+
+
+@flax.struct.dataclass
+class MemberAdamState:
+    """One torch Adam over the members' parameters (leading member axis), each member its own step count
+    (``per_member_adam``; :func:`rebel_jax.reward_train.member_adam_step`)."""
+
+    mu: Any
+    nu: Any
+    count: jax.Array
+    """(M,) int32 steps each member has taken (torch's per-parameter ``state["step"]``)."""
+    seen: jax.Array
+    """(M,) bool: the member has had a backward, so its gradient is a tensor (zeros after ``zero_grad``), not
+    None, and ``step`` moves it (torch's Adam skips parameters whose gradient is None)."""
+
+
+def member_adam_init(params: Any) -> MemberAdamState:
+    members = jax.tree.leaves(params)[0].shape[0]
+    zeros = jax.tree.map(jnp.zeros_like, params)
+    return MemberAdamState(zeros, zeros, jnp.zeros(members, jnp.int32), jnp.zeros(members, bool))
+
+
+def new_state(cfg: Any, params: Any, data: PairStore, pool: PairStore | None = None) -> RewardState:
+    """The ensemble with a fresh optimiser state (:class:`MemberAdamState` with ``cfg.per_member_adam``, else
+    Adam's)."""
+    opt_state = member_adam_init(params) if cfg.per_member_adam else optax.adam(cfg.lr).init(params)
+    return RewardState(params=params, opt_state=opt_state, data=data, pool=pool)
 
 
 def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int) -> RewardState:
-    """A fresh ensemble (one init key per member) with an empty label store and no pool.
+    """A fresh state ensemble with an empty label store of ``cfg.label_capacity`` pairs and no pool.
 
     Args:
       cfg: the reward settings.
       key: PRNG key.
       obs_size: observation size.
       act_size: action size.
-      segment_length: H of the stored segments.
+      segment_length: steps S of the stored segments.
 
     Returns:
       The ``RewardState`` (SURF adds its pool with ``surf.init_pool``).
     """
-    keys = jax.random.split(key, cfg.ensemble_size)
-    params = jax.vmap(network(cfg).init, in_axes=(0, None, None))(keys, jnp.zeros(obs_size), jnp.zeros(act_size))
-    shape = (cfg.label_capacity, segment_length)
-    data = LabelData(
-        obs_a=jnp.zeros(shape + (obs_size,)),
-        act_a=jnp.zeros(shape + (act_size,)),
-        obs_b=jnp.zeros(shape + (obs_size,)),
-        act_b=jnp.zeros(shape + (act_size,)),
-        labels=jnp.zeros(cfg.label_capacity),
-        ptr=jnp.zeros((), jnp.int32),
-        count=jnp.zeros((), jnp.int32),
-    )
-    return RewardState(params=params, opt_state=_optimizer(cfg).init(params), data=data)
+    params = init_params(cfg, key, jnp.zeros(obs_size), jnp.zeros(act_size))
+    segment = Steps(obs=jnp.zeros((segment_length, obs_size)), action=jnp.zeros((segment_length, act_size)))
+    return new_state(cfg, params, empty_store(segment, cfg.label_capacity))
 
 
-def predict(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
+def over_members(cfg: Any, fn: Callable, params: Any) -> jax.Array:
+    """``fn(member_params)`` of every member of ``params`` (leading member axis), stacked: one member at a time
+    (``lax.map``) with ``cfg.member_loop``, else all at once (``vmap``)."""
+    return jax.lax.map(fn, params) if cfg.member_loop else jax.vmap(fn)(params)
+
+
+def predict(cfg: Any, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
     """Per-member rewards.
 
     Args:
-      cfg: the reward settings (architecture).
+      cfg: the reward settings (the network).
       params: ensemble parameters with a leading member axis.
-      obs: (..., obs_size).
+      obs: (..., obs_size) states, or (..., H, W, C) uint8 frame stacks.
       action: (..., act_size).
 
     Returns:
-      (M, ...) rewards in (-1, 1) (``tanh`` output) or (0, 1) (``sigmoid``).
+      (M, ...) rewards.
     """
-    return jax.vmap(network(cfg).apply, in_axes=(0, None, None))(params, obs, action)
+    return over_members(cfg, lambda member: cfg.network().apply(member, obs, action), params)
 
 
-def mean_reward(cfg: RewardConfig, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
-    """The ensemble-mean reward the agent learns from (used to relabel the buffer).
-
-    Args: as ``predict``.
-
-    Returns:
-      (...) mean over members.
-    """
+def mean_reward(cfg: Any, params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
+    """The ensemble-mean reward the agent learns from (used to relabel the buffer): (...) for ``predict``'s inputs."""
     return jnp.mean(predict(cfg, params, obs, action), axis=0)
 
 
-def _pair_logits(cfg: RewardConfig, params: Any, obs_a, act_a, obs_b, act_b) -> jax.Array:
-    """Per-member BT logits ``G(b) - G(a)`` with ``G`` the undiscounted segment sum: (M, N)."""
-    return_a = jnp.sum(predict(cfg, params, obs_a, act_a), axis=-1)
-    return_b = jnp.sum(predict(cfg, params, obs_b, act_b), axis=-1)
-    return return_b - return_a
+def step_rewards(cfg: Any, member_params: Any, segments: Any) -> jax.Array:
+    """(..., S) one member's per-step rewards ``r(s_h, a_h)`` on segments (``segments.inputs()``)."""
+    return cfg.network().apply(member_params, *segments.inputs())
 
 
-def _member_logits(cfg: RewardConfig, params: Any, batch: PrefBatch) -> jax.Array:
-    """Logits of member m on member m's own minibatch: (M, B)."""
+def pair_rewards(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> tuple[jax.Array, jax.Array]:
+    """(M, B, S) each member's per-step rewards on both segments of its own pairs (fields of ``seg_*`` lead (M, B))."""
 
-    def one(member_params, obs_a, act_a, obs_b, act_b):
-        apply = network(cfg).apply
-        return jnp.sum(apply(member_params, obs_b, act_b), -1) - jnp.sum(apply(member_params, obs_a, act_a), -1)
+    def one(member_params, a, b):
+        return step_rewards(cfg, member_params, a), step_rewards(cfg, member_params, b)
 
-    return jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b)
+    return jax.vmap(one)(params, seg_a, seg_b)
 
 
-def pref_probs(cfg: RewardConfig, params: Any, seg_a: Any, seg_b: Any) -> jax.Array:
+def with_rewards(cfg: Any, params: Any, batch: PrefBatch) -> PrefBatch:
+    """``batch`` with the per-step rewards of ``params``' members on its pairs (what a training step gives terms)."""
+    rewards_a, rewards_b = pair_rewards(cfg, params, batch.a, batch.b)
+    return batch.replace(rewards_a=rewards_a, rewards_b=rewards_b)
+
+
+def pref_probs(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> jax.Array:
     """Bradley-Terry preference probabilities of each member (``pref_prob_fn`` of queries).
 
     Args:
       cfg: the reward settings.
       params: ensemble parameters.
-      seg_a: segments with ``obs`` (N, H, obs_size) and ``action`` (N, H, act_size).
+      seg_a: state segments with ``obs`` (N, H, obs_size) and ``action`` (N, H, act_size).
       seg_b: the other segment of each pair.
 
     Returns:
-      (M, N) ``P(seg_b preferred) = sigmoid(G(b) - G(a))``.
+      (M, N) ``P(seg_b preferred) = sigmoid(G(b) - G(a))``, ``G`` the undiscounted segment sum.
     """
-    return jax.nn.sigmoid(_pair_logits(cfg, params, seg_a.obs, seg_a.action, seg_b.obs, seg_b.action))
+    return jax.nn.sigmoid(_pair_logits(cfg, params, seg_a, seg_b))
+
+
+def _pair_logits(cfg: Any, params: Any, seg_a: Any, seg_b: Any) -> jax.Array:
+    """(M, N) every member's logits ``G(b) - G(a)`` on the same pairs of state segments."""
+    return_a = jnp.sum(predict(cfg, params, seg_a.obs, seg_a.action), axis=-1)
+    return_b = jnp.sum(predict(cfg, params, seg_b.obs, seg_b.action), axis=-1)
+    return return_b - return_a
 
 
 def bt_cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
     """Bradley-Terry cross-entropy with soft targets, elementwise.
 
     ``-(y log sigmoid(z) + (1 - y) log sigmoid(-z))`` with ``z = G(b) - G(a)`` and ``y = P(b
-    preferred)``: the softmax cross-entropy of B-Pref over logits ``[G(a), G(b)]``.
+    preferred)``: the softmax cross-entropy of B-Pref (and SURF's ``CrossEntropyLoss``) over logits
+    ``[G(a), G(b)]``.
     """
     return -(labels * jax.nn.log_sigmoid(logits) + (1.0 - labels) * jax.nn.log_sigmoid(-logits))
 
 
-def _hard_correct(logits: jax.Array, labels: jax.Array) -> tuple[jax.Array, jax.Array]:
+def hard_correct(logits: jax.Array, labels: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Correct predictions and counts on hard (0 or 1) labels; 0.5 labels are not counted."""
     hard = jnp.broadcast_to(labels != 0.5, logits.shape).astype(logits.dtype)
     correct = ((logits > 0) == (labels > 0.5)).astype(logits.dtype) * hard
     return correct, hard
 
 
-def bt_loss(cfg: RewardConfig) -> LossTerm:
-    """The Bradley-Terry loss term (PEBBLE eq. 4, B-Pref's ``train_soft_reward``).
+def crop_masks(key: jax.Array, shape: tuple[int, ...], stored_length: int, crop: int) -> tuple[jax.Array, jax.Array]:
+    """Random temporal crops of both segments of pairs, as 0/1 step masks (SURF's ``get_cropping_mask``).
 
-    Each member's loss is the weighted mean over its minibatch of ``bt_cross_entropy``; the
-    term is the sum over members (as B-Pref sums them before one backward pass).
+    With ``H = stored_length - 2 * crop``, each pair draws one length uniform in
+    ``[H - crop, H + crop]``, and each of its two segments its own start uniform in
+    ``[0, stored_length - length]``: both crops have the same length (as SURF's code), so the
+    logit compares sums over equally many steps.
+
+    Args:
+      key: PRNG key.
+      shape: leading shape of the pairs, e.g. ``(M, B)``.
+      stored_length: L, the stored segment length.
+      crop: the crop c.
+
+    Returns:
+      ``(mask_a, mask_b)``, each ``shape + (L,)`` float32, ones on the cropped steps.
+
+    References:
+      Park et al., SURF, ICLR 2022, section 4.2 (alinlab/SURF@2088ee8).
+    """
+    length = central_length(stored_length, crop)
+    key_length, key_a, key_b = jax.random.split(key, 3)
+    lengths = jax.random.randint(key_length, shape, length - crop, length + crop + 1)
+    steps = jnp.arange(stored_length)
+
+    def mask(key_start: jax.Array) -> jax.Array:
+        starts = jax.random.randint(key_start, shape, 0, stored_length - lengths + 1)
+        inside = (steps >= starts[..., None]) & (steps < (starts + lengths)[..., None])
+        return inside.astype(jnp.float32)
+
+    return mask(key_a), mask(key_b)
+
+
+def central_length(stored_length: int, crop: int) -> int:
+    """H of segments stored at length ``H + 2 * crop``, checked to leave crops of >= 1 step."""
+    length = stored_length - 2 * crop
+    _check(crop >= 0 and length - crop >= 1, "surf.crop", crop, f"< stored length {stored_length} / 3")
+    return length
+
+
+def bt_term(logits: jax.Array, labels: jax.Array, weight: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The BT term and its metrics from the members' (M, N) logits on their pairs' ``labels`` and ``weight``.
+
+    Each member's loss is the weighted mean of ``bt_cross_entropy`` over its pairs; the term is the sum over
+    members (as B-Pref sums them before one backward pass, and SURF steps them one after another).
+    """
+    per_pair = bt_cross_entropy(logits, labels) * weight
+    per_member = jnp.sum(per_pair, axis=1) / jnp.maximum(jnp.sum(weight, axis=1), 1.0)
+    loss = jnp.sum(per_member)
+    correct, hard = hard_correct(logits, labels)
+    accuracy = jnp.sum(correct * weight) / jnp.maximum(jnp.sum(hard * weight), 1.0)
+    return loss, {"bt_loss": loss, "bt_accuracy": accuracy}
+
+
+def bt_loss(cfg: Any, crop: int = 0, copies: int = 0, crop_accuracy: bool = False) -> LossTerm:
+    """The Bradley-Terry loss term (PEBBLE eq. 4, B-Pref's ``train_soft_reward``), optionally on temporal crops.
+
+    The logit of a pair is ``G(b) - G(a)``, ``G`` a member's sum of its per-step rewards
+    (``batch.rewards_*``) over the segment's steps. With ``crop`` (SURF's temporal cropping, segments stored
+    ``2 crop`` steps longer) or ``copies`` (QPA's ``data_aug_ratio``: that many crops of every pair, the loss
+    the mean over them) each member sums over its own fresh random crops (:func:`crop_masks`, drawn from
+    the term's key for the whole ensemble, ``batch.members``' rows kept). With neither, the key is unused.
 
     Args:
       cfg: the reward settings.
+      crop: the crop c of :func:`crop_masks` (0 with ``copies`` 0: the whole segments).
+      copies: crops per pair (0: one, without a copy axis in the draws).
+      crop_accuracy: the training accuracy counts the cropped logits (SURF's pixel code,
+        alinlab/SURF@214bc1d:pixel_reward_model.py:909-919; one crop per pair only); off, the whole segments'
+        (B-Pref's, SURF's state code).
 
     Returns:
-      ``(params, batch, key) -> (loss, metrics)`` with metrics ``bt_loss`` (the term) and
-      ``bt_accuracy`` (members' mean accuracy on the batch's hard labels).
+      ``(params, batch, key) -> (loss, metrics)`` with metrics ``bt_loss`` (the term), ``bt_accuracy``
+      (members' mean accuracy on the batch's hard labels, on the logits of the loss) and, with
+      ``crop_accuracy``, ``accuracy_logits`` (M, B) (:func:`rebel_jax.reward_train.train_epoch` reads them).
 
     References:
       Bradley & Terry, Biometrika 1952; Lee, Smith, Abbeel, PEBBLE, ICML 2021, eq. (4).
     """
 
     def loss_fn(params: Any, batch: PrefBatch, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-        del key  # Unused.
-        return bt_term(_member_logits(cfg, params, batch), batch)
+        del params  # Unused: the rewards of the batch are the parameters' already.
+        rewards_a, rewards_b = batch.rewards_a, batch.rewards_b
+        if not (crop or copies):
+            logits = jnp.sum(rewards_b, -1) - jnp.sum(rewards_a, -1)
+            return bt_term(logits, batch.labels, batch.weight)
+        pairs = batch.labels.shape[1]
+        shape = (cfg.ensemble_size, copies, pairs) if copies else (cfg.ensemble_size, pairs)
+        mask_a, mask_b = crop_masks(key, shape, rewards_a.shape[-1], crop)
+        mask_a, mask_b = mask_a[batch.members], mask_b[batch.members]
+        if copies:  # (M, R, B, S) masks over (M, 1, B, S) rewards, flattened copy-major as the tiled labels
+            rewards_a, rewards_b = rewards_a[:, None], rewards_b[:, None]
+        logits = jnp.sum(rewards_b * mask_b, -1) - jnp.sum(rewards_a * mask_a, -1)
+        labels, weight = batch.labels, batch.weight
+        if copies:
+            members = logits.shape[0]
+            logits = logits.reshape(members, -1)
+            labels, weight = jnp.tile(labels, (1, copies)), jnp.tile(weight, (1, copies))
+        loss, metrics = bt_term(logits, labels, weight)
+        return loss, dict(metrics, accuracy_logits=logits) if crop_accuracy and not copies else metrics
 
     return loss_fn
 
 
-def bt_term(logits: jax.Array, batch: PrefBatch) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """The BT term and its metrics from the members' (M, B) logits on their own minibatches.
-
-    Shared by ``bt_loss`` and SURF's ``cropped_bt_loss``, which differ only in the logits.
-    """
-    per_pair = bt_cross_entropy(logits, batch.labels) * batch.weight
-    per_member = jnp.sum(per_pair, axis=1) / jnp.maximum(jnp.sum(batch.weight, axis=1), 1.0)
-    loss = jnp.sum(per_member)
-    correct, hard = _hard_correct(logits, batch.labels)
-    accuracy = jnp.sum(correct * batch.weight) / jnp.maximum(jnp.sum(hard * batch.weight), 1.0)
-    return loss, {"bt_loss": loss, "bt_accuracy": accuracy}
-
-
 def total_loss(terms: Sequence[LossTerm]) -> LossTerm:
-    """The sum of loss terms, each called with its own subkey.
-
-    Args:
-      terms: loss terms ``(params, batch, key) -> (loss, metrics)``.
+    """The sum of loss terms, term ``i`` called with ``jax.random.split(key, len(terms))[i]``.
 
     Returns:
       A loss term whose loss is the sum and whose metrics merge the terms' plus ``loss``.
@@ -333,8 +466,8 @@ def total_loss(terms: Sequence[LossTerm]) -> LossTerm:
     return loss_fn
 
 
-def accuracy(cfg: RewardConfig, params: Any, seg_a: Any, seg_b: Any, labels: jax.Array, mask: jax.Array) -> jax.Array:
-    """Members' mean accuracy on labelled pairs (hard labels with mask 1 only).
+def accuracy(cfg: Any, params: Any, seg_a: Any, seg_b: Any, labels: jax.Array, mask: jax.Array) -> jax.Array:
+    """Members' mean accuracy on labelled pairs of state segments (hard labels with mask 1 only).
 
     Args:
       cfg: the reward settings.
@@ -347,13 +480,41 @@ def accuracy(cfg: RewardConfig, params: Any, seg_a: Any, seg_b: Any, labels: jax
     Returns:
       Scalar accuracy in [0, 1] (0 if no pair counts).
     """
-    logits = _pair_logits(cfg, params, seg_a.obs, seg_a.action, seg_b.obs, seg_b.action)
-    correct, hard = _hard_correct(logits, labels[None])
+    correct, hard = hard_correct(_pair_logits(cfg, params, seg_a, seg_b), labels[None])
     return jnp.sum(correct * mask) / jnp.maximum(jnp.sum(hard * mask), 1.0)
 
 
+def write_pairs(store: PairStore, seg_a: Any, seg_b: Any, labels: jax.Array, mask: jax.Array) -> PairStore:
+    """``store`` with the pairs of mask 1 written at ``ptr`` onwards (wrapping), ``count`` updated; pairs of
+    mask 0 are dropped (skipped answers, as B-Pref; a pool's pairs of a seed whose session is a no-op).
+
+    Args:
+      store: the store.
+      seg_a: the first segments, the store's type, leading (N,).
+      seg_b: the second segments.
+      labels: (N,) ``P(seg_b preferred)``.
+      mask: (N,) 1 to keep a pair.
+    """
+    capacity = store.capacity
+    keep = mask > 0
+    rank = jnp.cumsum(keep.astype(jnp.int32)) - 1
+    slot = jnp.where(keep, (store.ptr + rank) % capacity, capacity)  # Out of range: dropped.
+    kept = jnp.sum(keep.astype(jnp.int32))
+
+    def write(old, new):
+        return old.at[slot].set(new.astype(old.dtype), mode="drop")
+
+    return store.replace(
+        a=jax.tree.map(write, store.a, seg_a),
+        b=jax.tree.map(write, store.b, seg_b),
+        labels=write(store.labels, labels),
+        ptr=(store.ptr + kept) % capacity,
+        count=jnp.minimum(store.count + kept, capacity),
+    )
+
+
 def add_labels(state: RewardState, seg_a: Any, seg_b: Any, labels: jax.Array, mask: jax.Array) -> RewardState:
-    """Appends the answered pairs (mask 1) to the label store; skipped pairs are dropped, as B-Pref.
+    """Appends the answered pairs (mask 1) of state segments (``obs``, ``action``) to the label store.
 
     Args:
       state: the reward state.
@@ -361,225 +522,6 @@ def add_labels(state: RewardState, seg_a: Any, seg_b: Any, labels: jax.Array, ma
       seg_b: the other segment of each pair.
       labels: (N,) ``P(seg_b preferred)``.
       mask: (N,) 1 for answered pairs, 0 for skipped ones.
-
-    Returns:
-      The state with the kept pairs written at ``ptr`` onwards (wrapping), ``count`` updated.
     """
-    data = state.data
-    capacity = data.labels.shape[0]
-    keep = mask > 0
-    rank = jnp.cumsum(keep.astype(jnp.int32)) - 1
-    slot = jnp.where(keep, (data.ptr + rank) % capacity, capacity)  # Out of range: dropped.
-    kept = jnp.sum(keep.astype(jnp.int32))
-
-    def write(store, new):
-        return store.at[slot].set(new.astype(store.dtype), mode="drop")
-
-    data = data.replace(
-        obs_a=write(data.obs_a, seg_a.obs),
-        act_a=write(data.act_a, seg_a.action),
-        obs_b=write(data.obs_b, seg_b.obs),
-        act_b=write(data.act_b, seg_b.action),
-        labels=write(data.labels, labels),
-        ptr=(data.ptr + kept) % capacity,
-        count=jnp.minimum(data.count + kept, capacity),
-    )
-    return state.replace(data=data)
-
-
-@flax.struct.dataclass
-class _EpochCarry:
-    params: Any
-    opt_state: Any
-    batch: jax.Array
-    correct: jax.Array
-    loss: jax.Array
-
-
-def _shuffles(key: jax.Array, members: int, count: jax.Array, capacity: int, padded: int) -> jax.Array:
-    """Per-member random orders of the filled slots, padded: (M, padded) int32."""
-    noise = jax.random.uniform(key, (members, capacity))
-    noise = jnp.where(jnp.arange(capacity) < count, noise, 2.0)  # Empty slots sort last.
-    order = jnp.argsort(noise, axis=1).astype(jnp.int32)
-    return jnp.pad(order, ((0, 0), (0, padded - capacity)))
-
-
-def _minibatch(data: LabelData, order: jax.Array, index: jax.Array, batch_size: int) -> PrefBatch:
-    """Minibatch ``index`` of every member's order; positions >= count get weight 0."""
-    members = order.shape[0]
-    start = index * batch_size
-    slots = jax.lax.dynamic_slice(order, (0, start), (members, batch_size))
-    weight = ((start + jnp.arange(batch_size)) < data.count).astype(data.labels.dtype)
-    return PrefBatch(
-        obs_a=data.obs_a[slots],
-        act_a=data.act_a[slots],
-        obs_b=data.obs_b[slots],
-        act_b=data.act_b[slots],
-        labels=data.labels[slots],
-        weight=jnp.broadcast_to(weight, (members, batch_size)),
-    )
-
-
-def _adam_step(cfg: RewardConfig, grad_fn, optimizer, carry: _EpochCarry, batch: PrefBatch, key: jax.Array):
-    """One Adam step on a minibatch: (params, opt_state, correct, counted, loss).
-
-    ``correct`` and ``counted`` (M, B) are the members' right and counted hard labels *before* the
-    step (B-Pref's and SURF's accuracy), weighted by the minibatch's padding mask.
-    """
-    logits = _member_logits(cfg, carry.params, batch)
-    correct, hard = _hard_correct(logits, batch.labels)
-    grads, metrics = grad_fn(carry.params, batch, key)
-    updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
-    params = optax.apply_updates(carry.params, updates)
-    return params, opt_state, correct * batch.weight, hard * batch.weight, metrics["loss"]
-
-
-def train_epoch(
-    cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm] | None = None
-) -> tuple[RewardState, dict[str, jax.Array]]:
-    """One epoch over the stored labels in per-member shuffled minibatches (B-Pref's ``train_reward``).
-
-    The epoch's training accuracy counts, per member, the hard labels its logits got right in
-    each minibatch *before* that minibatch's update (as B-Pref), over all stored hard labels.
-
-    Args:
-      cfg: the reward settings.
-      state: the reward state.
-      key: PRNG key of this epoch.
-      terms: loss terms; default ``(bt_loss(cfg),)``.
-
-    Returns:
-      The updated state and metrics ``accuracy`` (members' mean) and ``loss`` (mean over minibatches).
-    """
-    terms = (bt_loss(cfg),) if terms is None else tuple(terms)
-    grad_fn = jax.grad(total_loss(terms), has_aux=True)
-    optimizer = _optimizer(cfg)
-    data = state.data
-    capacity = data.labels.shape[0]
-    num_batches_max = -(-capacity // cfg.batch_size)
-    key_order, key_loss = jax.random.split(key)
-    order = _shuffles(key_order, cfg.ensemble_size, data.count, capacity, num_batches_max * cfg.batch_size)
-    num_batches = (data.count + cfg.batch_size - 1) // cfg.batch_size
-
-    def body(carry: _EpochCarry) -> _EpochCarry:
-        batch = _minibatch(data, order, carry.batch, cfg.batch_size)
-        key_step = jax.random.fold_in(key_loss, carry.batch)
-        params, opt_state, correct, _, loss = _adam_step(cfg, grad_fn, optimizer, carry, batch, key_step)
-        correct = carry.correct + jnp.sum(correct, axis=1)
-        return _EpochCarry(params, opt_state, carry.batch + 1, correct, carry.loss + loss)
-
-    start = _EpochCarry(
-        params=state.params,
-        opt_state=state.opt_state,
-        batch=jnp.zeros((), jnp.int32),
-        correct=jnp.zeros(cfg.ensemble_size),
-        loss=jnp.zeros(()),
-    )
-    end = jax.lax.while_loop(lambda c: c.batch < num_batches, body, start)
-    filled = jnp.arange(capacity) < data.count
-    num_hard = jnp.sum(filled & (data.labels != 0.5))
-    train_accuracy = jnp.mean(end.correct) / jnp.maximum(num_hard, 1)
-    metrics = {"accuracy": train_accuracy, "loss": end.loss / jnp.maximum(num_batches, 1)}
-    return state.replace(params=end.params, opt_state=end.opt_state), metrics
-
-
-@flax.struct.dataclass
-class _TrainCarry:
-    state: RewardState
-    epoch: jax.Array
-    accuracy: jax.Array
-    loss: jax.Array
-
-
-def train(
-    cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm] | None = None
-) -> tuple[RewardState, dict[str, jax.Array]]:
-    """One feedback session: up to ``max_epochs`` epochs, stopping once accuracy > ``stop_accuracy``.
-
-    Epoch ``e`` uses ``jax.random.fold_in(key, e)``, so the result is that of the Python loop
-    ``for e in range(max_epochs): state, m = train_epoch(cfg, state, fold_in(key, e), terms);
-    if m["accuracy"] > stop_accuracy: break``. The loop is a ``lax.while_loop``: under ``vmap``
-    over seeds it runs until every seed has stopped, and JAX's batching of ``while_loop``
-    keeps the carry of a seed whose condition is already false unchanged (its updates are
-    masked), so every seed equals its unbatched run. Nothing is trained while no label is stored.
-
-    Args:
-      cfg: the reward settings.
-      state: the reward state with its labels.
-      key: PRNG key of the session.
-      terms: loss terms, default ``(bt_loss(cfg),)``; e.g. add REBEL's ``lambda * V`` term.
-
-    Returns:
-      The trained state and metrics ``epochs`` (int32), ``train_accuracy`` and ``loss`` of the
-      last epoch run (0 if none ran).
-
-    References:
-      Lee, Smith, Abbeel. B-Pref, 2021 (``train_PEBBLE.learn_reward``).
-    """
-
-    def cond(carry: _TrainCarry) -> jax.Array:
-        running = (carry.epoch < cfg.max_epochs) & (carry.accuracy <= cfg.stop_accuracy)
-        return running & (state.data.count > 0)
-
-    def body(carry: _TrainCarry) -> _TrainCarry:
-        new_state, metrics = train_epoch(cfg, carry.state, jax.random.fold_in(key, carry.epoch), terms)
-        return _TrainCarry(new_state, carry.epoch + 1, metrics["accuracy"], metrics["loss"])
-
-    start = _TrainCarry(state, jnp.zeros((), jnp.int32), jnp.asarray(-1.0), jnp.zeros(()))
-    end = jax.lax.while_loop(cond, body, start)
-    metrics = {"epochs": end.epoch, "train_accuracy": jnp.maximum(end.accuracy, 0.0), "loss": end.loss}
-    return end.state, metrics
-
-
-def train_iterations(
-    cfg: RewardConfig, state: RewardState, key: jax.Array, terms: Sequence[LossTerm], num_iters: jax.Array
-) -> tuple[RewardState, dict[str, jax.Array]]:
-    """SURF's session (``semi_train_reward``): ``num_iters`` minibatch steps, no early stopping.
-
-    Step ``i`` takes minibatch ``i mod b`` (``b = ceil(count / batch_size)``) of per-member
-    orders drawn afresh for every pass ``i // b`` over the labels (SURF reshuffles whenever a
-    pass ends; with ``count <= batch_size`` every step sees all labels). The terms close over
-    their own data (e.g. ``pseudo_label_term`` over the pool). The accuracy counts, as SURF's,
-    each member's correct hard labels over all steps, before each step's update.
-
-    Args:
-      cfg: the reward settings.
-      state: the reward state with its labels.
-      key: PRNG key of the session.
-      terms: loss terms.
-      num_iters: () int, may be traced (see :func:`rebel_jax.surf.surf_iterations`).
-
-    Returns:
-      The trained state and metrics ``epochs`` (the steps run, int32), ``train_accuracy`` and
-      ``loss`` (mean over steps; 0 if none ran).
-    """
-    grad_fn = jax.grad(total_loss(tuple(terms)), has_aux=True)
-    optimizer = _optimizer(cfg)
-    data = state.data
-    capacity = data.labels.shape[0]
-    padded = -(-capacity // cfg.batch_size) * cfg.batch_size
-    num_batches = jnp.maximum((data.count + cfg.batch_size - 1) // cfg.batch_size, 1)
-    num_iters = jnp.where(data.count > 0, num_iters, 0)
-    key_order, key_loss = jax.random.split(key)
-
-    def body(carry: _EpochCarry) -> _EpochCarry:
-        order = _shuffles(
-            jax.random.fold_in(key_order, carry.batch // num_batches), cfg.ensemble_size, data.count, capacity, padded
-        )
-        batch = _minibatch(data, order, carry.batch % num_batches, cfg.batch_size)
-        key_step = jax.random.fold_in(key_loss, carry.batch)
-        params, opt_state, correct, hard, loss = _adam_step(cfg, grad_fn, optimizer, carry, batch, key_step)
-        accuracy = jnp.sum(correct) / jnp.maximum(jnp.sum(hard), 1.0)
-        return _EpochCarry(params, opt_state, carry.batch + 1, carry.correct + accuracy, carry.loss + loss)
-
-    start = _EpochCarry(
-        params=state.params,
-        opt_state=state.opt_state,
-        batch=jnp.zeros((), jnp.int32),
-        correct=jnp.zeros(()),
-        loss=jnp.zeros(()),
-    )
-    end = jax.lax.while_loop(lambda c: c.batch < num_iters, body, start)
-    steps = jnp.maximum(end.batch, 1)
-    metrics = {"epochs": end.batch, "train_accuracy": end.correct / steps, "loss": end.loss / steps}
-    return state.replace(params=end.params, opt_state=end.opt_state), metrics
+    new_a, new_b = Steps(seg_a.obs, seg_a.action), Steps(seg_b.obs, seg_b.action)
+    return state.replace(data=write_pairs(state.data, new_a, new_b, labels, mask))

@@ -426,7 +426,7 @@ class Trainer:
         kept = jnp.sum(mask)
         stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
         keys = {"terms": key_terms, "train": key_train, "pool": key_pool}
-        trained, train_metrics = self.method.train_state_reward(self, ts, stored, keys, kept)
+        trained, train_metrics = self.method.train_reward(self, ts, stored, keys, kept, None)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):

@@ -10,9 +10,11 @@ only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e
 - **its state**: :meth:`knob` (a traced per-column value a sweep can vmap over, e.g. REBEL's lambda),
   :meth:`crop` (extra steps stored on each side of a segment), :meth:`pool_size` (unlabelled pairs kept per
   session) and :meth:`trajectory_size` (the evaluation episodes' trajectories kept for the reward loss);
-- **its loss terms** over the label store: :meth:`state_terms` / :meth:`pixel_terms`;
-- **its schedule of reward steps** in a session: :meth:`train_state_reward` / :meth:`train_pixel_reward`
-  (PEBBLE's early-stopped epochs by default; SURF's fixed iterations);
+- **its loss terms** over the label store, one list for state and pixel tasks: :meth:`reward_terms`, each term
+  ``(params, batch, key) -> (loss, metrics)`` over a :class:`rebel_jax.reward_model.PrefBatch` (the pairs and
+  the members' per-step rewards on them);
+- **its schedule of reward steps** in a session: :meth:`train_reward` (PEBBLE's early-stopped epochs by
+  default; SURF's fixed iterations), through :mod:`rebel_jax.reward_train`;
 - **hooks with no effect by default**: :meth:`query_segments` (which segments the queries come from),
   :meth:`sample_batch` (the agent's minibatch from the replay) and :meth:`batch_reward` (an intrinsic reward
   added to the learned one in that minibatch); on pixel tasks :meth:`pixel_query_segments`,
@@ -30,7 +32,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import drqv2, frame_replay, pixel_reward, replay, reward_model
+from rebel_jax import drqv2, frame_replay, replay, reward_model, reward_train
 
 
 class Method:
@@ -75,47 +77,48 @@ class Method:
         del cfg  # Unused.
         return {}
 
-    # -- state tasks ----------------------------------------------------------------------
-    def state_terms(self, trainer: Any, ts: Any, key: jax.Array) -> list[reward_model.LossTerm]:
-        """The reward loss's terms on a state task; ``ts.reward`` holds this session's labels."""
-        del ts, key  # Unused.
-        return [reward_model.bt_loss(trainer.reward_cfg)]
-
-    def train_state_reward(
-        self, trainer: Any, ts: Any, stored: reward_model.RewardState, keys: dict[str, jax.Array], kept: jax.Array
-    ) -> tuple[reward_model.RewardState, dict]:
-        """One session's reward training on a state task: up to ``reward.max_epochs`` epochs, stopped early.
+    # -- the reward loss and its schedule ----------------------------------------------------
+    def reward_terms(self, trainer: Any, ts: Any, key: jax.Array, agent_step: jax.Array | None) -> list:
+        """The reward loss's terms (:data:`rebel_jax.reward_model.LossTerm`), states and pixels alike: the
+        Bradley-Terry loss on the labelled pairs.
 
         Args:
-          trainer: the state trainer.
+          trainer: the trainer (``trainer.reward_cfg`` the reward ensemble's settings).
+          ts: the state before the session, ``ts.reward`` holding this session's labels (and pool).
+          key: the session's key for the terms' own draws (e.g. REBEL's trajectories).
+          agent_step: () the seed's agent steps so far on a pixel task (DrQ-v2's step); None on a state task.
+        """
+        del ts, key, agent_step  # Unused.
+        return [reward_model.bt_loss(trainer.reward_cfg)]
+
+    def train_reward(
+        self,
+        trainer: Any,
+        ts: Any,
+        stored: reward_model.RewardState,
+        keys: dict[str, jax.Array],
+        kept: jax.Array,
+        agent_step: jax.Array | None,
+    ) -> tuple[reward_model.RewardState, dict]:
+        """One session's reward training: up to ``max_epochs`` epochs of the reward settings, stopped early at
+        their ``stop_accuracy``; none without a kept answer (the members and their optimiser state come back
+        unchanged).
+
+        Args:
+          trainer: the trainer.
           ts: the state before the session.
           stored: the reward state with this session's labels.
           keys: ``terms``, ``train`` and ``pool`` keys of the session.
           kept: () the number of answers kept this session.
+          agent_step: as :meth:`reward_terms`.
+
+        Returns:
+          The trained reward state and ``reward_train.train``'s metrics (``epochs``, ``train_accuracy``, ``loss``).
         """
-        del kept  # Unused: the trainer keeps the old model when no answer was kept.
-        terms = self.state_terms(trainer, ts.replace(reward=stored), keys["terms"])
-        return reward_model.train(trainer.reward_cfg, stored, keys["train"], terms)
-
-    # -- pixel tasks ----------------------------------------------------------------------
-    def pixel_terms(self, trainer: Any, ts: Any, key: jax.Array, agent_step: jax.Array) -> tuple:
-        """Terms added to the Bradley-Terry loss on a pixel task (``pixel_reward.train`` writes that one)."""
-        del trainer, ts, key, agent_step  # Unused.
-        return ()
-
-    def train_pixel_reward(
-        self, trainer: Any, ts: Any, stored: Any, keys: dict[str, jax.Array], kept: jax.Array, agent_step: jax.Array
-    ) -> tuple[Any, dict]:
-        """One session's reward training on a pixel task: ``pixel_reward.max_epochs`` epochs, stopped early;
-        none without a kept answer (the members and their Adam state come back unchanged).
-
-        Args:
-          keys: ``train`` and ``value`` keys of the session.
-        """
-        rcfg = trainer.cfg.pixel_reward
-        terms = self.pixel_terms(trainer, ts.replace(reward=stored), keys["value"], agent_step)
+        rcfg = trainer.reward_cfg
+        terms = self.reward_terms(trainer, ts.replace(reward=stored), keys["terms"], agent_step)
         epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
-        return pixel_reward.train(rcfg, stored, keys["train"], terms, max_epochs=epochs)
+        return reward_train.train(rcfg, stored, keys["train"], terms, max_epochs=epochs)
 
     # -- hooks with no effect by default ----------------------------------------------------
     def query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:

@@ -8,10 +8,10 @@ QPA (huxiao09/QPA@7e9e49e, built on B-Pref) changes three things of PEBBLE:
 - **hybrid experience replay** (:mod:`rebel_jax.methods.qpa_replay`): while the label budget lasts, ``int(her_ratio
   * batch_size)`` transitions of each agent batch come from the last ``recent_episodes`` episodes' worth of
   transitions, the rest from the whole replay (train_QPA.py:258-262, agent/sac.py:274-285);
-- **temporal-crop augmentation** (:func:`augmented_bt_loss`): every labelled pair is seen in ``data_aug_ratio``
+- **temporal-crop augmentation** (:meth:`QPA.reward_terms`): every labelled pair is seen in ``data_aug_ratio``
   random crops per reward step (reward_model.py:680-695, :723-744), in sessions of at most ``ceil(reward_update *
   labels / reward.batch_size)`` steps that stop once the running accuracy reaches ``stop_accuracy``
-  (train_QPA.py:143-144, reward_model.py:761); on pixels one crop per step (:meth:`QPA.train_pixel_reward`).
+  (train_QPA.py:143-144, reward_model.py:761); on pixels one crop per step.
 Its other settings (one reward member, B-Pref's ``asked`` budget) are the ``qpa`` preset's.
 """
 
@@ -22,7 +22,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, queries, reward_model, surf
+from rebel_jax import pixel_reward, queries, reward_model, reward_train, surf
 from rebel_jax.errors import check
 from rebel_jax.methods import qpa_replay
 from rebel_jax.methods.base import Method
@@ -57,33 +57,6 @@ class QPAConfig:
         check(self.stop_accuracy > 0, "qpa.stop_accuracy", self.stop_accuracy, "> 0")
 
 
-def augmented_bt_loss(cfg: reward_model.RewardConfig, qpa: QPAConfig) -> reward_model.LossTerm:
-    """The Bradley-Terry term over ``data_aug_ratio`` random crops of every pair (QPA's ``train_reward_iter``).
-
-    Each member sums its rewards over its own crops (:func:`rebel_jax.surf.crop_masks` with ``qpa.crop`` on the
-    stored H steps), and its loss is the mean cross-entropy over the ``data_aug_ratio x B`` cropped pairs, as QPA's
-    over its labels repeated ``data_aug_ratio`` times (reward_model.py:723-744). With ``data_aug_ratio`` 0 it is
-    ``bt_loss``. Metrics: ``bt_loss`` and ``bt_accuracy`` (on the crops).
-    """
-    if qpa.data_aug_ratio == 0:
-        return reward_model.bt_loss(cfg)
-    apply, copies = reward_model.network(cfg).apply, qpa.data_aug_ratio
-
-    def loss_fn(params, batch: reward_model.PrefBatch, key: jax.Array):
-        members, pairs = batch.labels.shape
-        mask_a, mask_b = surf.crop_masks(key, (members, copies, pairs), batch.obs_a.shape[2], qpa.crop)
-
-        def one(member, obs_a, act_a, obs_b, act_b, member_mask_a, member_mask_b):  # (B, H) rewards, (R, B) logits
-            reward_a, reward_b = apply(member, obs_a, act_a), apply(member, obs_b, act_b)
-            return jnp.sum(reward_b * member_mask_b, -1) - jnp.sum(reward_a * member_mask_a, -1)
-
-        logits = jax.vmap(one)(params, batch.obs_a, batch.act_a, batch.obs_b, batch.act_b, mask_a, mask_b)
-        repeated = batch.replace(labels=jnp.tile(batch.labels, (1, copies)), weight=jnp.tile(batch.weight, (1, copies)))
-        return reward_model.bt_term(logits.reshape(members, -1), repeated)  # copy-major, as the tiled labels
-
-    return loss_fn
-
-
 class QPA(Method):
     name = "qpa"
     config_field = "qpa"
@@ -115,15 +88,27 @@ class QPA(Method):
         """DrQ-v2's n-step batch, hybrid as :meth:`sample_batch`'s, over the valid rows (episodes in agent steps)."""
         return qpa_replay.pixel_batch(trainer.cfg, ts.reward.data.count, buffer, key, trainer.episode_length)
 
-    def state_terms(self, trainer, ts, key):
-        del ts, key  # Unused.
-        return [augmented_bt_loss(trainer.reward_cfg, trainer.cfg.qpa)]
-
-    def train_state_reward(self, trainer, ts, stored, keys, kept):
-        """One reward step at a time (:func:`reward_model.train_iterations`) while the steps' mean accuracy on
-        whole segments (QPA's: on the crops) is below ``stop_accuracy``, at most ``reward_update`` per label."""
+    def reward_terms(self, trainer, ts, key, agent_step):
+        """The BT loss over ``data_aug_ratio`` random crops of every labelled pair (QPA's ``train_reward_iter``,
+        reward_model.py:723-744: its labels repeated that many times), each crop ``H - 3 crop`` to ``H - crop``
+        steps of the stored H; the whole segments with ``data_aug_ratio`` 0. On pixels one crop per pair and
+        step, the accuracy counted on it: the members' convolutions bound the crops and steps."""
+        del ts, key, agent_step  # Unused.
         rcfg, qpa = trainer.reward_cfg, trainer.cfg.qpa
-        terms = self.state_terms(trainer, ts.replace(reward=stored), keys["terms"])
+        if not qpa.data_aug_ratio:
+            return [reward_model.bt_loss(rcfg)]
+        if trainer.cfg.pixels:
+            return [reward_model.bt_loss(rcfg, qpa.crop, crop_accuracy=True)]
+        return [reward_model.bt_loss(rcfg, qpa.crop, copies=qpa.data_aug_ratio)]
+
+    def train_reward(self, trainer, ts, stored, keys, kept, agent_step):
+        """One reward step at a time (:func:`reward_train.train_iterations`) while the steps' mean accuracy on
+        whole segments (QPA's: on the crops) is below ``stop_accuracy``, at most ``reward_update`` per label. On
+        pixels PEBBLE's session (``pixel_reward.max_epochs``, stopped early)."""
+        if trainer.cfg.pixels:
+            return super().train_reward(trainer, ts, stored, keys, kept, agent_step)
+        rcfg, qpa = trainer.reward_cfg, trainer.cfg.qpa
+        terms = self.reward_terms(trainer, ts.replace(reward=stored), keys["terms"], agent_step)
         most = surf.surf_iterations(qpa.reward_update, stored.data.count, rcfg.batch_size, kept)
 
         def running(carry):
@@ -133,18 +118,10 @@ class QPA(Method):
         def one_step(carry):
             state, step, accuracy, loss = carry
             key = jax.random.fold_in(keys["train"], step)
-            state, metrics = reward_model.train_iterations(rcfg, state, key, terms, jnp.ones((), jnp.int32))
+            state, metrics = reward_train.train_iterations(rcfg, state, key, terms, jnp.ones((), jnp.int32))
             return state, step + 1, accuracy + metrics["train_accuracy"], loss + metrics["loss"]
 
         start = (stored, jnp.zeros((), jnp.int32), jnp.zeros(()), jnp.zeros(()))
         state, steps, accuracy, loss = jax.lax.while_loop(running, one_step, start)
         ran = jnp.maximum(steps, 1)
         return state, {"epochs": steps, "train_accuracy": accuracy / ran, "loss": loss / ran}
-
-    def train_pixel_reward(self, trainer, ts, stored, keys, kept, agent_step):
-        """PEBBLE's pixel session (``pixel_reward.max_epochs``, stopped early), each labelled pair seen through one
-        QPA crop per step (none with ``data_aug_ratio`` 0): the members' convolutions bound the crops and steps."""
-        del agent_step  # Unused.
-        rcfg, qpa = trainer.cfg.pixel_reward, trainer.cfg.qpa
-        crop = qpa.crop if qpa.data_aug_ratio else 0
-        return pixel_reward.train(rcfg, stored, keys["train"], (), crop, jnp.where(kept > 0, rcfg.max_epochs, 0))

@@ -47,54 +47,41 @@ class REBEL(Method):
             return {"rebel.segment_length": cfg.rebel.segment_length}
         return {"rebel.horizon": cfg.rebel.horizon}
 
-    # -- state tasks ----------------------------------------------------------------------
-    def value_trajectories(self, trainer, ts, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """V's trajectories on a state task: ``(obs (N, H, obs_size), actions (N, H, act_size))``.
+    def value_trajectories(self, trainer, ts, key: jax.Array, agent_step):
+        """V's trajectories: ``(obs, actions (N, T, A), predict_fn)``, ``predict_fn(params, obs, actions) -> (M, N,
+        T)`` the members' rewards (None: the ensemble's ``predict`` on ``obs`` as they are).
 
-        ``onpolicy``: the first ``rebel.horizon`` steps of the evaluation environments' last complete
-        episodes, N = ``rebel.episodes`` and H = ``rebel.horizon`` (by default all of them, whole).
-        ``replay``: ``num_segments`` replay segments, actions redrawn from the current policy
-        (``a_h ~ pi_theta``, held fixed).
+        On a state task, ``onpolicy``: the first ``rebel.horizon`` steps of the evaluation environments' last
+        complete episodes, N = ``rebel.episodes`` and T = ``rebel.horizon`` (by default all of them, whole);
+        ``replay``: ``rebel.num_segments`` replay segments, actions redrawn from the current policy (``a_h ~
+        pi_theta``, held fixed). On a pixel task the stacks are kept out of the closure (:meth:`_pixel_trajectories`).
         """
-        if trainer.cfg.rebel.source == "onpolicy":
-            last = ts.eval_trajectory["last"]
-            return jnp.swapaxes(last["obs"], 0, 1), jnp.swapaxes(last["action"], 0, 1)
+        if trainer.cfg.pixels:
+            return self._pixel_trajectories(trainer, ts, key, agent_step)
         rebel = trainer.cfg.rebel
+        if rebel.source == "onpolicy":
+            last = ts.eval_trajectory["last"]
+            return jnp.swapaxes(last["obs"], 0, 1), jnp.swapaxes(last["action"], 0, 1), None
         key_segments, key_actions = jax.random.split(key)
         seg = trainer.sample_segments(ts.buffer, key_segments, rebel.num_segments, rebel.segment_length)
-        return seg.obs, trainer.sac.act(ts.sac.actor_params, seg.obs, key_actions)
+        return seg.obs, trainer.sac.act(ts.sac.actor_params, seg.obs, key_actions), None
 
-    def state_terms(self, trainer, ts, key):
-        rcfg, rebel = trainer.reward_cfg, trainer.cfg.rebel
-        obs, actions = self.value_trajectories(trainer, ts, key)
-        common = (rebel.gamma, rebel.estimator, rebel.normalize)
-        if rebel.form == "penalty":  # V(pi*(nu)) from the best labelled segments, ranked once per session.
-            best = agent_preference.best_segments(rcfg, ts.reward.params, ts.reward.data, rebel.best_segments)
-            value = agent_preference.value_gap_term(rcfg, ts.lam, obs, actions, *best, *common)
-        else:
-            value = agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, *common)
-        return [reward_model.bt_loss(rcfg), value]
-
-    # -- pixel tasks ----------------------------------------------------------------------
-    def pixel_value_trajectories(self, trainer, ts, key: jax.Array, agent_step: jax.Array):
-        """V's trajectories on a pixel task: ``(obs, actions (N, T, A), predict_fn)``, ``predict_fn(params, obs,
-        actions) -> (M, N, T)`` the members' rewards, the stacks kept out of the closure.
-
-        ``onpolicy``: the first ``rebel.horizon`` agent steps of the last complete episodes of ``rebel.episodes``
-        evaluation environments (the mean action of the DrQ-v2 policy frozen at the episode start); ``obs`` are
-        their kept newest frames (N, T, H, W, 3), whose stacks ``predict_fn`` rebuilds
-        (:func:`rebel_jax.frame_replay.episode_stacks`). ``replay``: ``rebel.num_segments`` replay segments of
-        ``rebel.segment_length`` steps from the query pool, actions redrawn once from the current DrQ-v2 policy
+    def _pixel_trajectories(self, trainer, ts, key: jax.Array, agent_step: jax.Array):
+        """V's trajectories on a pixel task. ``onpolicy``: the first ``rebel.horizon`` agent steps of the last
+        complete episodes of ``rebel.episodes`` evaluation environments (the mean action of the DrQ-v2 policy frozen
+        at the episode start); ``obs`` are their kept newest frames (N, T, H, W, 3), whose stacks ``predict_fn``
+        rebuilds (:func:`rebel_jax.frame_replay.episode_stacks`). ``replay``: ``rebel.num_segments`` replay segments
+        of ``rebel.segment_length`` steps from the query pool, actions redrawn once from the current DrQ-v2 policy
         (its exploration noise at ``agent_step``) and held fixed; ``obs`` are their places (N, T, 2) = (row, env),
         whose frames ``predict_fn`` gathers from the replay (``pixel_reward.place_rewards``).
         """
-        rebel, rcfg, buffer = trainer.cfg.rebel, trainer.cfg.pixel_reward, ts.buffer
-        if trainer.cfg.rebel.source == "onpolicy":
+        rebel, rcfg, buffer = trainer.cfg.rebel, trainer.reward_cfg, ts.buffer
+        if rebel.source == "onpolicy":
             last = ts.eval_trajectory["last"]
             stack = trainer.env.frames
 
             def episode_rewards(params, frames, action):
-                return pixel_reward.predict(rcfg, params, frame_replay.episode_stacks(frames, stack), action)
+                return reward_model.predict(rcfg, params, frame_replay.episode_stacks(frames, stack), action)
 
             return jnp.swapaxes(last["frame"], 0, 1), jnp.swapaxes(last["action"], 0, 1), episode_rewards
         key_segments, key_actions = jax.random.split(key)
@@ -118,30 +105,29 @@ class REBEL(Method):
 
         return jnp.stack([rows, envs], axis=-1), actions, predict_fn
 
-    def pixel_terms(self, trainer, ts, key, agent_step) -> tuple:
-        """``lambda * V`` or ``lambda * (V* - V)`` on pixels, through :mod:`rebel_jax.agent_preference` as on state
-        tasks. ``V*`` comes from the ``rebel.best_segments`` labelled segments (both sides of every stored pair, the
-        label store's copies) of highest ensemble-mean learned return at the session's start, with their stored
-        actions. ``rebel.normalize`` divides by the spread of the per-step rewards the BT term computed on the
-        minibatch (no extra encoder pass)."""
-        rebel, rcfg = trainer.cfg.rebel, trainer.cfg.pixel_reward
-        obs, actions, predict_fn = self.pixel_value_trajectories(trainer, ts, key, agent_step)
-
-        def spread_fn(params, bt):
-            del params  # Unused: the BT term's rewards are the parameters' already.
-            return agent_preference.reward_spread(bt["rewards_a"], bt["rewards_b"], bt["weight"])
-
-        common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn, spread_fn=spread_fn)
-        if rebel.form == "lower_bound":
-            return (agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, rebel.gamma, **common),)
-        data = ts.reward.data
+    def best_segments(self, trainer, ts):
+        """``V*``'s segments: the ``rebel.best_segments`` labelled segments (both sides of every stored pair) of
+        highest ensemble-mean learned return at the session's start, and their validity (empty slots never win).
+        On pixels their returns are computed by chunks and the segments gathered from the store's copies."""
+        rcfg, k, reward = trainer.reward_cfg, trainer.cfg.rebel.best_segments, ts.reward
+        if not trainer.cfg.pixels:
+            return agent_preference.best_segments(rcfg, reward.params, reward.data, k)
+        data = reward.data
         filled = jnp.tile(jnp.arange(data.capacity) < data.count, 2)  # a sides, then b sides
-        returns = jnp.mean(pixel_reward.stored_returns(rcfg, ts.reward.params, data), axis=0)
-        index, valid = agent_preference.top_segments(returns, filled, rebel.best_segments)
-        best = pixel_reward.stored_side(data, index)
+        returns = jnp.mean(pixel_reward.stored_returns(rcfg, reward.params, data), axis=0)
+        index, valid = agent_preference.top_segments(returns, filled, k)
+        return pixel_reward.stored_side(data, index), valid
 
-        def best_predict_fn(params, frames, action):
-            return pixel_reward.frame_rewards(rcfg, params, frames, action)
-
-        args = (rcfg, ts.lam, obs, actions, best.frames, best.action, valid, rebel.gamma)
-        return (agent_preference.value_gap_term(*args, best_predict_fn=best_predict_fn, **common),)
+    def reward_terms(self, trainer, ts, key, agent_step):
+        """The BT loss and ``lambda * V`` (``rebel.form`` lower_bound) or ``lambda * (V* - V)`` (penalty), through
+        :mod:`rebel_jax.agent_preference`. ``rebel.normalize`` divides by the spread of the per-step rewards of the
+        minibatch's labelled pairs (no extra encoder pass on pixels)."""
+        rcfg, rebel = trainer.reward_cfg, trainer.cfg.rebel
+        obs, actions, predict_fn = self.value_trajectories(trainer, ts, key, agent_step)
+        common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn)
+        if rebel.form == "penalty":  # V(pi*(nu)) from the best labelled segments, ranked once per session.
+            best, valid = self.best_segments(trainer, ts)
+            value = agent_preference.value_gap_term(rcfg, ts.lam, obs, actions, best, valid, rebel.gamma, **common)
+        else:
+            value = agent_preference.agent_value_term(rcfg, ts.lam, obs, actions, rebel.gamma, **common)
+        return [reward_model.bt_loss(rcfg), value]

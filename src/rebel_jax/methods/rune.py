@@ -28,7 +28,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, replay, reward_model
+from rebel_jax import replay, reward_model
 from rebel_jax.errors import check
 from rebel_jax.methods.base import Method
 
@@ -55,7 +55,7 @@ def bonus_weight(rune: RUNEConfig, env_step: jax.Array) -> jax.Array:
     return rune.beta_0 * jnp.exp(jnp.asarray(env_step, jnp.float32) * math.log1p(-rune.rho))
 
 
-def disagreement(cfg: reward_model.RewardConfig, params, obs: jax.Array, action: jax.Array) -> jax.Array:
+def disagreement(cfg, params, obs: jax.Array, action: jax.Array) -> jax.Array:
     """The members' standard deviation (NumPy's, over M) of their rewards of (obs, action): (...,) for (..., size)."""
     return jnp.std(reward_model.predict(cfg, params, obs, action), axis=0)
 
@@ -79,6 +79,6 @@ class RUNE(Method):
     def pixel_batch_reward(self, trainer, ts, batch, agent_step):
         """The n-step learned return plus ``beta_t`` times the members' disagreement on the first step's stack and
         action, t = ``agent_step`` (the seed's agent steps so far, RUNE's environment steps)."""
-        members = pixel_reward.predict(trainer.cfg.pixel_reward, ts.reward.params, batch.obs, batch.action)  # (M, B)
+        members = reward_model.predict(trainer.cfg.pixel_reward, ts.reward.params, batch.obs, batch.action)  # (M, B)
         weight = bonus_weight(trainer.cfg.rune, agent_step)
         return batch.replace(reward=batch.reward + weight * jnp.std(members, axis=0))
