@@ -62,7 +62,7 @@ class REBEL(Method):
         rebel = trainer.cfg.rebel
         key_segments, key_actions = jax.random.split(key)
         seg = trainer.sample_segments(ts.buffer, key_segments, rebel.num_segments, rebel.segment_length)
-        return seg.obs, trainer.sac.act(ts.sac.actor_params, seg.obs, key_actions)
+        return seg.obs, trainer.agent.act(ts.agent, seg.obs, key_actions, None)
 
     def state_terms(self, trainer, ts, key):
         rcfg, rebel = trainer.reward_cfg, trainer.cfg.rebel
@@ -109,7 +109,7 @@ class REBEL(Method):
         def act(inputs):
             row, env, key = inputs
             stacks = frame_replay.row_stacks(buffer, row % buffer.rows, env)
-            return trainer.agent.act(ts.sac, stacks, key, agent_step)
+            return trainer.agent.act(ts.agent, stacks, key, agent_step)
 
         actions = jax.lax.map(act, (rows, envs, jax.random.split(key_actions, rebel.num_segments)))  # one at a time
 
