@@ -15,8 +15,7 @@ from test_pixel_train import MICRO as PIXEL  # the tiny pixel run: 16x16 probe f
 
 from rebel_jax import checkpoint
 from rebel_jax.checkpoint import CHECKSUMS, CheckpointDamaged, Checkpointer, CheckpointMismatch
-from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.train import seed_keys
+from rebel_jax.train import Trainer, seed_keys
 
 
 def _state(buffer_rows: int = 256, policy_width: int = 3) -> dict:
@@ -34,7 +33,7 @@ def _policy(state: dict) -> dict:
 
 
 def test_a_pixel_run_s_policy_restores_as_in_a_full_restore_and_alone(tmp_path):
-    trainer = PixelTrainer(PIXEL)
+    trainer = Trainer(PIXEL)
     state = jax.jit(jax.vmap(trainer.init))(seed_keys(0, 2))
     ckpt = Checkpointer(tmp_path / "checkpoints")
     ckpt.save(3, state)

@@ -128,8 +128,16 @@ class StateFeedback:
 
     def __init__(self, trainer: Any):
         self.trainer = trainer
-        self.cfg = trainer.cfg
-        self.reward_cfg = trainer.reward_cfg
+
+    @property
+    def cfg(self):
+        """The trainer's config."""
+        return self.trainer.cfg
+
+    @property
+    def reward_cfg(self):
+        """The reward model's config."""
+        return self.trainer.reward_cfg
 
     # -- the reward model -------------------------------------------------------------------
     def init_reward(self, key: jax.Array, obs_shape: tuple[int, ...], action_size: int, pool_capacity: int):

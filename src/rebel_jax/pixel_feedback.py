@@ -140,9 +140,17 @@ class PixelFeedback:
 
     def __init__(self, trainer: Any):
         self.trainer = trainer
-        self.cfg = trainer.cfg
-        self.reward_cfg = trainer.cfg.pixel_reward
         self._looped_session = loop_in_place(self._feedback_session)
+
+    @property
+    def cfg(self):
+        """The trainer's config."""
+        return self.trainer.cfg
+
+    @property
+    def reward_cfg(self):
+        """The reward model's config."""
+        return self.trainer.cfg.pixel_reward
 
     # -- the reward model -------------------------------------------------------------------
     def init_reward(self, key: jax.Array, obs_shape: tuple[int, ...], action_size: int, pool_capacity: int):
