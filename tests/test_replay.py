@@ -109,7 +109,7 @@ def test_sample_learned_reward_switch():
     for use_learned in (True, False, jnp.asarray(True)):
         batch = sample(buffer, jax.random.key(1), 64, use_learned)
         t, e = np.asarray(batch.obs[:, 0]).astype(int), np.asarray(batch.obs[:, 1]).astype(int)
-        expected = steps.learned_reward if bool(use_learned) else steps.reward
+        expected = steps.learned_reward if bool(use_learned) else steps.true_reward
         np.testing.assert_array_equal(batch.reward, expected[t, e])
 
 
