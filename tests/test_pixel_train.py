@@ -103,7 +103,7 @@ def test_seeds_differ_and_the_buffer_holds_frames_once(run):
         buffer = jax.tree.map(lambda x, seed=seed: x[seed], state.buffer)
         envs = jnp.arange(MICRO.env.num_envs)
         last = jnp.full_like(envs, (int(buffer.ptr) - 1) % buffer.rows)
-        rebuilt = frame_replay.gather(buffer, last, envs, 1, 0.99)
+        rebuilt = frame_replay.gather(buffer, last, envs, 1, 0.99, False)
         np.testing.assert_array_equal(rebuilt.next_obs, state.env.obs[seed, : MICRO.env.num_envs])
     final = np.asarray(evaluate(trainer.policy_params(state), seed_keys(1, SEEDS)))
     assert final.shape == (SEEDS,) and np.all(np.isfinite(final))

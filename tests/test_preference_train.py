@@ -180,7 +180,7 @@ def test_rebel_with_lambda_zero_is_pebble_bit_for_bit(pebble_run, rebel_runs):
     _, pebble, _ = pebble_run
     _, rebel, _ = rebel_runs
     first_two = functools.partial(jax.tree.map, lambda x: np.asarray(x)[:2])
-    for name in ("sac", "reward", "buffer"):
+    for name in ("agent", "reward", "buffer"):
         chex.assert_trees_all_equal(first_two(getattr(pebble, name)), first_two(getattr(rebel, name)))
 
 

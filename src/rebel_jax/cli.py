@@ -430,7 +430,8 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     first = next(i for i, x in enumerate(leaves) if x is jax.tree.leaves(state.buffer)[0])  # the buffer's leaves
 
     def adapt(like, shapes):
-        if shapes[str(reward_leaf)][1] == rows:
+        saved = shapes[str(reward_leaf)]  # another leaf where other code saved another state: the check refuses it
+        if len(saved) < 2 or saved[1] == rows:
             return like
 
         def saved_rows(i, x):  # x[:, :n] where the saved leaf has n < x.shape[1] rows (any other difference is
