@@ -52,7 +52,7 @@ from rebel_jax import budget, frame_replay, pixel_feedback, replay, sweep, teach
 from rebel_jax.agent import Agent
 from rebel_jax.config import Config
 from rebel_jax.drqv2 import DrQV2
-from rebel_jax.envs import State, make_env
+from rebel_jax.envs import State, VmapWrapper, make_env
 from rebel_jax.episodes import EpisodeStats, all_finite, init_trajectory, physics_positions, record_trajectory
 from rebel_jax.feedback import StateFeedback, summary
 from rebel_jax.pixel_feedback import PixelFeedback
@@ -124,6 +124,9 @@ class Trainer:
         self.ring = frame_replay if self.pixels else replay
         self.num_train = cfg.env.num_envs
         self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
+        # brax's VmapWrapper: reset(key) resets the envs on jax.random.split(key, batch_size).
+        self.envs = VmapWrapper(self.env, batch_size=self.num_all)  # training, then in-batch evaluation
+        self.eval_envs = VmapWrapper(self.env, batch_size=cfg.train.eval_episodes)  # Trainer.evaluate
         self.steps_per_round = cfg.train.steps_per_round // cfg.env.num_envs  # vector steps
         self.schedule = self.agent.schedule(self.num_train)
         self.updates_per_step, self.update_period = self.schedule.per_step, self.schedule.period
@@ -162,7 +165,7 @@ class Trainer:
         ts = TrainState(
             agent=agent,
             buffer=self._init_buffer(),
-            env=self._reset_envs(key_env, self.num_all),
+            env=self.envs.reset(key_env),
             episodes=EpisodeStats.init(self.num_all),
             key=key,
             eval_policy=self.agent.policy(agent),
@@ -197,10 +200,6 @@ class Trainer:
             return 0
         state = jax.eval_shape(self.env.reset, jax.random.PRNGKey(0))
         return physics_positions(state.pipeline_state).shape[-1]
-
-    def _reset_envs(self, key: jax.Array, n: int) -> State:
-        """``n`` environments reset on ``jax.random.split(key, n)`` (brax's ``VmapWrapper.reset``)."""
-        return jax.vmap(self.env.reset)(jax.random.split(key, n))
 
     # -- one vector step ------------------------------------------------------------------
     def _act(self, ts: TrainState, t: jax.Array, key: jax.Array) -> jax.Array:
@@ -273,12 +272,12 @@ class Trainer:
         new_episode = (t % self.episode_length == 0) & (t > 0)
         env_state, eval_policy = jax.lax.cond(
             new_episode,  # Evaluation freezes this episode's policy.
-            lambda: (self._reset_envs(key_reset, self.num_all), self.agent.policy(ts.agent)),
+            lambda: (self.envs.reset(key_reset), self.agent.policy(ts.agent)),
             lambda: (ts.env, ts.eval_policy),
         )
         ts = ts.replace(env=env_state, key=key, eval_policy=eval_policy)
         action = self._act(ts, t, key_act)
-        nxt = jax.vmap(self.env.step)(ts.env, action)
+        nxt = self.envs.step(ts.env, action)
         buffer, episodes = self._record(ts, nxt, action, t)
         learning = self.schedule.learning(t, self.num_train, self.cfg.train.seed_steps)
         zeros = {k: jnp.zeros(()) for k in self.agent.metric_names}
@@ -326,7 +325,7 @@ class Trainer:
         return self.feedback.teach(ts, key, seg_a, seg_b, index)
 
     def learn(self, ts: TrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, *agent_step):
-        """Stores the answers, trains the ensemble, relabels the replay; a fresh critic at the first session."""
+        """Stores the answers, trains the ensemble, relabels the replay; a fresh critic at the first feedback session."""
         return self.feedback.learn(ts, key, seg_a, seg_b, labels, mask, first, *agent_step)
 
     def feedback_session(self, ts: TrainState, first, index, agent_step=None) -> tuple[TrainState, dict]:
@@ -408,13 +407,13 @@ class Trainer:
             value: both kinds share one compiled program.
         """
         key_reset, key_actions = jax.random.split(key)
-        state = self._reset_envs(key_reset, self.cfg.train.eval_episodes)
+        state = self.eval_envs.reset(key_reset)
 
         def body(carry, key):
             state, total = carry
             uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
             action = jnp.where(random_actions, uniform, self.mean_action(policy, state.obs))
-            state = jax.vmap(self.env.step)(state, action)
+            state = self.eval_envs.step(state, action)
             return (state, total + state.reward), None
 
         keys = jax.random.split(key_actions, self.episode_length)
