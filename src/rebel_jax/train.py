@@ -325,7 +325,7 @@ class Trainer:
         return self.feedback.teach(ts, key, seg_a, seg_b, index)
 
     def learn(self, ts: TrainState, key: jax.Array, seg_a, seg_b, labels, mask, first, *agent_step):
-        """Stores the answers, trains the ensemble, relabels the replay; a fresh critic at the first feedback session."""
+        """Stores the answers, trains the ensemble, relabels the replay; a new critic at the first feedback session."""
         return self.feedback.learn(ts, key, seg_a, seg_b, labels, mask, first, *agent_step)
 
     def feedback_session(self, ts: TrainState, first, index, agent_step=None) -> tuple[TrainState, dict]:
