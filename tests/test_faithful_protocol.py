@@ -55,7 +55,7 @@ def test_torch_init_is_uniform_within_one_over_sqrt_fan_in_and_narrower_than_lec
 class _Buffer:
     obs: jax.Array
     action: jax.Array
-    reward: jax.Array
+    true_reward: jax.Array
     terminal: jax.Array
     truncated: jax.Array
     episode_step: jax.Array
@@ -85,7 +85,7 @@ def _history(num_writes, num_envs, episode_length, seed=0):
     buffer = _Buffer(
         obs=jnp.asarray(obs),
         action=jnp.asarray(obs[..., :2]),
-        reward=jnp.asarray(obs[..., 3]),
+        true_reward=jnp.asarray(obs[..., 3]),
         terminal=jnp.asarray(ends),
         truncated=jnp.zeros_like(jnp.asarray(ends)),
         episode_step=jnp.asarray(steps),
