@@ -84,7 +84,7 @@ def parts(trainer: Trainer, relabel_rows: tuple[int, ...] = ()) -> dict:
     def relabel(rows, ts, key):
         del key  # Deterministic.
         reward = lambda obs, action: pixel_reward.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
-        return frame_replay.relabel(ts.buffer, reward, rows).reward
+        return frame_replay.relabel(ts.buffer, reward, rows).learned_reward
 
     out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.relabel_rows)}
     others = [rows for rows in relabel_rows if rows != rcfg.relabel_rows]

@@ -147,7 +147,7 @@ def test_relabel_and_row_stacks_match_naive_stacks():
         relabelled = frame_replay.relabel(
             buffer, lambda o, a: pixel_reward.mean_reward(REWARD, state.params, o, a), chunk_rows=chunk_rows
         )
-        np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(relabelled.learned_reward, expected, rtol=1e-5, atol=1e-6)
 
 
 # Episodes of 20 frames = 10 agent steps, rounds of one episode; sessions at the starts of rounds 1, 2, 3.
