@@ -84,7 +84,7 @@ EXIT_USAGE = rundir.EXIT_USAGE
 EXIT_DIVERGED = 3
 STATE_FLAGS = {
     "buffer": "--buffer-capacity (0: --total-steps)",
-    "sac": "--hidden / --depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
+    "agent": "--hidden / --depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
     "reward": "--reward.hidden, --reward.label-capacity (pixels: --pixel-reward.*)",
     "env": "--num-envs / --eval-episodes",
     "eval_trajectory": "--rebel.horizon / --rebel.episodes",
