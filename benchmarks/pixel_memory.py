@@ -4,13 +4,13 @@ and ``cost_analysis()`` of the programs lowered and compiled for this CPU with a
 
 Configurations (5 seeds, 84x84, the real episode lengths), each the CLI's flags (:data:`CONFIGS`):
 DrQ-v2 on walker/cheetah (SURF's DrQ-v2 settings) and pixel PEBBLE/SURF/REBEL (walker 200 labels, cheetah
-1000), all with a replay of 100k transitions per seed (``pixel_train.DEFAULT_CAPACITY``; the preference runs'
+1000), all with a replay of 100k transitions per seed (``pixel_feedback.DEFAULT_CAPACITY``; the preference runs'
 label store keeps copies of its segments, so nothing needs the whole run; ``--flags="--buffer-capacity
 500000"`` measures the whole-run replay the preference runs kept before).
 
 Programs (each jitted and vmapped over the seeds, as ``train.compiled``):
 
-- ``round``: ``PixelTrainer.round`` (donated state): the program the CLI runs. Its ``temp`` bytes are the
+- ``round``: ``Trainer.round`` (donated state): the program the CLI runs. Its ``temp`` bytes are the
   device's working memory beside the state; this is the row that says whether a run fits.
 - ``update``: one DrQ-v2 update (sample from the replay, augment, critic + encoder, actor, target).
 - ``env_step``: one vector step without updates (act, ``env.step`` of training and evaluation envs, replay write).
@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 
 from rebel_jax.cli import parse
-from rebel_jax.pixel_train import PixelTrainer
+from rebel_jax.train import Trainer
 
 GIB = 2**30
 GPU_BYTES = 78 * GIB
@@ -69,18 +69,18 @@ def nbytes(tree) -> int:
     return sum(x.size * jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree))
 
 
-def abstract_state(trainer: PixelTrainer, seeds: int):
+def abstract_state(trainer: Trainer, seeds: int):
     """The seed-vmapped state's shapes (nothing allocated) and the abstract keys."""
     keys = jax.ShapeDtypeStruct((seeds, 2), jnp.uint32)
     return jax.eval_shape(jax.vmap(trainer.init), keys), keys
 
 
-def state_row(trainer: PixelTrainer, seeds: int) -> dict:
+def state_row(trainer: Trainer, seeds: int) -> dict:
     """Bytes of the state per seed, split by part, and for ``seeds`` seeds."""
     state, _ = abstract_state(trainer, seeds)
     parts = {
         "replay": state.buffer,
-        "agent": state.sac,  # encoder, actor, critic, target critic and their Adam states
+        "agent": state.agent,  # encoder, actor, critic, target critic and their Adam states
         "reward": state.reward,  # pixel ensemble, its Adam state, the label store (and SURF's pool)
         "env": state.env,
         "other": (state.episodes, state.key, state.eval_policy, state.teacher, state.lam, state.eval_trajectory),
@@ -90,12 +90,12 @@ def state_row(trainer: PixelTrainer, seeds: int) -> dict:
     return {**per_seed, "state_bytes_per_seed": total // seeds, "state_bytes": total, "state_gib": total / GIB}
 
 
-def _programs(trainer: PixelTrainer):
+def _programs(trainer: Trainer):
     """``name -> (function of (state, extra), extra's abstract value)``, each vmapped over the seeds."""
     step = jnp.int32(trainer.cfg.train.seed_steps)
 
     def update(ts):
-        return trainer._updates(ts, ts.buffer, ts.key, step)
+        return trainer._updates(ts, ts.buffer, ts.key, step // trainer.num_train)
 
     def env_step(ts):
         key_act, _ = jax.random.split(ts.key)
@@ -105,7 +105,7 @@ def _programs(trainer: PixelTrainer):
         return trainer._record(ts, nxt, action, t)
 
     def session(ts):
-        return trainer.feedback_session(ts, jnp.bool_(True), step, jnp.int32(0))
+        return trainer.feedback_session(ts, jnp.bool_(True), jnp.int32(0), step)
 
     out = {"update": update, "env_step": env_step}
     if trainer.preference:
@@ -129,7 +129,7 @@ def _analysis(compiled) -> dict:
     }
 
 
-def compile_row(trainer: PixelTrainer, seeds: int, program: str) -> dict:
+def compile_row(trainer: Trainer, seeds: int, program: str) -> dict:
     """Lowers and compiles ``program`` for this backend with abstract inputs; its memory and cost analyses."""
     state, _ = abstract_state(trainer, seeds)
     start = time.time()
@@ -144,7 +144,7 @@ def compile_row(trainer: PixelTrainer, seeds: int, program: str) -> dict:
     return {**_analysis(compiled), "lower_s": round(lowered_s, 1), "compile_s": round(compile_s, 1)}
 
 
-def schedule(trainer: PixelTrainer) -> dict:
+def schedule(trainer: Trainer) -> dict:
     """Per-round counts the per-round figures are composed from."""
     cfg = trainer.cfg
     vector_steps = trainer.steps_per_round
@@ -275,7 +275,7 @@ def main() -> None:
     }
     for name in args.configs:
         flags = with_total_steps(CONFIGS[name], args.total_steps) + args.flags.split()
-        trainer = PixelTrainer(parse(flags).config)
+        trainer = Trainer(parse(flags).config)
         command = f"python -m rebel_jax.train --seeds {args.seeds} " + " ".join(flags)
         base = {"config": name, "variant": args.flags, "command": command, **meta}
         base.update(schedule(trainer))

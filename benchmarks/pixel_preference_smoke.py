@@ -38,8 +38,7 @@ from pixel_memory import CONFIGS, with_total_steps  # noqa: E402 - benchmarks/ i
 
 from rebel_jax import frame_replay  # noqa: E402
 from rebel_jax.cli import parse  # noqa: E402
-from rebel_jax.pixel_train import PixelTrainer  # noqa: E402
-from rebel_jax.train import compiled, seed_keys  # noqa: E402
+from rebel_jax.train import Trainer, compiled, seed_keys  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_smoke.json"
 
@@ -93,7 +92,7 @@ class Results:
 def run_job(job: str, args, results: Results, deadline: float) -> None:
     flags = job_flags(job, args.steps_per_round, args.total_steps, args.tiny)
     cfg = parse(flags).config
-    trainer = PixelTrainer(cfg)
+    trainer = Trainer(cfg)
     repeat = getattr(trainer.env, "action_repeat", 1)
     command = f"python -m rebel_jax.train --seeds {args.seeds} {' '.join(flags)}"
     base = {"job": job, "seeds": args.seeds, "command": command, "seed_loop": cfg.drqv2.seed_loop}
@@ -121,7 +120,14 @@ def run_job(job: str, args, results: Results, deadline: float) -> None:
         seeding = (r + 1) * cfg.train.steps_per_round <= cfg.train.seed_steps
         phase = "seed steps" if seeding else ("session + updates" if session else "updates")
         steps = cfg.train.steps_per_round
-        shown = ("labels_used", "reward_epochs", "reward_accuracy_all", "reward_correlation", "critic_loss", "diverged")
+        shown = (
+            "labels_used",
+            "reward_epochs",
+            "reward_accuracy_all",
+            "reward_correlation_replay",
+            "critic_loss",
+            "diverged",
+        )
         results.add(
             {
                 **base,

@@ -9,14 +9,14 @@ decides how long a pixel preference run takes. A session trains up to ``pixel_re
 once the ensemble fits its labels), so its training costs about epochs x one epoch's seconds; in a ``--lam-grid``
 program every column computes REBEL's term (lambda 0 multiplies it), so PEBBLE's columns there cost REBEL's epoch.
 
-The state is the trainer's own (``PixelTrainer.init``: the real replay, label store and networks, :data:`CONFIGS`'
+The state is the trainer's own (``Trainer.init``: the real replay, label store and networks, :data:`CONFIGS`'
 shapes) with its counters set full: the replay holds ``--rows`` rows (default all) and the label store ``--labels``
 pairs. Their contents are the initial zeros, which cost the same arithmetic as real frames. Timing only.
 
     python benchmarks/pixel_session_parts.py --jobs rebel_cheetah pebble_walker --labels 200 --precisions tf32 bf16
     python benchmarks/pixel_session_parts.py --tiny --jobs rebel_cheetah --labels 8   # probe_point_pixels, CPU
 
-With ``--columns C`` (default 4, 0 for none) it also times whole sessions (``PixelTrainer.feedback_session``:
+With ``--columns C`` (default 4, 0 for none) it also times whole sessions (``Trainer.feedback_session``:
 select, teach, train, relabel) vmapped over C columns as the trainer runs them, with ``pixel_reward.session_loop``
 on and off (``--session-loops``): batched, the members' convolutions are grouped over the columns. Each session
 trains ``max_epochs`` epochs (``--pixel-reward.stop-accuracy 1``: it never stops early; the row's ``epochs``), an
@@ -46,13 +46,12 @@ from timing import provenance  # noqa: E402
 
 from rebel_jax import frame_replay, reward_model, reward_train  # noqa: E402
 from rebel_jax.cli import parse  # noqa: E402
-from rebel_jax.pixel_train import PixelTrainer, PixelTrainState  # noqa: E402
-from rebel_jax.train import seed_keys  # noqa: E402
+from rebel_jax.train import Trainer, TrainState, seed_keys  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_session_parts.json"
 
 
-def filled(ts: PixelTrainState, labels: int, rows: int | None) -> PixelTrainState:
+def filled(ts: TrainState, labels: int, rows: int | None) -> TrainState:
     """``ts`` with ``labels`` stored pairs and ``rows`` written replay rows (None: all of them)."""
     data = ts.reward.data
     if not 0 < labels <= data.capacity:
@@ -66,7 +65,7 @@ def filled(ts: PixelTrainState, labels: int, rows: int | None) -> PixelTrainStat
     )
 
 
-def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
+def parts(trainer: Trainer, relabel_rows: tuple[int, ...] = ()) -> dict:
     """``name -> function of (ts, key)`` for each part of a session that this job's algorithm runs, and the
     relabelling at each of ``relabel_rows`` rows per ``lax.map`` step besides the trainer's
     ``pixel_reward.relabel_rows``
@@ -78,14 +77,14 @@ def parts(trainer: PixelTrainer, relabel_rows: tuple[int, ...] = ()) -> dict:
         return reward_train.train_epoch(rcfg, ts.reward, key)[0].params
 
     def epoch_rebel(ts, key):
-        # The trainer's own REBEL term, as ``PixelTrainer.learn`` builds it (``--rebel.form`` and source included).
+        # The trainer's own REBEL term, as ``Trainer.learn`` builds it (``--rebel.form`` and source included).
         terms = trainer.method.reward_terms(trainer, ts, jax.random.fold_in(key, 1), agent_step)
         return reward_train.train_epoch(rcfg, ts.reward, key, terms)[0].params
 
     def relabel(rows, ts, key):
         del key  # Deterministic.
         reward = lambda obs, action: reward_model.mean_reward(rcfg, ts.reward.params, obs, action)  # noqa: E731
-        return frame_replay.relabel(ts.buffer, reward, rows).reward
+        return frame_replay.relabel(ts.buffer, reward, rows).learned_reward
 
     out = {"epoch_bt": epoch_bt, "relabel": functools.partial(relabel, rcfg.relabel_rows)}
     others = [rows for rows in relabel_rows if rows != rcfg.relabel_rows]
@@ -116,7 +115,7 @@ def time_sessions(job: str, precision: str, loop: bool, args, results: Results) 
     switch = "--pixel-reward.session-loop" if loop else "--pixel-reward.no-session-loop"
     flags = [*job_flags(job, 1000, 0, args.tiny), "--pixel-reward.precision", precision, switch]
     flags += ["--pixel-reward.stop-accuracy", "1"]  # every epoch up to max_epochs: a session's upper bound
-    trainer = PixelTrainer(parse(flags).config)
+    trainer = Trainer(parse(flags).config)
     ts = jax.jit(jax.vmap(trainer.init))(seed_keys(0, args.columns))
     ts = jax.jit(jax.vmap(lambda t: filled(t, args.labels, args.rows)))(ts)
     step = jnp.int32(trainer.cfg.train.total_steps // 2)
@@ -132,7 +131,7 @@ def time_sessions(job: str, precision: str, loop: bool, args, results: Results) 
 def run_job(job: str, precision: str, args, results: Results) -> None:
     flags = [*job_flags(job, 1000, 0, args.tiny), "--pixel-reward.precision", precision]
     cfg = parse(flags).config
-    trainer = PixelTrainer(cfg)
+    trainer = Trainer(cfg)
     ts = filled(jax.jit(trainer.init)(jax.random.PRNGKey(0)), args.labels, args.rows)
     base = {
         "job": job,

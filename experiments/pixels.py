@@ -167,7 +167,11 @@ REWARD_METRICS = ("reward_accuracy_new", "reward_correlation")
 """The pixel sessions' measures of the learned reward, averaged per seed over its sessions (:func:`session_means`):
 the ensemble's accuracy on each session's new (not equal) pairs before it trains on them, its generalisation
 (0.5 is chance), and the Pearson correlation of the relabelled and the true reward over the replay
-(:data:`rebel_jax.pixel_train.PIXEL_SESSION_METRICS`)."""
+(``reward_correlation_replay`` of :data:`rebel_jax.pixel_feedback.PIXEL_SESSION_METRICS`; logs written before that
+name call it ``reward_correlation``, the name kept here)."""
+
+LOGGED_AS = {"reward_correlation": ("reward_correlation_replay", "reward_correlation")}
+"""A measure's names in the logs, newest first."""
 
 
 def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name: str) -> list[float]:
@@ -177,7 +181,8 @@ def session_means(run_dirs: list[pathlib.Path], label: str, max_steps: int, name
     out = []
     for run_dir, columns in _columns(run_dirs, label):
         rounds = [r for r in records(run_dir) if r["env_steps"] <= max_steps]
-        logged = [per_seed(r[name]) for r in rounds if r.get(name) is not None]
+        logged_as = next((n for n in LOGGED_AS.get(name, (name,)) if any(n in r for r in rounds)), name)
+        logged = [per_seed(r[logged_as]) for r in rounds if r.get(logged_as) is not None]
         if logged:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a session: NaN, None in the JSON

@@ -11,12 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pixel_preference import MICRO as PIXEL_PEBBLE  # the same run, PEBBLE
 from test_pixel_train import MICRO as PIXEL  # the tiny pixel run: 16x16 probe frames, 2 envs
 
-from rebel_jax import checkpoint
+from rebel_jax import checkpoint, cli
 from rebel_jax.checkpoint import CHECKSUMS, CheckpointDamaged, Checkpointer, CheckpointMismatch
-from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.train import seed_keys
+from rebel_jax.config import ConfigError
+from rebel_jax.train import Trainer, seed_keys
 
 
 def _state(buffer_rows: int = 256, policy_width: int = 3) -> dict:
@@ -34,7 +35,7 @@ def _policy(state: dict) -> dict:
 
 
 def test_a_pixel_run_s_policy_restores_as_in_a_full_restore_and_alone(tmp_path):
-    trainer = PixelTrainer(PIXEL)
+    trainer = Trainer(PIXEL)
     state = jax.jit(jax.vmap(trainer.init))(seed_keys(0, 2))
     ckpt = Checkpointer(tmp_path / "checkpoints")
     ckpt.save(3, state)
@@ -180,3 +181,35 @@ def test_restore_leaves_refuses_other_states_and_computed_leaves(tmp_path):
         ckpt.restore_leaves(_state(), lambda s: {"w": s["policy"]["w"] * 2})
     assert ckpt.steps() == [1] and not (tmp_path / "checkpoints_damaged").exists()
     ckpt.close()
+
+
+def _layout_before_the_replay_contract(state) -> tuple:
+    """``state`` (a pixel run's) in the leaf order the code before the one trainer saved: the frame ring's
+    ``reward`` (the learned reward of a preference run, the true one of DrQ-v2) where ``learned_reward`` now is and
+    its ``true_reward`` last (None for DrQ-v2); the pixel state's ``eval_policy`` right after its key."""
+    b = state.buffer
+    pair = (b.learned_reward, b.true_reward) if b.learned_reward is not None else (b.true_reward, None)
+    ring = (b.frames, b.frame_index, b.episode_step, b.action, pair[0], b.terminal, b.truncated, b.ptr, b.size)
+    ring = (*ring, b.frame_ptr, pair[1])
+    rest = (state.reward, state.teacher, state.lam, state.eval_trajectory)
+    return (state.agent, ring, state.env, state.episodes, state.key, state.eval_policy, *rest)
+
+
+@pytest.mark.parametrize("cfg", [PIXEL, PIXEL_PEBBLE], ids=["drqv2", "pebble"])
+def test_a_pixel_checkpoint_of_the_code_before_the_one_trainer_is_refused_naming_its_commit(tmp_path, cfg):
+    """Its leaves have other places now (the same number of them): the resume refuses it in one line that names
+    the commit which wrote it, rather than restoring rewards and flags into each other's places."""
+    trainer = Trainer(cfg)
+    state = jax.jit(jax.vmap(trainer.init))(seed_keys(0, 2))
+    old = _layout_before_the_replay_contract(state)
+    assert len(jax.tree.leaves(old)) == len(jax.tree.leaves(state))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "meta.json").write_text(json.dumps({"git_commit": "4972dfe"}))
+    ckpt = Checkpointer(run_dir / "checkpoints")
+    ckpt.save(2, old)
+    with pytest.raises(ConfigError) as refused:
+        cli._restore(run_dir, ckpt, state, None)
+    ckpt.close()
+    message = str(refused.value)
+    assert "\n" not in message and "holds another state" in message and "git_commit 4972dfe" in message, message

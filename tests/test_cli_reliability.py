@@ -26,8 +26,7 @@ from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
 from rebel_jax import cli, cli_outputs, video
-from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.train import seed_keys
+from rebel_jax.train import Trainer, seed_keys
 
 ROOT = pathlib.Path(__file__).parents[1]
 
@@ -230,8 +229,8 @@ def _poison_seed_1_before_round(round_index: int):
 
         def poisoned_round(state, r):
             if int(r) == round_index:
-                actor = jax.tree.map(lambda x: x.at[1].set(jnp.nan), state.sac.actor_params)
-                state = state.replace(sac=state.sac.replace(actor_params=actor))
+                actor = jax.tree.map(lambda x: x.at[1].set(jnp.nan), state.agent.actor_params)
+                state = state.replace(agent=state.agent.replace(actor_params=actor))
             return round_fn(state, r)
 
         return init, poisoned_round, evaluate
@@ -384,7 +383,7 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
     final = _final(whole)["final_eval_return"]
     for column in range(2):
         trainer, step, params = video.load_policy(whole, column)
-        assert isinstance(trainer, PixelTrainer) and step == 3
+        assert isinstance(trainer, Trainer) and step == 3
         key = seed_keys(7, 2)[column]
         np.testing.assert_allclose(jax.jit(trainer.evaluate)(params, key), final[column], rtol=1e-4, atol=1e-4)
 

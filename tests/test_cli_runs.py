@@ -86,10 +86,10 @@ def _learn(config: Config, seed: int, seeds: int = 2) -> tuple[np.ndarray, np.nd
     evaluate = jax.jit(jax.vmap(Trainer(many).evaluate))
     eval_keys = jax.random.split(jax.random.PRNGKey(123), seeds)
     state = init(seed_keys(seed, seeds))
-    before = np.asarray(evaluate(state.sac.actor_params, eval_keys))
+    before = np.asarray(evaluate(state.agent.actor_params, eval_keys))
     for r in range(config.train.num_rounds):
         state, _ = round_fn(state, jnp.int32(r))
-    return before, np.asarray(evaluate(state.sac.actor_params, eval_keys))
+    return before, np.asarray(evaluate(state.agent.actor_params, eval_keys))
 
 
 def test_sac_learns_the_probe_task_near_its_best_return():

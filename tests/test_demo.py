@@ -115,7 +115,7 @@ def _loop_return(trainer: Trainer, params, key: jax.Array, random_actions: bool)
     """Mean return of the evaluation episodes stepped one by one in Python (the reference)."""
     key_reset, key_actions = jax.random.split(key)
     # Each call jitted alone (one compile, not one per operation); the loop over steps and episodes stays Python's.
-    reset, step, act = (jax.jit(f) for f in (trainer.env.reset, trainer.env.step, trainer.sac.act_deterministic))
+    reset, step, act = (jax.jit(f) for f in (trainer.env.reset, trainer.env.step, trainer.agent.act_deterministic))
     states = [reset(k) for k in jax.random.split(key_reset, trainer.cfg.train.eval_episodes)]
     totals = np.zeros(len(states))
     for key_t in jax.random.split(key_actions, trainer.env.episode_length):
@@ -131,7 +131,7 @@ def test_random_policy_evaluation_matches_a_step_loop_on_the_same_initial_states
     trainer = Trainer(PROBE)
     _, _, evaluate = compiled(trainer)
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
-    params = jax.vmap(trainer.sac.init)(keys).actor_params
+    params = jax.vmap(trainer.agent.init)(keys).actor_params
     policy, random = np.asarray(evaluate(params, keys)), np.asarray(evaluate(params, keys, True))
     for i in range(2):
         one = jax.tree.map(lambda x, i=i: x[i], params)

@@ -24,7 +24,7 @@ import pytest
 from jax.extend import core
 from mujoco import mjx
 
-from rebel_jax import config, pixel_train, train
+from rebel_jax import config, train
 from rebel_jax.envs import make_env
 
 
@@ -84,7 +84,7 @@ def test_tasks_build_on_this_process_s_devices(monkeypatch):
 def test_the_run_programs_are_tied_to_no_device(algo, task):
     tiny = config.PRESETS["tiny"]
     cfg = dataclasses.replace(tiny, algo=algo, env=dataclasses.replace(tiny.env, task=task))
-    trainer = pixel_train.PixelTrainer(cfg) if cfg.pixels else train.Trainer(cfg)
+    trainer = train.Trainer(cfg)
     keys = train.seed_keys(0, 2)
     init, round_fn, _ = train.compiled(trainer)
     assert _device_ties(jax.make_jaxpr(init)(keys)) == []

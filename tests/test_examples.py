@@ -58,7 +58,7 @@ def _learned_square(cfg, rounds: int) -> float:
     assert np.isfinite(np.asarray(metrics["eval_return"])).all()
     buffer = jax.device_get(state.buffer)
     rows = int(np.max(buffer.size))
-    reward = buffer.learned_reward if hasattr(buffer, "learned_reward") else buffer.reward  # state / frame replay
+    reward = buffer.learned_reward  # the same name on the state and the frame replay
     return float(np.mean(np.asarray(reward)[:, :rows] ** 2))
 
 

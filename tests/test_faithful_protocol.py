@@ -55,7 +55,7 @@ def test_torch_init_is_uniform_within_one_over_sqrt_fan_in_and_narrower_than_lec
 class _Buffer:
     obs: jax.Array
     action: jax.Array
-    reward: jax.Array
+    true_reward: jax.Array
     terminal: jax.Array
     truncated: jax.Array
     episode_step: jax.Array
@@ -85,7 +85,7 @@ def _history(num_writes, num_envs, episode_length, seed=0):
     buffer = _Buffer(
         obs=jnp.asarray(obs),
         action=jnp.asarray(obs[..., :2]),
-        reward=jnp.asarray(obs[..., 3]),
+        true_reward=jnp.asarray(obs[..., 3]),
         terminal=jnp.asarray(ends),
         truncated=jnp.zeros_like(jnp.asarray(ends)),
         episode_step=jnp.asarray(steps),
@@ -195,14 +195,14 @@ def micro():
 
 def test_reset_update_runs_exactly_the_configured_sac_updates_on_a_fresh_critic(micro):
     trainer, ts = micro
-    reset = jax.jit(trainer._reset_critic)
+    reset = jax.jit(trainer.feedback._reset_critic)
     for updates in (100, 0):
         trainer.cfg = dataclasses.replace(MICRO, pretrain=dataclasses.replace(MICRO.pretrain, reset_updates=updates))
-        new = reset(ts.sac, ts.buffer, jax.random.key(1))
-        reset = jax.jit(trainer._reset_critic)  # Retrace with the next count.
-        assert int(new.steps) - int(ts.sac.steps) == updates
+        new = reset(ts.agent, ts.buffer, jax.random.key(1))
+        reset = jax.jit(trainer.feedback._reset_critic)  # Retrace with the next count.
+        assert int(new.steps) - int(ts.agent.steps) == updates
     trainer.cfg = MICRO
-    fresh = trainer.sac.reset_critic(ts.sac, jax.random.split(jax.random.key(1))[0])
+    fresh = trainer.agent.reset_critic(ts.agent, jax.random.split(jax.random.key(1))[0])
     # With no updates the critic is just re-initialised; with 100 the actor has moved too.
     np.testing.assert_array_equal(
         np.asarray(jax.tree.leaves(new.critic_params)[0]), np.asarray(jax.tree.leaves(fresh.critic_params)[0])
@@ -212,18 +212,18 @@ def test_reset_update_runs_exactly_the_configured_sac_updates_on_a_fresh_critic(
 def test_evaluation_envs_follow_the_actor_frozen_at_the_episode_start(micro):
     trainer, ts = micro
     step = jax.jit(trainer.vector_step)
-    changed = jax.tree.map(lambda x: x + 0.5, ts.sac.actor_params)
-    ts = ts.replace(sac=ts.sac.replace(actor_params=changed))  # The actor changes mid-episode (t = 7)...
+    changed = jax.tree.map(lambda x: x + 0.5, ts.agent.actor_params)
+    ts = ts.replace(agent=ts.agent.replace(actor_params=changed))  # The actor changes mid-episode (t = 7)...
     mid, _ = step(ts, jnp.int32(7))
-    assert jax.tree.all(jax.tree.map(jnp.array_equal, mid.eval_actor, ts.eval_actor))  # ...evaluation keeps its own.
+    assert jax.tree.all(jax.tree.map(jnp.array_equal, mid.eval_policy, ts.eval_policy))  # ...evaluation keeps its own.
     acts = jax.jit(trainer._act)(ts, jnp.int32(7), jax.random.key(2))[trainer.num_train :]
-    frozen = trainer.sac.act_deterministic(ts.eval_actor, ts.env.obs[trainer.num_train :])
-    live = trainer.sac.act_deterministic(changed, ts.env.obs[trainer.num_train :])
+    frozen = trainer.agent.act_deterministic(ts.eval_policy, ts.env.obs[trainer.num_train :])
+    live = trainer.agent.act_deterministic(changed, ts.env.obs[trainer.num_train :])
     np.testing.assert_allclose(np.asarray(acts), np.asarray(frozen), rtol=1e-6)
     assert not np.allclose(np.asarray(acts), np.asarray(live))
     boundary, _ = step(ts, jnp.int32(MICRO.env.episode_length))  # A new episode takes the current actor.
     np.testing.assert_array_equal(
-        np.asarray(jax.tree.leaves(boundary.eval_actor)[0]), np.asarray(jax.tree.leaves(changed)[0])
+        np.asarray(jax.tree.leaves(boundary.eval_policy)[0]), np.asarray(jax.tree.leaves(changed)[0])
     )
 
 
@@ -241,7 +241,7 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
     after = []  # The evaluation environments' observation after each step of the second episode.
     for t in range(2 * length):
         if t == length:
-            frozen = ts.sac.actor_params  # The second episode's evaluation policy.
+            frozen = ts.agent.actor_params  # The second episode's evaluation policy.
         ts, _ = step(ts, jnp.int32(t))
         if t >= length:
             after.append(np.asarray(ts.env.obs[n:]))
@@ -251,7 +251,7 @@ def test_onpolicy_value_is_the_discounted_return_of_the_last_evaluation_episode(
     # A trajectory of the environment: each observation is the one the previous step led to...
     np.testing.assert_array_equal(np.swapaxes(np.asarray(obs), 0, 1)[1:], np.stack(after)[: steps - 1, :kept])
     # ...under the policy frozen at the episode's start (its mean action).
-    expected = trainer.sac.act_deterministic(frozen, obs)
+    expected = trainer.agent.act_deterministic(frozen, obs)
     np.testing.assert_allclose(np.asarray(actions), np.asarray(expected), rtol=1e-5, atol=1e-6)
     # V: the paper's discounted sum over the horizon (default the whole episode), as a plain loop over steps.
     params = ts.reward.params

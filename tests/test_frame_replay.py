@@ -35,7 +35,7 @@ def _simulate(rng, num_steps: int, episode_length: int):
                 obs=stack,
                 next_obs=nxt,
                 action=rng.uniform(-1, 1, (ENVS, 2)).astype(np.float32),
-                reward=rng.normal(size=ENVS).astype(np.float32),
+                true_reward=rng.normal(size=ENVS).astype(np.float32),
                 terminal=(rng.uniform(size=ENVS) < 0.15).astype(np.float32),  # exercises the n-step cut
                 truncated=np.full(ENVS, float(k == episode_length - 1), np.float32),
                 episode_step=np.int32(k),
@@ -73,7 +73,7 @@ class NaiveBuffer:
         reward, discount = 0.0, 1.0
         for i in range(nstep):
             d = self.data[(row + i) % self.rows]
-            reward += discount * float(d["reward"][env])
+            reward += discount * float(d["true_reward"][env])
             discount *= (1.0 - float(d["terminal"][env])) * GAMMA
         last = self.data[(row + nstep - 1) % self.rows]
         first = self.data[row]
@@ -110,8 +110,8 @@ def test_stacks_and_nstep_equal_the_naive_buffer(episode_length, num_steps, nste
     assert valid.any()
     rows = np.repeat(np.flatnonzero(valid), ENVS)
     envs = np.tile(np.arange(ENVS), valid.sum())
-    gather = jax.jit(frame_replay.gather, static_argnums=(3, 4))
-    got = gather(buffer, jnp.asarray(rows), jnp.asarray(envs), nstep, GAMMA)
+    gather = jax.jit(frame_replay.gather, static_argnums=(3, 4, 5))
+    got = gather(buffer, jnp.asarray(rows), jnp.asarray(envs), nstep, GAMMA, False)  # DrQ-v2: the true reward
     for i, (row, env) in enumerate(zip(rows, envs, strict=True)):
         obs, action, reward, discount, next_obs = naive.transition(row, env, nstep)
         np.testing.assert_array_equal(got.obs[i], obs, err_msg=f"obs of row {row} env {env}")
@@ -124,9 +124,10 @@ def test_stacks_and_nstep_equal_the_naive_buffer(episode_length, num_steps, nste
 def test_sample_is_uniform_over_valid_transitions():
     buffer, naive = _fill(31, 4, 14, seed=3)
     nstep = 1  # a 1-step reward names its (row, env): the rewards are distinct floats
-    batch = jax.jit(frame_replay.sample, static_argnums=(2, 3, 4))(buffer, jax.random.key(0), 4000, nstep, GAMMA)
+    sample = jax.jit(frame_replay.sample, static_argnums=(2, 3, 4, 5))
+    batch = sample(buffer, jax.random.key(0), 4000, False, nstep, GAMMA)
     valid = {
-        float(naive.data[r]["reward"][e]): (r, e)
+        float(naive.data[r]["true_reward"][e]): (r, e)
         for r in range(naive.rows)
         if naive.valid(r, nstep)
         for e in range(ENVS)

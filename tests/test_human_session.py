@@ -26,8 +26,9 @@ import numpy as np
 import pytest
 
 from rebel_jax.cli import parse
+from rebel_jax.feedback import SESSION_METRICS
 from rebel_jax.human import HostTeacher, HumanOptions
-from rebel_jax.train import SESSION_METRICS, Trainer, compiled, seed_keys
+from rebel_jax.train import Trainer, compiled, seed_keys
 
 # REBEL on the probe task, rounds of 20 vector steps (40 env steps); sessions at the start of rounds
 # 2 and 3, 4 queries each. The browser test runs the CLI with these flags, so that its programs are
@@ -140,7 +141,7 @@ def _assert_same_run(state, metrics, other_state, other_metrics, exact: bool):
     np.testing.assert_array_equal(state.reward.data.labels, other_state.reward.data.labels)
     np.testing.assert_array_equal(state.reward.data.count, other_state.reward.data.count)
     jax.tree.map(check, state.reward.params, other_state.reward.params)
-    jax.tree.map(check, state.sac.actor_params, other_state.sac.actor_params)
+    jax.tree.map(check, state.agent.actor_params, other_state.agent.actor_params)
     np.testing.assert_array_equal(state.key, other_state.key)
     for m, o in zip(metrics, other_metrics, strict=True):
         for k in ("session", "session_labels", "session_skipped", "session_equal", "labels_used"):

@@ -22,12 +22,11 @@ from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
 from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
-from rebel_jax.pixel_train import PixelTrainer, policy_of
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
-from rebel_jax.train import compiled, seed_keys
+from rebel_jax.train import Trainer, compiled, seed_keys
 
 STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2
 REWARD = PixelRewardConfig(hidden=8, batch_size=4, max_epochs=3, lr=1e-3, chunk=3)
@@ -37,7 +36,7 @@ def _filled_buffer(rng, steps: int, buffer=None, length: int = LENGTH):
     """A frame replay of ``steps`` vector steps of synchronised simulated pixel envs, and the naive stacks:
     ``buffer`` (empty; episodes of ``length`` agent steps) filled, or a new one of this module's sizes."""
     if buffer is None:
-        buffer = frame_replay.init(steps * ENVS, ENVS, (SIZE, SIZE, 3), ACTIONS, length, STACK, true_reward=True)
+        buffer = frame_replay.init(steps * ENVS, ENVS, (SIZE, SIZE, 3), ACTIONS, length, STACK, learned_reward=True)
     envs, frame, actions_size, depth = buffer.num_envs, buffer.frames.shape[2:], buffer.action.shape[-1], buffer.stack
     stacks, actions, true = [], [], []
     stack = None
@@ -52,7 +51,7 @@ def _filled_buffer(rng, steps: int, buffer=None, length: int = LENGTH):
             obs=jnp.asarray(stack),
             action=jnp.asarray(action),
             next_obs=jnp.asarray(nxt),
-            reward=jnp.zeros(envs),
+            learned_reward=jnp.zeros(envs),
             terminal=jnp.zeros(envs),
             truncated=jnp.full(envs, float(t % length == length - 1)),
             episode_step=jnp.int32(t % length),
@@ -150,7 +149,7 @@ def test_relabel_and_row_stacks_match_naive_stacks():
         relabelled = frame_replay.relabel(
             buffer, lambda o, a: rm.mean_reward(REWARD, state.params, o, a), chunk_rows=chunk_rows
         )
-        np.testing.assert_allclose(relabelled.reward, expected, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(relabelled.learned_reward, expected, rtol=1e-5, atol=1e-6)
 
 
 # Episodes of 20 frames = 10 agent steps, rounds of one episode; sessions at the starts of rounds 1, 2, 3.
@@ -169,7 +168,7 @@ ROUNDS, SEEDS = 4, 2
 
 @pytest.fixture(scope="module")
 def run():
-    trainer = PixelTrainer(MICRO)
+    trainer = Trainer(MICRO)
     init, round_fn, _ = compiled(trainer)
     state = init(seed_keys(0, SEEDS))
     start = jax.device_get(state)  # the round donates its input
@@ -193,12 +192,12 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
         np.testing.assert_array_equal(m["session_equal"], 0.0)
     assert np.all(np.isnan(metrics[0]["reward_loss"]))  # no session before the seed steps are done
     for m in metrics[1:]:
-        for key in ("reward_loss", "reward_accuracy_all", "reward_correlation", "critic_loss"):
+        for key in ("reward_loss", "reward_accuracy_all", "reward_correlation_replay", "critic_loss"):
             assert np.all(np.isfinite(m[key])), key
         np.testing.assert_array_equal(m["diverged"], 0.0)
     # The reward learned from the oracle's labels follows the true one over the replay, in every seed (0.30 and
     # 0.46 after the third feedback session on this CPU; a flipped label convention would make it negative).
-    assert np.all(metrics[-1]["reward_correlation"] > 0.1), metrics[-1]["reward_correlation"]
+    assert np.all(metrics[-1]["reward_correlation_replay"] > 0.1), metrics[-1]["reward_correlation_replay"]
     before, after = jax.tree.leaves(start.reward.params), jax.tree.leaves(state.reward.params)
     assert all(not np.allclose(a, b) for a, b in zip(before, after, strict=True))
     # The replay's reward is the final ensemble's mean on every written row (relabelled, then stored at add).
@@ -208,8 +207,8 @@ def test_pixel_pebble_traces_once_uses_labels_and_moves_its_reward(run):
         rows = jnp.arange(int(buffer.size))[:, None]
         obs = frame_replay.row_stacks(buffer, rows, jnp.arange(buffer.num_envs)[None])
         expected = rm.mean_reward(MICRO.pixel_reward, params, obs, buffer.action[: int(buffer.size)])
-        np.testing.assert_allclose(buffer.reward[: int(buffer.size)], expected, rtol=1e-4, atol=1e-5)
-        assert not np.allclose(buffer.reward[: int(buffer.size)], buffer.true_reward[: int(buffer.size)])
+        np.testing.assert_allclose(buffer.learned_reward[: int(buffer.size)], expected, rtol=1e-4, atol=1e-5)
+        assert not np.allclose(buffer.learned_reward[: int(buffer.size)], buffer.true_reward[: int(buffer.size)])
 
 
 @pytest.mark.heavy
@@ -241,7 +240,7 @@ def test_an_imperfect_teachers_answers_and_oracle_agreement_match_numpy_segment_
     """A skipping, "equal" and mistaken teacher through the pixel ``teach``, on a replay of random frames and
     true rewards (four episodes): its mask, counts and labels, and the share of its kept answers that are the
     oracle's, against NumPy returns of the stored true rewards; over 16 teacher keys (the mistakes are drawn)."""
-    trainer = PixelTrainer(MICRO)
+    trainer = Trainer(MICRO)
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(0))
     buffer, _, _, _ = _filled_buffer(
         np.random.default_rng(4), 4 * trainer.episode_length, ts.buffer, trainer.episode_length
@@ -285,7 +284,7 @@ LAMS = (0.0, -1.0)
 
 @pytest.fixture(scope="module")
 def rebel_run():
-    trainer = PixelTrainer(REBEL)
+    trainer = Trainer(REBEL)
     init, round_fn, _ = compiled(trainer)
     state = init(jnp.tile(seed_keys(0, SEEDS), (len(LAMS), 1)))  # columns: lambda, then seed
     state = state.replace(lam=jnp.repeat(jnp.asarray(LAMS, jnp.float32), SEEDS))
@@ -331,7 +330,7 @@ def test_pixel_rebel_with_lambda_zero_is_pixel_pebble(run, rebel_run):
     assert trainer.trace_count == 1
     pebble = jax.device_get(pebble)
     np.testing.assert_array_equal(state.reward.data.count, 12)
-    for path in ("reward.params", "buffer.reward", "sac.actor_params"):
+    for path in ("reward.params", "buffer.learned_reward", "agent.actor_params"):
         get = lambda tree, path=path: functools.reduce(getattr, path.split("."), tree)  # noqa: E731
         moved = []
         for ours, theirs in zip(jax.tree.leaves(get(state)), jax.tree.leaves(get(pebble)), strict=True):
@@ -348,7 +347,7 @@ SURF_MICRO = dataclasses.replace(
 
 @pytest.mark.heavy
 def test_pixel_surf_labels_central_steps_grows_its_pool_and_traces_once():
-    trainer = PixelTrainer(SURF_MICRO)
+    trainer = Trainer(SURF_MICRO)
     init, round_fn, _ = compiled(trainer)
     state = init(seed_keys(0, SEEDS))
     start = jax.device_get(state.reward.params)
@@ -399,7 +398,7 @@ def test_cli_takes_pixel_preference_algos_and_refuses_sac_there():
     with pytest.raises(ConfigError, match="rebel.episodes"):
         dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(episodes=2)).validate()  # 1 evaluation env
     with pytest.raises(ValueError, match="rebel.horizon"):
-        PixelTrainer(dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(horizon=11)))  # episodes of 10
+        Trainer(dataclasses.replace(REBEL, rebel=AgentPreferenceConfig(horizon=11)))  # episodes of 10
 
 
 @pytest.mark.parametrize("task", ["walker", "cheetah"])
@@ -442,13 +441,13 @@ ONPOLICY = dataclasses.replace(
 def two_episodes():
     """A pixel REBEL seed stepped through two episodes (vector steps 0..19), the evaluation env's
     observations after every step of the second, and the policy it followed."""
-    trainer = PixelTrainer(ONPOLICY)
+    trainer = Trainer(ONPOLICY)
     ts = jax.jit(trainer.init)(jax.random.key(3))
     step, length, n = jax.jit(trainer.vector_step), trainer.episode_length, trainer.num_train
     after = []
     for t in range(2 * length):
         if t == length:
-            frozen = policy_of(ts.sac)  # the second episode's evaluation policy
+            frozen = trainer.agent.policy(ts.agent)  # the second episode's evaluation policy
         ts, _ = step(ts, jnp.int32(t))
         if t >= length:
             after.append(np.asarray(ts.env.obs[n]))
@@ -509,7 +508,7 @@ def test_pixel_penalty_form_normalized_matches_a_python_reference(two_episodes):
     cfg = dataclasses.replace(
         ONPOLICY, rebel=dataclasses.replace(ONPOLICY.rebel, form="penalty", normalize=True, best_segments=2)
     )
-    trainer = PixelTrainer(cfg)
+    trainer = Trainer(cfg)
     horizon, gamma, lam, h = 6, 0.9, -0.5, MICRO.query.segment_length
     rng = np.random.default_rng(8)
     pairs = 3
@@ -606,7 +605,7 @@ def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
     nothing runs."""
     counts = {}
     for loop in (False, True):
-        trainer = PixelTrainer(_session_loop(REBEL, loop))
+        trainer = Trainer(_session_loop(REBEL, loop))
         state = jax.eval_shape(jax.vmap(trainer.init), seed_keys(0, SEEDS))
         session = jax.vmap(trainer.feedback_session, in_axes=(0, None, None, None))
         text = jax.jit(session).lower(state, jnp.bool_(True), jnp.int32(20), jnp.int32(0)).as_text()
@@ -616,14 +615,14 @@ def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
 
 
 def test_looped_session_writes_the_columns_in_place_not_a_stacked_copy_of_the_state():
-    """``pixel_reward.session_loop`` inside the seed-vmapped, donated round (``pixel_train.loop_in_place``): the
+    """``pixel_reward.session_loop`` inside the seed-vmapped, donated round (``pixel_feedback.loop_in_place``): the
     compiled round's working memory holds about one column's copy of SURF's pool (half of it at 2 seeds, and the
     pool dominates the state here), never a stacked copy of the whole pool beside the donated state, which
     ``sequential_vmap``'s ``lax.map`` outputs were (1.7x the pool here; 73 GiB for surf_cheetah at 3 seeds,
     whose GPU run died allocating 72.6 GiB). Compiled only: nothing runs."""
     config = dataclasses.replace(SURF_MICRO, surf=dataclasses.replace(SURF_MICRO.surf, pool_size=600))
     assert config.pixel_reward.session_loop
-    trainer = PixelTrainer(config)
+    trainer = Trainer(config)
     state = jax.eval_shape(jax.vmap(trainer.init), seed_keys(0, SEEDS))
     round_fn = jax.jit(jax.vmap(trainer.round, in_axes=(0, None)), donate_argnums=0)
     memory = round_fn.lower(state, jnp.int32(0)).compile().memory_analysis()
@@ -687,7 +686,7 @@ def test_session_loop_rounds_equal_the_batched_rounds(run):
     sessions' run up to float rounding: labels, ensemble, relabelled replay and policy."""
     trainer, _, looped, looped_metrics = run
     assert MICRO.pixel_reward.session_loop
-    batched = PixelTrainer(_session_loop(MICRO, False))
+    batched = Trainer(_session_loop(MICRO, False))
     init, round_fn, _ = compiled(batched)
     state = init(seed_keys(0, SEEDS))
     for r in range(ROUNDS):
@@ -696,9 +695,9 @@ def test_session_loop_rounds_equal_the_batched_rounds(run):
     state = jax.device_get(state)
     np.testing.assert_array_equal(state.reward.data.labels, looped.reward.data.labels)
     close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
-    jax.tree.map(close, (state.reward.params, state.buffer.reward, state.sac.actor_params),
-                 (looped.reward.params, looped.buffer.reward, looped.sac.actor_params))  # fmt: skip
-    close(metrics["reward_correlation"], looped_metrics[-1]["reward_correlation"])
+    jax.tree.map(close, (state.reward.params, state.buffer.learned_reward, state.agent.actor_params),
+                 (looped.reward.params, looped.buffer.learned_reward, looped.agent.actor_params))  # fmt: skip
+    close(metrics["reward_correlation_replay"], looped_metrics[-1]["reward_correlation_replay"])
 
 
 @pytest.mark.heavy  # three more compiles of the pixel reward's epoch (~20 s each on 2 cores): make test-heavy

@@ -30,9 +30,7 @@ def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_ful
         assert (row["job"], row["precision"], row["labels"]) == ("rebel_cheetah", "bf16", 8)
         assert "--pixel-reward.precision bf16" in row["command"] and "--algo rebel" in row["command"]
     # The state the parts ran on: the label store holds --labels pairs and every replay row is written.
-    trainer = parts_module.PixelTrainer(
-        parts_module.parse(parts_module.job_flags("rebel_cheetah", 1000, 0, True)).config
-    )
+    trainer = parts_module.Trainer(parts_module.parse(parts_module.job_flags("rebel_cheetah", 1000, 0, True)).config)
     ts = parts_module.filled(jax.jit(trainer.init)(jax.random.PRNGKey(0)), 8, None)
     assert int(ts.reward.data.count) == 8 and int(ts.buffer.size) == ts.buffer.rows == rows[0]["rows"]
     assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel", "epoch_bt_rebel"}
@@ -47,7 +45,7 @@ def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_ful
 
 def test_a_pebble_job_has_no_rebel_part(parts_module):
     flags = parts_module.job_flags("pebble_walker", 1000, 0, True)
-    trainer = parts_module.PixelTrainer(parts_module.parse(flags).config)
+    trainer = parts_module.Trainer(parts_module.parse(flags).config)
     assert set(parts_module.parts(trainer)) == {"epoch_bt", "relabel"}
 
 

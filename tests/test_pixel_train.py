@@ -14,8 +14,7 @@ from rebel_jax import frame_replay
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, TrainConfig
 from rebel_jax.drqv2 import DrQV2Config
-from rebel_jax.pixel_train import PixelTrainer
-from rebel_jax.train import compiled, seed_keys
+from rebel_jax.train import Trainer, compiled, seed_keys
 
 # Episodes of 20 frames = 10 agent steps (action repeat 2), 16x16 images, rounds of one episode.
 MICRO = Config(
@@ -29,7 +28,7 @@ ROUNDS, SEEDS = 3, 2
 
 @pytest.fixture(scope="module")
 def run():
-    trainer = PixelTrainer(MICRO)
+    trainer = Trainer(MICRO)
     init, round_fn, evaluate = compiled(trainer)
     state = init(seed_keys(0, SEEDS))
     metrics = []
@@ -46,7 +45,7 @@ def test_round_is_traced_once_and_updates_on_drqv2_schedule(run):
     vector_steps = ROUNDS * MICRO.train.steps_per_round // envs
     # One update per `every` agent steps once the seed steps are collected (drqv2.py:233, train.py:180).
     expected = sum(envs // every for t in range(vector_steps) if t * envs >= MICRO.train.seed_steps)
-    np.testing.assert_array_equal(state.sac.steps, expected)
+    np.testing.assert_array_equal(state.agent.steps, expected)
     assert expected > 0
     assert int(state.buffer.size[0]) == vector_steps
     for key in ("critic_loss", "actor_loss", "q", "train_return", "eval_return"):
@@ -62,14 +61,14 @@ def test_seed_loop_rounds_equal_the_batched_rounds(run):
     update gives the same run up to float rounding."""
     _, looped, looped_metrics, _ = run
     assert MICRO.drqv2.seed_loop
-    trainer = PixelTrainer(dataclasses.replace(MICRO, drqv2=dataclasses.replace(MICRO.drqv2, seed_loop=False)))
+    trainer = Trainer(dataclasses.replace(MICRO, drqv2=dataclasses.replace(MICRO.drqv2, seed_loop=False)))
     init, round_fn, _ = compiled(trainer)
     state = init(seed_keys(0, SEEDS))
     for r in range(ROUNDS):
         state, metrics = round_fn(state, jnp.int32(r))
     assert trainer.trace_count == 1
     close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
-    jax.tree.map(close, state.sac, looped.sac)
+    jax.tree.map(close, state.agent, looped.agent)
     close(metrics["critic_loss"], looped_metrics[-1]["critic_loss"])
 
 
@@ -78,13 +77,13 @@ def test_a_column_is_the_one_seed_run_of_its_key(run):
     column's key (its envs, frames, updates and evaluations use nothing of column 0). One of two walker
     seeds learned nothing in a GPU run (RESULTS.md, "Pixels"); this rules out a mix-up of columns."""
     trainer, state, metrics, _ = run
-    alone = PixelTrainer(MICRO)
+    alone = Trainer(MICRO)
     init, round_fn, _ = compiled(alone)
     single = init(seed_keys(0, SEEDS)[1:])
     for r in range(ROUNDS):
         single, single_metrics = round_fn(single, jnp.int32(r))
     close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)  # float rounding of a batch
-    jax.tree.map(lambda a, b: close(a[1], b[0]), (state.sac, state.buffer), (single.sac, single.buffer))
+    jax.tree.map(lambda a, b: close(a[1], b[0]), (state.agent, state.buffer), (single.agent, single.buffer))
     np.testing.assert_array_equal(state.buffer.frames[1], single.buffer.frames[0])  # every pixel
     for key in ("critic_loss", "train_return", "eval_return"):
         close(metrics[-1][key][1], single_metrics[key][0])
@@ -92,11 +91,11 @@ def test_a_column_is_the_one_seed_run_of_its_key(run):
 
 def test_seeds_differ_and_the_buffer_holds_frames_once(run):
     trainer, state, _, evaluate = run
-    leaves = jax.tree.leaves(state.sac.actor_params)
+    leaves = jax.tree.leaves(state.agent.actor_params)
     assert not np.allclose(leaves[0][0], leaves[0][1])
     frames = state.buffer.frames
     assert frames.dtype == jnp.uint8 and frames.shape[-3:] == (16, 16, 3)
-    rows = state.buffer.reward.shape[1]
+    rows = state.buffer.true_reward.shape[1]
     assert frames.shape[1] < rows + rows // trainer.episode_length + 5
     # The newest row's rebuilt next_obs is what the training environments observe now (the reset comes
     # at the next vector step), so the trainer's rows, frames and episode steps line up with the env.
@@ -104,7 +103,7 @@ def test_seeds_differ_and_the_buffer_holds_frames_once(run):
         buffer = jax.tree.map(lambda x, seed=seed: x[seed], state.buffer)
         envs = jnp.arange(MICRO.env.num_envs)
         last = jnp.full_like(envs, (int(buffer.ptr) - 1) % buffer.rows)
-        rebuilt = frame_replay.gather(buffer, last, envs, 1, 0.99)
+        rebuilt = frame_replay.gather(buffer, last, envs, 1, 0.99, False)
         np.testing.assert_array_equal(rebuilt.next_obs, state.env.obs[seed, : MICRO.env.num_envs])
     final = np.asarray(evaluate(trainer.policy_params(state), seed_keys(1, SEEDS)))
     assert final.shape == (SEEDS,) and np.all(np.isfinite(final))

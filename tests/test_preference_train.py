@@ -13,22 +13,15 @@ import pytest
 
 from rebel_jax import reward_model
 from rebel_jax.agent_preference import AgentPreferenceConfig
+from rebel_jax.budget import offered_pairs, remaining_budget, within_budget
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
+from rebel_jax.feedback import SESSION_METRICS, saturated_fraction
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
-from rebel_jax.train import (
-    SESSION_METRICS,
-    Trainer,
-    compiled,
-    offered_pairs,
-    remaining_budget,
-    saturated_fraction,
-    seed_keys,
-    within_budget,
-)
+from rebel_jax.train import Trainer, compiled, seed_keys
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a
 # feedback session at the start of rounds 2, 3 and 4 (env steps 80, 120, 160). On the probe task,
@@ -133,7 +126,7 @@ def test_stored_pairs_labels_and_loss_equal_a_numpy_bpref_on_the_same_buffer(peb
     for column in range(KEYS.shape[0]):
         seed = jax.device_get(jax.tree.map(lambda x, c=column: x[c], state))
         buffer, data = seed.buffer, seed.reward.data
-        obs, action, reward = np.asarray(buffer.obs), np.asarray(buffer.action), np.asarray(buffer.reward)
+        obs, action, reward = np.asarray(buffer.obs), np.asarray(buffer.action), np.asarray(buffer.true_reward)
         steps, count = np.asarray(buffer.episode_step), int(data.count)
         assert count == MICRO_PEBBLE.feedback.labels
         returns = {}
@@ -191,7 +184,7 @@ def test_rebel_with_lambda_zero_is_pebble_bit_for_bit(pebble_run, rebel_runs):
     _, pebble, _ = pebble_run
     _, rebel, _ = rebel_runs
     first_two = functools.partial(jax.tree.map, lambda x: np.asarray(x)[:2])
-    for name in ("sac", "reward", "buffer"):
+    for name in ("agent", "reward", "buffer"):
         chex.assert_trees_all_equal(first_two(getattr(pebble, name)), first_two(getattr(rebel, name)))
 
 
@@ -287,11 +280,11 @@ def test_session_correlations_are_those_of_the_learned_reward_on_the_sessions_se
 def test_round_reward_metrics_describe_the_rounds_own_transitions(pebble_run):
     trainer, state, metrics = pebble_run
     rows = trainer.steps_per_round
-    for seed in range(state.buffer.reward.shape[0]):
-        ptr, capacity = int(state.buffer.ptr[seed]), state.buffer.reward.shape[1]
+    for seed in range(state.buffer.true_reward.shape[0]):
+        ptr, capacity = int(state.buffer.ptr[seed]), state.buffer.true_reward.shape[1]
         index = [(ptr - rows + k) % capacity for k in range(rows)]  # The last round's rows.
         learned = np.asarray(state.buffer.learned_reward[seed])[index].ravel()
-        true = np.asarray(state.buffer.reward[seed])[index].ravel()
+        true = np.asarray(state.buffer.true_reward[seed])[index].ravel()
         np.testing.assert_allclose(metrics[-1]["round_learned_mean"][seed], learned.mean(), rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(metrics[-1]["round_learned_saturated"][seed], np.mean(np.abs(learned) > 0.9))
         np.testing.assert_allclose(

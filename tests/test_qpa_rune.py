@@ -26,13 +26,15 @@ from test_pixel_preference import _place_of
 from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, reward_train, train
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
 from rebel_jax.drqv2 import DrQV2Config
+from rebel_jax.feedback import StateFeedback
 from rebel_jax.methods import REGISTRY
 from rebel_jax.methods.base import Method
 from rebel_jax.methods.qpa import QPAConfig
 from rebel_jax.methods.rune import RUNEConfig, bonus_weight
+from rebel_jax.pixel_feedback import PixelFeedback
 from rebel_jax.pixel_reward import PixelRewardConfig
-from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.reward_model import PrefBatch, RewardConfig, Steps
+from rebel_jax.train import Trainer
 
 # A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment
 # (rows 0-139) and the running ones (rows 140-149). Each cell's observation is its (row, env).
@@ -56,6 +58,13 @@ def _marked_buffer(terminal: bool = False) -> replay.Buffer:
     )
 
 
+def _fake_trainer(feedback: type, cfg: Config, **sizes) -> types.SimpleNamespace:
+    """The trainer's parts a method's hooks read, without building a trainer: its config, ``sizes`` and
+    ``sample_pairs`` (that of the real ``feedback`` part, state or pixel)."""
+    part = types.SimpleNamespace(cfg=cfg, trainer=types.SimpleNamespace(cfg=cfg, **sizes))
+    return types.SimpleNamespace(cfg=cfg, sample_pairs=functools.partial(feedback.sample_pairs, part), **sizes)
+
+
 def _qpa_config(**qpa) -> Config:
     return Config(
         algo="qpa",
@@ -68,7 +77,7 @@ def _qpa_config(**qpa) -> Config:
 
 def test_qpa_queries_come_only_from_the_last_complete_episodes():
     cfg, length = _qpa_config(recent_episodes=3), 5
-    trainer = types.SimpleNamespace(cfg=cfg, stored_length=length)
+    trainer = _fake_trainer(StateFeedback, cfg, stored_length=length, episode_length=EPISODE)
     ts = types.SimpleNamespace(buffer=_marked_buffer())
     seg_a, seg_b = jax.jit(lambda key: REGISTRY["qpa"].query_segments(trainer, ts, key, True))(jax.random.key(3))
     # Reference (B-Pref's FIFO of complete episodes, last transition at step L - 1): the episodes ordered by
@@ -91,7 +100,7 @@ def test_qpa_queries_come_only_from_the_last_complete_episodes():
 @pytest.mark.parametrize("count,hybrid", [(0, False), (20, True), (40, False)], ids=["before", "during", "after"])
 def test_qpa_hybrid_batch_draws_its_last_quarter_from_the_recent_rows_while_the_budget_lasts(count, hybrid):
     cfg = _qpa_config(recent_episodes=3, her_ratio=0.25)
-    trainer = types.SimpleNamespace(cfg=cfg)
+    trainer = types.SimpleNamespace(cfg=cfg, episode_length=EPISODE)
     ts = types.SimpleNamespace(reward=types.SimpleNamespace(data=types.SimpleNamespace(count=jnp.int32(count))))
     buffer = _marked_buffer(terminal=True)
     keys = jax.random.split(jax.random.key(0), 300)
@@ -240,7 +249,7 @@ def test_rune_adds_the_members_spread_weighted_by_a_decaying_beta():
     rcfg, rune = RewardConfig(ensemble_size=3, hidden=16, depth=2), RUNEConfig(beta_0=0.3, rho=1e-3)
     cfg = dataclasses.replace(_qpa_config(), algo="rune", rune=rune)
     params, rng = _init_params(rcfg, 10, 2, 1), np.random.default_rng(11)
-    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_members=functools.partial(reward_model.predict, rcfg))
     ts = types.SimpleNamespace(reward=types.SimpleNamespace(params=params))
     obs, action, reward = (jnp.asarray(rng.normal(size=shape), jnp.float32) for shape in ((32, 2), (32, 1), (32,)))
     batch = replay.Transition(obs, action, reward, jnp.zeros((32, 2)), jnp.ones(32))
@@ -251,7 +260,7 @@ def test_rune_adds_the_members_spread_weighted_by_a_decaying_beta():
     for t in (0, 7, 250):
         beta = 0.3 * (1 - 1e-3) ** (t * ENVS)  # RUNE's beta(step), step = environment steps
         np.testing.assert_allclose(
-            np.asarray(batch_reward(jnp.int32(t))), np.asarray(reward) + beta * spread, rtol=1e-5, atol=1e-7
+            np.asarray(batch_reward(jnp.int32(t * ENVS))), np.asarray(reward) + beta * spread, rtol=1e-5, atol=1e-7
         )
     # The weight far into a run, where (1 - rho) rounded to float32 would be off by a few percent.
     steps = np.array([0, 1, 12_345, 1_000_000])
@@ -379,7 +388,7 @@ def _marked_ring() -> tuple[frame_replay.FrameBuffer, np.ndarray, np.ndarray]:
             obs=jnp.asarray(stack),
             action=jnp.asarray(np.stack([np.full(PIX_ENVS, t), envs], -1), jnp.float32),
             next_obs=jnp.asarray(nxt),
-            reward=jnp.asarray(10.0 * t + envs, jnp.float32),
+            learned_reward=jnp.asarray(10.0 * t + envs, jnp.float32),
             terminal=jnp.zeros(PIX_ENVS),
             truncated=jnp.full(PIX_ENVS, float(step == PIX_LENGTH - 1)),
             episode_step=jnp.int32(step),
@@ -405,11 +414,11 @@ def _pixel_config(algo: str, **parts) -> Config:
 @pytest.mark.parametrize("first", [True, False], ids=["first-session", "later-session"])
 def test_qpa_pixel_queries_come_only_from_the_last_complete_episodes_of_the_ring(first):
     cfg, horizon = _pixel_config("qpa", qpa=QPAConfig(recent_episodes=3)), 4
-    trainer = types.SimpleNamespace(cfg=cfg, stored=horizon, episode_length=PIX_LENGTH)
+    trainer = _fake_trainer(PixelFeedback, cfg, stored_length=horizon, episode_length=PIX_LENGTH)
     buffer, _, _ = _marked_ring()
     ts = types.SimpleNamespace(buffer=buffer)
-    pixel_query_segments = jax.jit(lambda key: REGISTRY["qpa"].pixel_query_segments(trainer, ts, key, first))
-    seg_a, seg_b = pixel_query_segments(jax.random.key(13))
+    query_segments = jax.jit(lambda key: REGISTRY["qpa"].query_segments(trainer, ts, key, first))
+    seg_a, seg_b = query_segments(jax.random.key(13))
     # Reference (B-Pref's FIFO of complete episodes): the episodes all of whose writes the ring holds, ordered by
     # (episode, env), the last three; a segment is H consecutive writes of one of them.
     held = range(PIX_WRITES - PIX_ROWS, PIX_WRITES)
@@ -436,7 +445,7 @@ def test_qpa_pixel_batch_draws_its_last_quarter_from_the_recent_valid_rows_while
     ts = types.SimpleNamespace(reward=types.SimpleNamespace(data=types.SimpleNamespace(count=jnp.int32(count))))
     buffer, obs, next_obs = _marked_ring()
     keys = jax.random.split(jax.random.key(14), 200)
-    batch = jax.jit(jax.vmap(lambda k: REGISTRY["qpa"].pixel_sample_batch(trainer, ts, buffer, k)))(keys)
+    batch = jax.jit(jax.vmap(lambda k: REGISTRY["qpa"].sample_batch(trainer, ts, buffer, k)))(keys)
     writes, envs = (np.asarray(batch.action[..., i]).astype(int) for i in (0, 1))
     # Reference (DrQ-v2's n-step windows; QPA's last 3 x 6 transitions are ceil(18 / 2) = 9 rows of 2 environments):
     # a start is valid when its 3 steps are held writes of one episode; the recent ones are among the last 9 writes.
@@ -466,16 +475,16 @@ def test_rune_pixel_bonus_is_the_members_spread_at_the_first_step_of_each_n_step
     buffer, _, _ = _marked_ring()
     init = jax.jit(lambda key: pixel_reward.init(rcfg, key, (PIX_SIZE, PIX_SIZE, 9), 2, 4, 4).params)
     params, rng = init(jax.random.key(15)), np.random.default_rng(16)
-    batch = jax.jit(lambda key: frame_replay.sample(buffer, key, 32, NSTEP, GAMMA))(jax.random.key(17))
+    batch = jax.jit(lambda key: frame_replay.sample(buffer, key, 32, True, NSTEP, GAMMA))(jax.random.key(17))
     batch = batch.replace(reward=jnp.asarray(rng.normal(size=32), jnp.float32))  # the n-step learned returns
-    trainer = types.SimpleNamespace(cfg=cfg)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_members=functools.partial(reward_model.predict, rcfg))
     ts = types.SimpleNamespace(reward=types.SimpleNamespace(params=params))
     apply = jax.jit(rcfg.network().apply)
     members = [np.asarray(apply(jax.tree.map(lambda x, m=m: x[m], params), batch.obs, batch.action)) for m in range(3)]
     members = np.stack(members).astype(np.float64)  # (M, B): each member's reward of (s_t, a_t)
     spread = np.sqrt(np.mean((members - members.mean(0)) ** 2, axis=0))  # NumPy's std, ddof 0, as RUNE's
     assert spread.min() > 0
-    batch_reward = jax.jit(lambda step: REGISTRY["rune"].pixel_batch_reward(trainer, ts, batch, step))
+    batch_reward = jax.jit(lambda step: REGISTRY["rune"].batch_reward(trainer, ts, batch, step))
     for step in (0, 14, 3000):
         got = batch_reward(jnp.int32(step))
         beta = 0.3 * (1 - 1e-3) ** step  # RUNE's beta(step), step = the seed's agent steps so far
@@ -485,7 +494,7 @@ def test_rune_pixel_bonus_is_the_members_spread_at_the_first_step_of_each_n_step
         chex.assert_trees_all_equal(got.replace(reward=batch.reward), batch)  # only the reward changes
 
 
-def _select_directly(trainer: PixelTrainer, ts, key: jax.Array, first):
+def _select_directly(trainer: Trainer, ts, key: jax.Array, first):
     """The pixel trainer's call for its queries before the method hooks."""
     cfg = trainer.cfg
     return pixel_reward.select(
@@ -494,7 +503,7 @@ def _select_directly(trainer: PixelTrainer, ts, key: jax.Array, first):
         ts.reward.params,
         ts.buffer,
         cfg.feedback.queries,
-        trainer.stored,
+        trainer.stored_length,
         trainer.episode_length,
         cfg.query.recent_episodes,
         cfg.query.sampling,
@@ -506,20 +515,20 @@ def _select_directly(trainer: PixelTrainer, ts, key: jax.Array, first):
 def test_the_default_pixel_hooks_are_the_trainers_calls():
     """PEBBLE's pixel hooks against the calls the trainer made before them, bit for bit: ``pixel_reward.select``
     with the trainer's arguments, ``frame_replay.sample`` with DrQ-v2's sizes, the batch unchanged."""
-    trainer = PixelTrainer(PIXEL_MICRO)
+    trainer = Trainer(PIXEL_MICRO)
     ts = jax.jit(trainer.init)(jax.random.key(18))
     filled, _, _, _ = _filled_pixel_buffer(np.random.default_rng(19), 4 * trainer.episode_length, ts.buffer)
     ts, method, cfg = ts.replace(buffer=filled), Method(), PIXEL_MICRO
     for first in (True, False):
-        hooked = jax.jit(lambda key, first=first: method.pixel_query_segments(trainer, ts, key, first))
+        hooked = jax.jit(lambda key, first=first: method.query_segments(trainer, ts, key, first))
         direct = jax.jit(lambda key, first=first: _select_directly(trainer, ts, key, first))
         chex.assert_trees_all_equal(hooked(jax.random.key(20)), direct(jax.random.key(20)))
-    sample = jax.jit(lambda key: method.pixel_sample_batch(trainer, ts, ts.buffer, key))
+    sample = jax.jit(lambda key: method.sample_batch(trainer, ts, ts.buffer, key))
     d = cfg.drqv2
-    expected = jax.jit(lambda key: frame_replay.sample(ts.buffer, key, d.batch_size, d.nstep, d.gamma))
+    expected = jax.jit(lambda key: frame_replay.sample(ts.buffer, key, d.batch_size, True, d.nstep, d.gamma))
     batch = sample(jax.random.key(21))
     chex.assert_trees_all_equal(batch, expected(jax.random.key(21)))
-    assert method.pixel_batch_reward(trainer, ts, batch, jnp.int32(40)) is batch
+    assert method.batch_reward(trainer, ts, batch, jnp.int32(40)) is batch
 
 
 class _Spy(Method):
@@ -530,21 +539,21 @@ class _Spy(Method):
     def __init__(self):
         self.calls = []
 
-    def pixel_query_segments(self, trainer, ts, key, first):
+    def query_segments(self, trainer, ts, key, first):
         self.calls.append("query")
-        return super().pixel_query_segments(trainer, ts, key, first)
+        return super().query_segments(trainer, ts, key, first)
 
-    def pixel_sample_batch(self, trainer, ts, buffer, key):
+    def sample_batch(self, trainer, ts, buffer, key):
         self.calls.append("sample")
-        return super().pixel_sample_batch(trainer, ts, buffer, key)
+        return super().sample_batch(trainer, ts, buffer, key)
 
-    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+    def batch_reward(self, trainer, ts, batch, agent_step):
         self.calls.append("reward")
-        return super().pixel_batch_reward(trainer, ts, batch, agent_step)
+        return super().batch_reward(trainer, ts, batch, agent_step)
 
 
 def test_the_pixel_round_calls_the_hooks_in_the_session_the_updates_and_the_reset_updates():
-    trainer = PixelTrainer(PIXEL_MICRO)
+    trainer = Trainer(PIXEL_MICRO)
     trainer.method = spy = _Spy()
     ts = jax.eval_shape(trainer.init, jax.random.key(0))
     jax.eval_shape(trainer.round, ts, jnp.int32(1))
@@ -558,43 +567,44 @@ class _DirectQueries(Method):
 
     name = "pebble"
 
-    def pixel_query_segments(self, trainer, ts, key, first):
+    def query_segments(self, trainer, ts, key, first):
         return _select_directly(trainer, ts, key, first)
 
-    def pixel_sample_batch(self, trainer, ts, buffer, key):
+    def sample_batch(self, trainer, ts, buffer, key):
         raise AssertionError("the direct trainer samples by itself")
 
-    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
+    def batch_reward(self, trainer, ts, batch, agent_step):
         raise AssertionError("the direct trainer's batches keep the learned reward")
 
 
-class _DirectCalls(PixelTrainer):
+class _DirectCalls(Trainer):
     """The pixel trainer's DrQ-v2 updates as written before the method hooks: ``frame_replay.sample`` and the
     learned reward in the updates of every step and in those after the critic's reset."""
 
     def __init__(self, cfg: Config):
         super().__init__(cfg)
         self.method = _DirectQueries()
+        self.feedback._reset_critic = self._direct_reset_critic
 
-    def _updates(self, ts, buffer, key, agent_step):
-        cfg = self.cfg.drqv2
+    def _updates(self, ts, buffer, key, t, intrinsic=False):
+        cfg, agent_step = self.cfg.drqv2, t * self.num_train
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)
-            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            batch = frame_replay.sample(buffer, key_sample, cfg.batch_size, True, cfg.nstep, cfg.gamma)
             return self.agent.update(state, batch, key_update, agent_step)
 
-        agent, metrics = jax.lax.scan(one, ts.sac, jax.random.split(key, self.updates_per_step))
-        return agent, jax.tree.map(jnp.mean, metrics)
+        agent, metrics = jax.lax.scan(one, ts.agent, jax.random.split(key, self.updates_per_step))
+        return (agent, None), jax.tree.map(jnp.mean, metrics)
 
-    def _reset_critic(self, ts, key, agent_step):
+    def _direct_reset_critic(self, ts, key, agent_step):
         cfg = self.cfg.drqv2
         key_reset, key_updates = jax.random.split(key)
-        agent = self.agent.reset_critic(ts.sac, key_reset)
+        agent = self.agent.reset_critic(ts.agent, key_reset)
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)
-            batch = frame_replay.sample(ts.buffer, key_sample, cfg.batch_size, cfg.nstep, cfg.gamma)
+            batch = frame_replay.sample(ts.buffer, key_sample, cfg.batch_size, True, cfg.nstep, cfg.gamma)
             return self.agent.update(state, batch, key_update, agent_step)[0], None
 
         return jax.lax.scan(one, agent, jax.random.split(key_updates, self.cfg.pretrain.reset_updates))[0]
@@ -603,7 +613,7 @@ class _DirectCalls(PixelTrainer):
 PIXEL_SEEDS = 2
 
 
-def _pixel_run(trainer: PixelTrainer, rounds: int) -> tuple[PixelTrainer, list, list]:
+def _pixel_run(trainer: Trainer, rounds: int) -> tuple[Trainer, list, list]:
     """``rounds`` rounds of two seeds; the state after each (on the host) and each round's metrics."""
     init, round_fn, _ = train.compiled(trainer)
     state = init(train.seed_keys(0, PIXEL_SEEDS))
@@ -619,7 +629,7 @@ def _pixel_run(trainer: PixelTrainer, rounds: int) -> tuple[PixelTrainer, list, 
 def pixel_pebble():
     """PEBBLE's micro pixel run through the hooks: round 0 seeds, round 1 the first feedback session and its critic
     reset, round 2 a later session."""
-    return _pixel_run(PixelTrainer(PIXEL_MICRO), 3)
+    return _pixel_run(Trainer(PIXEL_MICRO), 3)
 
 
 @pytest.mark.heavy  # two compiles of the pixel round; make test checks the hooks against the calls one by one
@@ -635,7 +645,7 @@ def test_pixel_pebble_through_the_hooks_is_the_trainers_direct_calls_bit_for_bit
 @pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores)
 def test_pixel_rune_learns_pebbles_reward_and_moves_the_agent_with_its_bonus(pixel_pebble):
     cfg = dataclasses.replace(PIXEL_MICRO, algo="rune", rune=RUNEConfig(beta_0=0.5, rho=1e-3))
-    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 2)
+    trainer, states, metrics = _pixel_run(Trainer(cfg), 2)
     _, pebble, _ = pixel_pebble
     assert trainer.trace_count == 1
     # Until the first feedback session's critic reset the runs are PEBBLE's: the same labels, the same learned reward
@@ -643,7 +653,7 @@ def test_pixel_rune_learns_pebbles_reward_and_moves_the_agent_with_its_bonus(pix
     ours, theirs = states[1], pebble[1]
     np.testing.assert_array_equal(ours.reward.data.labels, theirs.reward.data.labels)
     chex.assert_trees_all_close(ours.reward.params, theirs.reward.params, rtol=1e-4, atol=1e-6)
-    critic = [jax.tree.leaves(state.sac.critic_params) for state in (ours, theirs)]
+    critic = [jax.tree.leaves(state.agent.critic_params) for state in (ours, theirs)]
     change = max(float(np.max(np.abs(a - b))) for a, b in zip(*critic, strict=True))
     print(f"critic after round 1: largest change {change:.2e} from PEBBLE's")
     assert change > 1e-4  # far above float rounding
@@ -655,7 +665,7 @@ def test_pixel_rune_learns_pebbles_reward_and_moves_the_agent_with_its_bonus(pix
 @pytest.mark.heavy  # a compile of the pixel round (~1 min on 2 cores) and four rounds
 def test_pixel_qpa_labels_segments_of_the_last_complete_episodes_at_each_session():
     cfg = dataclasses.replace(PIXEL_MICRO, algo="qpa", qpa=QPAConfig(recent_episodes=2, crop=1, her_ratio=0.5))
-    trainer, states, metrics = _pixel_run(PixelTrainer(cfg), 4)
+    trainer, states, metrics = _pixel_run(Trainer(cfg), 4)
     assert trainer.trace_count == 1
     assert [float(m["labels_used"][0]) for m in metrics] == [0.0, 4.0, 8.0, 12.0]
     for m in metrics[1:]:

@@ -46,7 +46,7 @@ def _fill(num_writes, seed=0):
         obs=jnp.asarray(obs),
         action=jnp.asarray(action),
         next_obs=jnp.asarray(obs),
-        reward=jnp.asarray(reward),
+        true_reward=jnp.asarray(reward),
         learned_reward=jnp.zeros_like(jnp.asarray(reward)),
         terminal=jnp.zeros((CAPACITY, NUM_ENVS), bool),
         truncated=jnp.zeros((CAPACITY, NUM_ENVS), bool),
@@ -83,7 +83,7 @@ def test_segments_stay_in_one_episode_of_filled_recent_rows(num_writes, recent_e
     np.testing.assert_array_equal(episode, np.repeat(episode[:, :1], H, 1))  # ...and one episode.
     np.testing.assert_array_equal(np.asarray(seg.action), obs[..., :2] * 10.0)
     rows = time % CAPACITY
-    np.testing.assert_array_equal(np.asarray(seg.true_reward), np.asarray(buffer.reward)[rows, env])
+    np.testing.assert_array_equal(np.asarray(seg.true_reward), np.asarray(buffer.true_reward)[rows, env])
     sampled = collections.Counter(zip(time[:, 0].tolist(), env[:, 0].tolist(), strict=True))
     valid = _valid_starts_brute_force(history, num_writes, recent_episodes)
     assert valid  # The case is not vacuous.
@@ -173,7 +173,7 @@ def test_reward_margin_is_h_times_mean_reward_of_the_window(num_writes):
     buffer, _ = _fill(num_writes)
     rows = min(CAPACITY, max(H, -(-8 * EPISODE_LENGTH // NUM_ENVS)))
     times = range(max(0, num_writes - rows), num_writes)
-    rewards = np.asarray(buffer.reward)[[t % CAPACITY for t in times]]
+    rewards = np.asarray(buffer.true_reward)[[t % CAPACITY for t in times]]
     expected = H * rewards.mean()
     margin = jax.jit(queries.reward_margin, static_argnums=(1, 2, 3))(buffer, H, EPISODE_LENGTH, 8)
     np.testing.assert_allclose(float(margin), expected, rtol=1e-5)

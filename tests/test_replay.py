@@ -23,7 +23,7 @@ def _steps(num_rows: int, seed: int = 0) -> replay.Step:
         obs=obs.astype(np.float32),
         action=rng.uniform(-1, 1, (num_rows, E, ACT)).astype(np.float32),
         next_obs=(obs + 0.5).astype(np.float32),
-        reward=rng.normal(size=(num_rows, E)).astype(np.float32),
+        true_reward=rng.normal(size=(num_rows, E)).astype(np.float32),
         terminal=(rng.uniform(size=(num_rows, E)) < 0.3).astype(np.float32),
         truncated=(rng.uniform(size=(num_rows, E)) < 0.2).astype(np.float32),
         episode_step=rng.integers(0, 1000, (num_rows, E)).astype(np.int32),
@@ -39,7 +39,7 @@ def _fill(buffer: replay.Buffer, steps: replay.Step) -> replay.Buffer:
     return jax.jit(lambda b, s: jax.lax.scan(lambda b, x: (replay.add(b, x), None), b, s)[0])(buffer, steps)
 
 
-FIELDS = ("obs", "action", "next_obs", "reward", "learned_reward", "terminal", "truncated", "episode_step")
+FIELDS = ("obs", "action", "next_obs", "true_reward", "learned_reward", "terminal", "truncated", "episode_step")
 
 
 def test_init_layout():
@@ -47,7 +47,7 @@ def test_init_layout():
     chex.assert_shape([buffer.obs, buffer.next_obs], (6, E, OBS))
     chex.assert_shape(buffer.action, (6, E, ACT))
     chex.assert_shape(
-        [buffer.reward, buffer.learned_reward, buffer.terminal, buffer.truncated, buffer.episode_step], (6, E)
+        [buffer.true_reward, buffer.learned_reward, buffer.terminal, buffer.truncated, buffer.episode_step], (6, E)
     )
     chex.assert_type([buffer.episode_step, buffer.ptr, buffer.size], jnp.int32)
     with pytest.raises(ValueError):
@@ -73,7 +73,7 @@ def test_add_without_learned_reward_stores_zeros():
     step = _row(_steps(1), 0).replace(learned_reward=None)
     buffer = replay.add(replay.init(2 * E, E, OBS, ACT), step)
     np.testing.assert_array_equal(buffer.learned_reward, 0.0)
-    np.testing.assert_array_equal(buffer.reward[0], step.reward)
+    np.testing.assert_array_equal(buffer.true_reward[0], step.true_reward)
 
 
 def test_ring_wraps_around():
@@ -98,7 +98,7 @@ def test_sample_only_filled_entries():
     assert counts.min() > 0.6 * 4096 / (5 * E)  # Every filled pair is drawn, roughly uniformly.
     np.testing.assert_array_equal(batch.action, steps.action[t, e])
     np.testing.assert_array_equal(batch.next_obs, steps.next_obs[t, e])
-    np.testing.assert_array_equal(batch.reward, steps.reward[t, e])
+    np.testing.assert_array_equal(batch.reward, steps.true_reward[t, e])
     np.testing.assert_array_equal(batch.discount, 1.0 - steps.terminal[t, e])
 
 
@@ -109,7 +109,7 @@ def test_sample_learned_reward_switch():
     for use_learned in (True, False, jnp.asarray(True)):
         batch = sample(buffer, jax.random.key(1), 64, use_learned)
         t, e = np.asarray(batch.obs[:, 0]).astype(int), np.asarray(batch.obs[:, 1]).astype(int)
-        expected = steps.learned_reward if bool(use_learned) else steps.reward
+        expected = steps.learned_reward if bool(use_learned) else steps.true_reward
         np.testing.assert_array_equal(batch.reward, expected[t, e])
 
 

@@ -60,7 +60,7 @@ def _assert_trees_equal(a, b, **tol):
 def test_round_is_traced_once_and_learns_after_seeding(micro):
     _, init, round_fn = micro
     state, metrics = _run(init, round_fn, seed_keys(0, 2))
-    assert int(state.sac.steps[0]) > 0  # updates happened after the seed steps
+    assert int(state.agent.steps[0]) > 0  # updates happened after the seed steps
     assert int(state.buffer.size[0]) == MICRO.train.total_steps // MICRO.env.num_envs
     # Episodes of 20 steps finished, so the training and evaluation returns are defined.
     assert np.all(np.isfinite(metrics[-1]["train_return"])) and np.all(np.isfinite(metrics[-1]["eval_return"]))
@@ -71,7 +71,7 @@ def test_same_seed_same_result(micro):
     _, init, round_fn = micro
     a, _ = _run(init, round_fn, seed_keys(3, 2))
     b, _ = _run(init, round_fn, seed_keys(3, 2))
-    _assert_trees_equal(a.sac, b.sac)
+    _assert_trees_equal(a.agent, b.agent)
 
 
 def test_vmap_over_seeds_equals_separate_runs(micro):
@@ -84,7 +84,7 @@ def test_vmap_over_seeds_equals_separate_runs(micro):
     for i in range(2):
         alone, _ = _run(init, round_fn, keys[i : i + 1])
         np.testing.assert_allclose(together.buffer.obs[i, :seed_rows], alone.buffer.obs[0, :seed_rows], atol=1e-5)
-        for x, y in zip(jax.tree.leaves(together.sac), jax.tree.leaves(alone.sac), strict=True):
+        for x, y in zip(jax.tree.leaves(together.agent), jax.tree.leaves(alone.agent), strict=True):
             x, y = np.asarray(x[i], np.float64), np.asarray(y[0], np.float64)
             assert np.linalg.norm(x - y) <= 5e-2 * max(np.linalg.norm(y), 1e-6)  # other seeds differ by O(1)
 
@@ -185,7 +185,7 @@ SHARDED = textwrap.dedent(
     # Every leaf, the zeroed replay buffer included, holds one seed per device.
     for x in jax.tree.leaves(state):
         assert x.sharding.is_equivalent_to(sharding, x.ndim), x.sharding
-    leaves = jax.device_get(jax.tree.leaves(state.sac))
+    leaves = jax.device_get(jax.tree.leaves(state.agent))
     np.savez(sys.argv[1], *leaves)
     """
 )
@@ -211,7 +211,7 @@ def test_seeds_sharded_over_devices_equal_unsharded(micro, tmp_path):
     out = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     unsharded, _ = _run(init, round_fn, seed_keys(11, SHARDED_SEEDS), rounds=SHARDED_ROUNDS)
-    leaves = jax.tree.leaves(unsharded.sac)
+    leaves = jax.tree.leaves(unsharded.agent)
     with np.load(out_file) as saved:
         sharded = [saved[f"arr_{k}"] for k in range(len(leaves))]
     # A device's batch of 1 and a vmapped batch of 2 round differently; chaos and Adam amplify it.

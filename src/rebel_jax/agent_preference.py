@@ -51,7 +51,7 @@ class AgentPreferenceConfig:
     evaluation environments, which start at the task's reset and follow the current policy
     (its mean action, frozen at the episode start), over their first ``horizon`` steps (``episodes``
     of them), at no extra env cost; on pixel tasks their newest frames are kept and the stacks
-    rebuilt (``pixel_train``). ``replay``, this project's earlier estimate: ``num_segments`` segments of
+    rebuilt (``pixel_feedback``). ``replay``, this project's earlier estimate: ``num_segments`` segments of
     ``segment_length`` steps from the replay buffer (older policies' states, mid-episode starts)
     with actions redrawn from the current policy."""
     episodes: int = 0
@@ -144,7 +144,7 @@ def agent_value(
         ``mean_{n,h} r_m(s_nh, a_nh) / (1 - gamma)``.
       predict_fn: ``(params, obs, action) -> (M, N, H)`` members' rewards; default the state ensemble's
         ``predict(cfg, ...)``. The pixel trainer passes one whose ``obs`` are the on-policy episodes'
-        kept frames, or replay places (row, env), that it turns into frame stacks (``pixel_train``).
+        kept frames, or replay places (row, env), that it turns into frame stacks (``pixel_feedback``).
 
     Returns:
       (M,) values ``V_m``.

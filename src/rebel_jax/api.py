@@ -6,7 +6,7 @@ runs many seeds in one program (PureJaxRL's, luchris429/purejaxrl@146b485:pureja
 ``metrics`` stacks each round's metrics on a leading round axis. Scripted teachers only: a person labels
 between rounds, which the command line's host loop does (``python -m rebel_jax.train --teacher human``).
 
-``make_trainer(cfg)`` gives the trainer of the config's observation kind, whose ``init``, ``round`` and
+``make_trainer(cfg)`` gives the run's trainer (one for state and pixel tasks), whose ``init``, ``round`` and
 ``evaluate`` the command line drives one round at a time (with checkpoints, logs and progress between rounds).
 """
 
@@ -18,14 +18,13 @@ import jax
 import jax.numpy as jnp
 
 from rebel_jax.config import Config
-from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import Trainer
 
 
-def make_trainer(cfg: Config, host_teacher: bool = False) -> Trainer | PixelTrainer:
-    """The trainer of ``cfg``: :class:`~rebel_jax.pixel_train.PixelTrainer` on a pixel task, else
-    :class:`~rebel_jax.train.Trainer` (``host_teacher``: the sessions run on the host, state tasks only)."""
-    return PixelTrainer(cfg) if cfg.pixels else Trainer(cfg, host_teacher=host_teacher)
+def make_trainer(cfg: Config, host_teacher: bool = False) -> Trainer:
+    """The trainer of ``cfg`` (:class:`~rebel_jax.train.Trainer`, state or pixel task; ``host_teacher``: the
+    sessions run on the host, state tasks only)."""
+    return Trainer(cfg, host_teacher=host_teacher)
 
 
 def make_train(cfg: Config) -> Callable[[jax.Array], tuple]:

@@ -83,13 +83,13 @@ from rebel_jax.cli_rundir import (  # noqa: F401 - re-exported
 from rebel_jax.config import ConfigError
 from rebel_jax.human import HostTeacher, HumanError
 from rebel_jax.logging import RunLogger, write_json
-from rebel_jax.train import compiled, seed_keys
+from rebel_jax.train import compiled, grow_replay, replay_rows, seed_keys
 
 EXIT_USAGE = rundir.EXIT_USAGE
 EXIT_DIVERGED = 3
 STATE_FLAGS = {
     "buffer": "--buffer-capacity (0: --total-steps)",
-    "sac": "--sac.hidden / --sac.depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
+    "agent": "--sac.hidden / --sac.depth (pixels: --drqv2.hidden, --drqv2.feature-dim)",
     "reward": "--reward.hidden, --reward.label-capacity (pixels: --pixel-reward.*)",
     "env": "--num-envs / --eval-episodes",
     "eval_trajectory": "--rebel.horizon / --rebel.episodes",
@@ -138,38 +138,20 @@ def avoid_cpu_deadlock(environ=os.environ) -> None:
     environ["XLA_FLAGS"] = f"{flags} {NO_CPU_DEADLOCK}".strip()
 
 
-def _grow_buffer(state, like):
-    """``state`` with each replay-buffer leaf padded with zeros, after its seed axis, to the shape of ``like``'s.
-
-    Only for a run extended with a larger ``--total-steps`` whose capacity is its length: such a
-    buffer never wrapped, so its ``size`` rows are the first ones and writing continues at ``size``. A pixel
-    run's frame ring (``frame_replay.FrameBuffer``) never wrapped either (it holds every frame of its rows):
-    its frame rows are padded too, and its next frame row stays where it was.
-    """
-
-    def pad(x, target):
-        if x.shape == target.shape:
-            return x
-        rows = (x.shape[0], target.shape[1] - x.shape[1], *x.shape[2:])
-        return jnp.concatenate([x, jnp.zeros(rows, x.dtype)], axis=1)
-
-    grown = jax.tree.map(pad, state.buffer, like.buffer)
-    return state.replace(buffer=grown.replace(ptr=jnp.array(grown.size, copy=True)))  # not donated twice
-
-
 def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     """(first round to run, state) from the newest readable checkpoint; (0, ``state``) if there is none.
 
     A checkpoint of a run now extended by a larger ``--total-steps`` holds a smaller replay buffer:
     it is restored as saved (each buffer leaf's rows read from the checkpoint) and then grown.
     """
-    rows = state.buffer.reward.shape[1]  # (seeds, rows, envs)
+    rows = replay_rows(state)  # (seeds, rows, envs)
     leaves = jax.tree.leaves(state)
-    reward_leaf = next(i for i, x in enumerate(leaves) if x is state.buffer.reward)
+    reward_leaf = next(i for i, x in enumerate(leaves) if x is state.buffer.true_reward)
     first = next(i for i, x in enumerate(leaves) if x is jax.tree.leaves(state.buffer)[0])  # the buffer's leaves
 
     def adapt(like, shapes):
-        if shapes[str(reward_leaf)][1] == rows:
+        saved = shapes[str(reward_leaf)]  # another leaf where other code saved another state: the check refuses it
+        if len(saved) < 2 or saved[1] == rows:
             return like
 
         def saved_rows(i, x):  # x[:, :n] where the saved leaf has n < x.shape[1] rows (any other difference is
@@ -193,8 +175,8 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
     except FileNotFoundError as err:
         print(f"note: --resume: {err}; starting the run from scratch", file=sys.stderr)
         return 0, state
-    if restored.buffer.reward.shape[1] != rows:
-        restored = sweep.shard_seeds(_grow_buffer(restored, state), sharding)
+    if replay_rows(restored) != rows:
+        restored = sweep.shard_seeds(grow_replay(restored, state), sharding)
     return start, restored
 
 
@@ -214,18 +196,15 @@ def column_keys(args: Args, sharding: NamedSharding | None = None) -> jax.Array:
     return sweep.shard_seeds(keys, sharding)
 
 
-def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSharding | None = None):
+def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSharding | None = None, trainer=None):
     """The run's first state: ``init`` (of ``train.compiled``) of the :func:`column_keys`, with each column's
-    lambda and teacher knobs set."""
-    cfg = args.config
-    state = init(keys)
+    lambda and teacher knobs set by the trainer (``Trainer.with_knobs``; ``api.make_trainer(args.config)`` unless
+    given)."""
+    trainer = trainer or api.make_trainer(args.config)
     grid = args.grid()
-    if swept_knob(cfg):
-        state = state.replace(lam=jnp.asarray([lam for lam, _ in grid], jnp.float32))
-    if args.teacher_grid:
-        knobs = [teachers.knobs(teachers.PRESETS[t]) for _, t in grid]
-        state = state.replace(teacher=jax.tree.map(lambda *xs: jnp.stack(xs), *knobs))
-    return sweep.shard_seeds(state, sharding)
+    lams = [lam for lam, _ in grid] if swept_knob(args.config) else None
+    teacher_cfgs = [teachers.PRESETS[t] for _, t in grid] if args.teacher_grid else None
+    return sweep.shard_seeds(trainer.with_knobs(init(keys), lams, teacher_cfgs), sharding)
 
 
 def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None = None) -> dict:
@@ -258,7 +237,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     sizes = rundir.tree_bytes(jax.eval_shape(init, keys))  # nothing allocated yet
     devices = sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1]
     rundir.check_memory(sizes, devices, STATE_FLAGS, memory_of=jax.local_devices()[0])
-    state = initial_state(args, init, keys, sharding)
+    state = initial_state(args, init, keys, sharding, trainer)
     grid = args.grid()
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
     ckpt = Checkpointer(run_dir / "checkpoints") if use_ckpt else None

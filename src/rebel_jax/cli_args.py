@@ -29,11 +29,11 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from rebel_jax import methods, rundir, teachers
+from rebel_jax.budget import session_due
 from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HumanOptions, is_loopback
-from rebel_jax.pixel_train import check_config
-from rebel_jax.train import session_due
+from rebel_jax.pixel_feedback import check_config
 
 PROG = "python -m rebel_jax.train"
 EXIT_USAGE = rundir.EXIT_USAGE
@@ -170,7 +170,7 @@ def usage_error(err: Exception) -> SystemExit:
 
 
 def feedback_sessions(cfg: Config) -> int:
-    """Feedback sessions in a run (:func:`rebel_jax.train.session_due`)."""
+    """Feedback sessions in a run (:func:`rebel_jax.budget.session_due`)."""
     return sum(bool(session_due(cfg, r)[0]) for r in range(cfg.train.num_rounds))
 
 

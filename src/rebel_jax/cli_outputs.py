@@ -14,7 +14,6 @@ import numpy as np
 from rebel_jax import plots, video
 from rebel_jax.cli_args import Args
 from rebel_jax.human import HumanError
-from rebel_jax.pixel_train import PixelTrainer
 from rebel_jax.train import Trainer, seed_keys
 
 
@@ -73,7 +72,7 @@ def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logge
     return "\n".join(lines)
 
 
-def _eval_clip(args: Args, trainer: Trainer | PixelTrainer, policy, run_dir: pathlib.Path) -> pathlib.Path | None:
+def _eval_clip(args: Args, trainer: Trainer, policy, run_dir: pathlib.Path) -> pathlib.Path | None:
     """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path.
 
     ``policy``: ``trainer.policy_params`` of every column, on the host. A pixel run's policy sees its own 84x84

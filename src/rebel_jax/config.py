@@ -150,7 +150,7 @@ class TrainConfig:
     """Deterministic evaluation episodes on the true reward."""
     buffer_capacity: int = 0
     """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref), on pixel tasks
-    ``pixel_train.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
+    ``pixel_feedback.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
     seed: int = 0
     """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
 
@@ -346,7 +346,7 @@ class Config:
                 part.validate()
             self.query.validate(self.env.episode_length)
             self.method.validate(self)
-            if self.query.pool == "episodes" and not pixels:  # PixelTrainer checks in agent steps
+            if self.query.pool == "episodes" and not pixels:  # pixel_feedback.check_config checks in agent steps
                 self.check_complete_episode("query.pool='episodes'", "queries", "--query.pool rows")
             steps = self.train.steps_per_round
             _check_round_multiple(self.feedback_start, "train.seed_steps + pretrain.steps", steps)

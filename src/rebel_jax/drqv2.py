@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from rebel_jax.agent import UpdateSchedule
 from rebel_jax.errors import check as _check
 from rebel_jax.networks import Encoder, PixelActor, PixelCritic
 
@@ -323,6 +324,8 @@ def make_actor_loss(actor: PixelActor, critic: PixelCritic, clip: float) -> Loss
 class DrQV2:
     """DrQ-v2 built from a :class:`DrQV2Config`; every method is pure, jittable and vmappable.
 
+    It implements :class:`rebel_jax.agent.Agent`.
+
     Args:
         cfg: hyperparameters.
         obs_shape: (H, W, C) of the uint8 frame stacks.
@@ -338,6 +341,17 @@ class DrQV2:
         self.critic_loss = make_critic_loss(self.encoder, self.actor, self.critic, cfg.std_clip)
         self.actor_loss = make_actor_loss(self.actor, self.critic, cfg.std_clip)
         self._looped_update = jax.custom_batching.sequential_vmap(self._update)
+        self.batch_size = cfg.batch_size
+        self.sample_args: dict[str, Any] = {"nstep": cfg.nstep, "gamma": cfg.gamma}
+
+    metric_names = ("critic_loss", "actor_loss", "q", "target_q", "std")
+
+    def schedule(self, num_envs: int) -> UpdateSchedule:
+        """One update every ``update_every`` agent steps once ``t * num_envs`` reach the seed steps (drqv2.py:233):
+        ``num_envs / update_every`` updates per vector step, or one every ``update_every / num_envs`` vector steps."""
+        every = self.cfg.update_every
+        per_step, period = max(1, num_envs // every), max(1, every // num_envs)
+        return UpdateSchedule(per_step=per_step, period=period, counts_current=False)
 
     def _features_shape(self) -> jax.ShapeDtypeStruct:
         obs = jax.ShapeDtypeStruct((1, *self.obs_shape), jnp.uint8)
@@ -460,6 +474,14 @@ class DrQV2:
     def act_deterministic(self, state: DrQV2State, obs: jax.Array) -> jax.Array:
         """The mean action, DrQ-v2's evaluation (drqv2.py:169-170)."""
         return self.actor.apply(state.actor_params, self.encoder.apply(state.encoder_params, obs))
+
+    def policy(self, state: DrQV2State) -> dict:
+        """The deterministic policy's parameters, ``{"encoder": ..., "actor": ...}``."""
+        return {"encoder": state.encoder_params, "actor": state.actor_params}
+
+    def mean_action(self, policy: dict, obs: jax.Array) -> jax.Array:
+        """The mean action of ``policy`` (:meth:`policy`) at frame stacks ``obs`` (..., H, W, C)."""
+        return self.actor.apply(policy["actor"], self.encoder.apply(policy["encoder"], obs))
 
     def q_values(self, state: DrQV2State, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Both critics' Q at un-augmented frame stacks."""

@@ -22,6 +22,9 @@ Row ``t``'s stack is frame rows ``frame_index[t] - min(j, episode_step[t])`` for
 (oldest first; the clamp repeats the reset frame, as the environment's stack does after a reset).
 An n-step transition from row ``t`` uses rows ``t .. t+n-1`` of one episode (DrQ-v2 samples only
 such windows, replay_buffer.py:150) and the stack ``n`` frames later.
+
+It keeps :mod:`rebel_jax.replay`'s contract (the field names, ``true_reward`` and ``learned_reward`` apart, and
+``init``, ``add``, ``sample``, ``relabel``); ``learned_reward`` is None on a run that learns no reward (DrQ-v2).
 """
 
 from __future__ import annotations
@@ -43,23 +46,22 @@ class FrameStep:
         obs: (E, H, W, 3 * stack) uint8 frame stacks before the action (oldest frame first).
         action: (E, action_size).
         next_obs: (E, H, W, 3 * stack) uint8 stacks after the action (before any reset).
-        reward: (E,) the reward to learn from.
+        true_reward: (E,) the task's reward.
         terminal: (E,) 1.0 where the episode terminated at ``next_obs``.
         truncated: (E,) 1.0 where the time limit cut the episode at ``next_obs``.
         episode_step: () int32 agent step of ``obs`` in its episode, the same for every environment;
             0 starts an episode (the first step added must be 0).
-        true_reward: (E,) the task's reward, kept for the teacher when ``reward`` is a learned one
-            (a buffer made with ``true_reward=True``), else None.
+        learned_reward: (E,) the reward model's reward (a buffer made with ``learned_reward=True``), else None.
     """
 
     obs: jax.Array
     action: jax.Array
     next_obs: jax.Array
-    reward: jax.Array
+    true_reward: jax.Array
     terminal: jax.Array
     truncated: jax.Array
     episode_step: jax.Array
-    true_reward: jax.Array | None = None
+    learned_reward: jax.Array | None = None
 
 
 @flax.struct.dataclass
@@ -71,11 +73,11 @@ class FrameBuffer:
         frame_index: (T,) int32 frame row of each row's ``obs`` newest frame.
         episode_step: (T,) int32 agent step of each row's ``obs`` in its episode.
         action: (T, E, action_size) float32.
-        reward: (T, E) float32.
+        learned_reward: (T, E) float32 the reward model's reward (preference runs), or None.
         terminal, truncated: (T, E) float 0/1.
         ptr: () int32 next transition row; size: () rows filled (at most T).
         frame_ptr: () int32 next frame row.
-        true_reward: (T, E) float32 the task's reward (preference runs: ``reward`` is the learned one), or None.
+        true_reward: (T, E) float32 the task's reward.
         stack: frames per observation (static).
     """
 
@@ -83,24 +85,24 @@ class FrameBuffer:
     frame_index: jax.Array
     episode_step: jax.Array
     action: jax.Array
-    reward: jax.Array
+    learned_reward: jax.Array | None
     terminal: jax.Array
     truncated: jax.Array
     ptr: jax.Array
     size: jax.Array
     frame_ptr: jax.Array
-    true_reward: jax.Array | None = None
+    true_reward: jax.Array
     stack: int = flax.struct.field(pytree_node=False, default=3)
 
     @property
     def rows(self) -> int:
         """T, transition rows (static)."""
-        return self.reward.shape[0]
+        return self.true_reward.shape[0]
 
     @property
     def num_envs(self) -> int:
         """E (static)."""
-        return self.reward.shape[1]
+        return self.true_reward.shape[1]
 
     @property
     def frame_rows(self) -> int:
@@ -120,7 +122,7 @@ def init(
     action_size: int,
     episode_length: int,
     stack: int = 3,
-    true_reward: bool = False,
+    learned_reward: bool = False,
 ) -> FrameBuffer:
     """An empty buffer of ``capacity // num_envs`` transition rows.
 
@@ -131,7 +133,7 @@ def init(
         action_size: action dimension.
         episode_length: agent steps per episode (sizes the reset frames; shorter episodes need more).
         stack: frames per observation.
-        true_reward: also keep the task's reward beside ``reward`` (which then holds a learned reward).
+        learned_reward: also keep a learned reward beside the task's (a preference run).
 
     Returns:
         A zero-filled :class:`FrameBuffer`.
@@ -147,13 +149,13 @@ def init(
         frame_index=jnp.zeros((rows,), jnp.int32),
         episode_step=jnp.zeros((rows,), jnp.int32),
         action=jnp.zeros((rows, num_envs, action_size), jnp.float32),
-        reward=jnp.zeros((rows, num_envs), jnp.float32),
+        learned_reward=jnp.zeros((rows, num_envs), jnp.float32) if learned_reward else None,
         terminal=jnp.zeros((rows, num_envs), jnp.float32),
         truncated=jnp.zeros((rows, num_envs), jnp.float32),
         ptr=jnp.zeros((), jnp.int32),
         size=jnp.zeros((), jnp.int32),
         frame_ptr=jnp.zeros((), jnp.int32),
-        true_reward=jnp.zeros((rows, num_envs), jnp.float32) if true_reward else None,
+        true_reward=jnp.zeros((rows, num_envs), jnp.float32),
         stack=stack,
     )
 
@@ -193,10 +195,10 @@ def add(buffer: FrameBuffer, step: FrameStep) -> FrameBuffer:
         frame_index=write(buffer.frame_index, index),
         episode_step=write(buffer.episode_step, step.episode_step),
         action=write(buffer.action, step.action),
-        reward=write(buffer.reward, step.reward),
+        learned_reward=None if buffer.learned_reward is None else write(buffer.learned_reward, step.learned_reward),
         terminal=write(buffer.terminal, step.terminal),
         truncated=write(buffer.truncated, step.truncated),
-        true_reward=None if buffer.true_reward is None else write(buffer.true_reward, step.true_reward),
+        true_reward=write(buffer.true_reward, step.true_reward),
         ptr=(buffer.ptr + 1) % buffer.rows,
         size=jnp.minimum(buffer.size + 1, buffer.rows),
         frame_ptr=(buffer.frame_ptr + first + 1) % f,
@@ -241,7 +243,7 @@ def episode_stacks(frames: jax.Array, stack: int) -> jax.Array:
 
     Args:
         frames: (N, T, H, W, 3) uint8, frame h the newest frame of the observation at agent step h
-            (frame 0 the reset frame), as REBEL's on-policy store keeps them (``pixel_train``).
+            (frame 0 the reset frame), as REBEL's on-policy store keeps them (``pixel_feedback``).
         stack: frames per observation.
 
     Returns:
@@ -252,7 +254,9 @@ def episode_stacks(frames: jax.Array, stack: int) -> jax.Array:
     return channel_stack(frames[:, rows])
 
 
-def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamma: float) -> PixelTransition:
+def gather(
+    buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamma: float, learned_reward: bool = True
+) -> PixelTransition:
     """The n-step transitions starting at (``row``, ``env``), each a valid row (:func:`valid_rows`).
 
     Args:
@@ -260,6 +264,7 @@ def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamm
         row, env: (B,) int indices.
         nstep: steps of the return.
         gamma: discount per step.
+        learned_reward: the n-step return of ``learned_reward`` (True) or of ``true_reward`` (False).
 
     Returns:
         A :class:`~rebel_jax.drqv2.PixelTransition`: stacks at ``row`` and ``nstep`` rows later, the
@@ -267,7 +272,8 @@ def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamm
     """
     k, newest = buffer.episode_step[row], buffer.frame_index[row]
     window = (row[:, None] + jnp.arange(nstep)[None]) % buffer.rows
-    rewards, terminals = buffer.reward[window, env[:, None]], buffer.terminal[window, env[:, None]]
+    stored = buffer.learned_reward if learned_reward else buffer.true_reward
+    rewards, terminals = stored[window, env[:, None]], buffer.terminal[window, env[:, None]]
     reward, discount = nstep_return(rewards, 1.0 - terminals, gamma)
     return PixelTransition(
         obs=_stacks(buffer, newest, k, env),
@@ -278,7 +284,9 @@ def gather(buffer: FrameBuffer, row: jax.Array, env: jax.Array, nstep: int, gamm
     )
 
 
-def sample(buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gamma: float) -> PixelTransition:
+def sample(
+    buffer: FrameBuffer, key: jax.Array, batch_size: int, learned_reward: bool, nstep: int, gamma: float
+) -> PixelTransition:
     """Uniform sample, with replacement, over the valid (row, env) pairs (DrQ-v2 samples a stored
     episode, then a start in it; with equal-length episodes that is uniform over starts too).
 
@@ -286,7 +294,7 @@ def sample(buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gam
         buffer: a buffer with at least one valid row.
         key: PRNG key.
         batch_size: transitions to draw.
-        nstep, gamma: as :func:`gather`.
+        learned_reward, nstep, gamma: as :func:`gather`.
 
     Returns:
         A :class:`~rebel_jax.drqv2.PixelTransition` batch.
@@ -297,7 +305,7 @@ def sample(buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gam
     draw = jax.random.randint(key_row, (batch_size,), 0, jnp.maximum(cumulative[-1], 1))
     row = jnp.searchsorted(cumulative, draw, side="right").astype(jnp.int32)  # the (draw+1)-th valid row
     env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
-    return gather(buffer, jnp.minimum(row, buffer.rows - 1), env, nstep, gamma)
+    return gather(buffer, jnp.minimum(row, buffer.rows - 1), env, nstep, gamma, learned_reward)
 
 
 def row_stacks(buffer: FrameBuffer, row: jax.Array, env: jax.Array) -> jax.Array:
@@ -351,7 +359,8 @@ def segment_stacks(frames: jax.Array, stack: int) -> jax.Array:
 
 
 def relabel(buffer: FrameBuffer, reward_fn, chunk_rows: int = 64) -> FrameBuffer:
-    """Recomputes ``reward`` of every row with ``reward_fn(obs stacks (n, E, H, W, C), action (n, E, A)) -> (n, E)``.
+    """Recomputes ``learned_reward`` of every row with ``reward_fn(obs stacks (n, E, H, W, C), action (n, E, A))``,
+    (n, E) rewards.
 
     Rows go ``chunk_rows`` at a time through a ``lax.map``, so only one chunk's stacks exist at once
     (SURF's ``relabel_with_predictor`` goes 100 steps at a time, replay_buffer_drqv2.py:80-117).
@@ -369,4 +378,4 @@ def relabel(buffer: FrameBuffer, reward_fn, chunk_rows: int = 64) -> FrameBuffer
         return reward_fn(obs, buffer.action[row])
 
     reward = jax.lax.map(chunk, jnp.arange(chunks)).reshape(chunks * chunk_rows, buffer.num_envs)[:rows]
-    return buffer.replace(reward=reward.astype(buffer.reward.dtype))
+    return buffer.replace(learned_reward=reward.astype(buffer.learned_reward.dtype))

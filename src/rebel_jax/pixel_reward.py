@@ -105,7 +105,7 @@ class PixelRewardConfig:
     members (since 2026-11-26; not timed on a GPU)."""
     session_loop: bool = True
     """Run a ``vmap`` of a feedback session (the trainer's over seeds and grid columns) as a loop over its columns
-    (``pixel_train.loop_in_place``: a ``fori_loop`` writing each column back into the carried state), one column's
+    (``pixel_feedback.loop_in_place``: a ``fori_loop`` writing each column back into the carried state), one column's
     session at a time: the same numbers up to float rounding (not a SURF setting). Batched, every convolution of
     the reward members (training, candidate scoring, relabelling) becomes one grouped convolution
     (``feature_group_count`` = columns), as DrQ-v2's update did under the seed ``vmap`` (``drqv2.seed_loop``: 6.8x

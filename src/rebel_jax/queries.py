@@ -149,7 +149,7 @@ def _gather(buffer: Any, time: jax.Array, env: jax.Array) -> Segments:
     return Segments(
         obs=buffer.obs[time, env],
         action=buffer.action[time, env],
-        true_reward=buffer.reward[time, env],
+        true_reward=buffer.true_reward[time, env],
         row=time.astype(jnp.int32),
         env=jnp.broadcast_to(env, time.shape).astype(jnp.int32),
     )
@@ -368,7 +368,7 @@ def reward_margin(buffer: Any, segment_length: int, episode_length: int, recent_
       Scalar margin (0 if nothing is filled).
     """
     rows = window_rows(buffer, segment_length, episode_length, recent_episodes)
-    reward = buffer.reward[window_index(buffer, rows)]  # (W, E)
+    reward = buffer.true_reward[window_index(buffer, rows)]  # (W, E)
     filled = (jnp.arange(rows) >= rows - buffer.size)[:, None]
     total = jnp.sum(jnp.where(filled, reward, 0.0))
     count = jnp.sum(filled) * reward.shape[1]

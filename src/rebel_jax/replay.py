@@ -1,9 +1,20 @@
-"""Fixed-capacity, device-resident replay buffer as a pytree.
+"""Fixed-capacity, device-resident replay buffer of state transitions as a pytree (the state ring).
 
 Layout (a contract other modules rely on): every data field is shaped ``(T, E, ...)`` with
 ``E = num_envs`` and ``T = capacity // num_envs``, time-major with an env axis, so one
 environment's consecutive steps are a contiguous slice along ``T``. Each :func:`add` writes
 one row (one transition per environment) at ``ptr``, as a ring buffer.
+
+**The replay contract**, shared with the frame ring of pixel tasks (:mod:`rebel_jax.frame_replay`):
+
+- the same field names: ``action``, ``true_reward`` (the task's reward, which only the scripted teacher and
+  the logged metrics read), ``learned_reward`` (the reward model's, which the agent learns from on a
+  preference run), ``terminal``, ``truncated``, ``episode_step``, ``ptr``, ``size``; the ``rows`` and
+  ``num_envs`` properties. The observations differ: ``obs`` / ``next_obs`` here, one ``frames`` ring there;
+- the same functions: ``init``, ``add`` (one vector step, a ``Step`` / ``FrameStep`` with ``true_reward`` and
+  ``learned_reward`` fields), ``sample(buffer, key, batch_size, learned_reward, ...)`` (the agent's minibatch
+  with the learned or the true reward as its ``reward``) and ``relabel(buffer, reward_fn, chunk_rows)``
+  (``learned_reward`` of every row recomputed by ``reward_fn(obs, action)`` over any leading axes).
 """
 
 from __future__ import annotations
@@ -46,7 +57,7 @@ class Step:
         obs: (E, obs_size).
         action: (E, action_size).
         next_obs: (E, obs_size) the true next observation (before any auto-reset).
-        reward: (E,) true task reward.
+        true_reward: (E,) the task's reward.
         terminal: (E,) 1.0 where the episode terminated at ``next_obs``.
         truncated: (E,) 1.0 where the episode was cut by the time limit at ``next_obs``.
         episode_step: (E,) int32 step index of ``obs`` within its episode.
@@ -57,7 +68,7 @@ class Step:
     obs: jax.Array
     action: jax.Array
     next_obs: jax.Array
-    reward: jax.Array
+    true_reward: jax.Array
     terminal: jax.Array
     truncated: jax.Array
     episode_step: jax.Array
@@ -72,8 +83,8 @@ class Buffer:
     Attributes:
         obs, next_obs: (T, E, obs_size) float32.
         action: (T, E, action_size) float32.
-        reward: (T, E) true task reward.
-        learned_reward: (T, E) reward of the current reward model.
+        true_reward: (T, E) the task's reward.
+        learned_reward: (T, E) reward of the current reward model (zeros on a run without one).
         terminal, truncated: (T, E) float 0/1.
         episode_step: (T, E) int32 step index of ``obs`` within its episode.
         ptr: () int32 next row to write.
@@ -85,7 +96,7 @@ class Buffer:
     obs: jax.Array
     action: jax.Array
     next_obs: jax.Array
-    reward: jax.Array
+    true_reward: jax.Array
     learned_reward: jax.Array
     terminal: jax.Array
     truncated: jax.Array
@@ -97,12 +108,12 @@ class Buffer:
     @property
     def rows(self) -> int:
         """T, the number of rows (static)."""
-        return self.reward.shape[0]
+        return self.true_reward.shape[0]
 
     @property
     def num_envs(self) -> int:
         """E, the number of environments (static)."""
-        return self.reward.shape[1]
+        return self.true_reward.shape[1]
 
 
 def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_size: int = 0) -> Buffer:
@@ -128,7 +139,7 @@ def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_siz
         obs=zeros(obs_size),
         action=zeros(action_size),
         next_obs=zeros(obs_size),
-        reward=zeros(),
+        true_reward=zeros(),
         learned_reward=zeros(),
         terminal=zeros(),
         truncated=zeros(),
@@ -149,12 +160,12 @@ def add(buffer: Buffer, step: Step) -> Buffer:
     Returns:
         The buffer with the row written, ``ptr`` advanced modulo T and ``size`` grown.
     """
-    learned = step.learned_reward if step.learned_reward is not None else jnp.zeros_like(step.reward)
+    learned = step.learned_reward if step.learned_reward is not None else jnp.zeros_like(step.true_reward)
     values = dict(
         obs=step.obs,
         action=step.action,
         next_obs=step.next_obs,
-        reward=step.reward,
+        true_reward=step.true_reward,
         learned_reward=learned,
         terminal=step.terminal,
         truncated=step.truncated,
@@ -177,14 +188,14 @@ def add(buffer: Buffer, step: Step) -> Buffer:
     )
 
 
-def sample(buffer: Buffer, key: jax.Array, batch_size: int, use_learned_reward: bool | jax.Array) -> Transition:
+def sample(buffer: Buffer, key: jax.Array, batch_size: int, learned_reward: bool | jax.Array) -> Transition:
     """Uniform sample, with replacement, over filled (row, env) pairs.
 
     Args:
         buffer: a buffer with ``size >= 1``.
         key: PRNG key.
         batch_size: transitions to draw.
-        use_learned_reward: reward field to return: learned (True) or true (False); may be traced.
+        learned_reward: the batch's ``reward``: ``learned_reward`` (True) or ``true_reward`` (False); may be traced.
 
     Returns:
         A :class:`Transition` with ``discount = 1 - terminal``.
@@ -192,7 +203,7 @@ def sample(buffer: Buffer, key: jax.Array, batch_size: int, use_learned_reward: 
     key_row, key_env = jax.random.split(key)
     row = jax.random.randint(key_row, (batch_size,), 0, buffer.size)
     env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
-    reward = jnp.where(use_learned_reward, buffer.learned_reward[row, env], buffer.reward[row, env])
+    reward = jnp.where(learned_reward, buffer.learned_reward[row, env], buffer.true_reward[row, env])
     return Transition(
         obs=buffer.obs[row, env],
         action=buffer.action[row, env],

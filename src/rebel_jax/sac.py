@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from rebel_jax.agent import UpdateSchedule
 from rebel_jax.config import SACConfig
 from rebel_jax.networks import Actor, DoubleCritic, mlp_flops, mode_action, sample_action
 from rebel_jax.replay import Transition
@@ -181,6 +182,8 @@ def polyak(target, online, tau: float, move: jax.Array):
 class SAC:
     """SAC built from a :class:`SACConfig`; every method is pure, jittable and vmappable.
 
+    It implements :class:`rebel_jax.agent.Agent` (the ``step`` arguments unused: SAC has no schedule).
+
     Args:
         cfg: hyperparameters.
         obs_size: observation dimension.
@@ -197,6 +200,14 @@ class SAC:
         self.critic_loss = make_critic_loss(self.actor, self.critic, cfg.gamma)
         self.actor_loss = make_actor_loss(self.actor, self.critic)
         self.alpha_loss = make_alpha_loss(action_size)
+        self.batch_size = cfg.batch_size
+        self.sample_args: dict[str, Any] = {}
+
+    metric_names = ("critic_loss", "actor_loss", "alpha_loss", "alpha", "q", "entropy")
+
+    def schedule(self, num_envs: int) -> UpdateSchedule:
+        """``utd * num_envs`` updates at every vector step once ``(t + 1) * num_envs`` reach the seed steps (B-Pref)."""
+        return UpdateSchedule(per_step=max(1, round(self.cfg.utd * num_envs)), period=1, counts_current=True)
 
     def _init_critic(self, key: jax.Array):
         obs, action = jnp.zeros((1, self.obs_size)), jnp.zeros((1, self.action_size))
@@ -265,7 +276,9 @@ class SAC:
         log_alpha, opt, metrics = gradient_step(loss, self.alpha_opt, state.log_alpha, state.alpha_opt, batch, key)
         return state.replace(log_alpha=log_alpha, alpha_opt=opt), metrics
 
-    def update(self, state: SACState, batch: Transition, key: jax.Array) -> tuple[SACState, Metrics]:
+    def update(
+        self, state: SACState, batch: Transition, key: jax.Array, step: jax.Array | None = None
+    ) -> tuple[SACState, Metrics]:
         """One SAC update: critic, actor, temperature, then the target every ``target_every``.
 
         The target critic moves (Polyak rate ``tau``) on updates where ``steps`` (before
@@ -275,12 +288,14 @@ class SAC:
             state: current state.
             batch: a :class:`Transition` batch.
             key: PRNG key.
+            step: unused (the agent steps taken; SAC has no schedule).
 
         Returns:
             state: updated, ``steps`` incremented.
             metrics: critic_loss, actor_loss, alpha_loss, alpha (used in this update),
                 q (mean predicted Q on the batch), entropy (-mean log pi).
         """
+        del step  # Unused.
         key_critic, key_actor, key_alpha = jax.random.split(key, 3)
         alpha = jnp.exp(state.log_alpha)
         state, critic_metrics = self._critic_step(state, batch, key_critic)
@@ -291,19 +306,29 @@ class SAC:
         state = state.replace(target_critic_params=target, steps=state.steps + 1)
         return state, {**critic_metrics, **actor_metrics, **alpha_metrics, "alpha": alpha}
 
-    def act(self, actor_params, obs: jax.Array, key: jax.Array) -> jax.Array:
+    def act(self, state: SACState, obs: jax.Array, key: jax.Array, step: jax.Array | None = None) -> jax.Array:
         """Stochastic action ``tanh(mean + std * eps)``.
 
         Args:
-            actor_params: actor parameters.
+            state: the agent's state (its actor is read).
             obs: (..., obs_size).
             key: PRNG key.
+            step: unused.
 
         Returns:
             (..., action_size) actions in (-1, 1).
         """
-        mean, log_std = self.actor.apply(actor_params, obs)
+        del step  # Unused.
+        mean, log_std = self.actor.apply(state.actor_params, obs)
         return sample_action(mean, log_std, key)[0]
+
+    def policy(self, state: SACState):
+        """The actor's parameters: what :meth:`mean_action` reads."""
+        return state.actor_params
+
+    def mean_action(self, policy, obs: jax.Array) -> jax.Array:
+        """The mean action of ``policy`` (:meth:`policy`), :meth:`act_deterministic`."""
+        return self.act_deterministic(policy, obs)
 
     def act_deterministic(self, actor_params, obs: jax.Array) -> jax.Array:
         """Mean action ``tanh(mean)`` for evaluation.

@@ -121,7 +121,7 @@ def policy_video(
 
 def load_policy(run_dir: pathlib.Path, column: int = 0):
     """(trainer, checkpoint step, policy parameters) of one column of a run's latest checkpoint; the trainer
-    (``PixelTrainer`` for a pixel run) acts with them through ``trainer.mean_action(params, obs)``.
+    (on a pixel run too) acts with them through ``trainer.mean_action(params, obs)``.
 
     Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run).
     """

@@ -27,10 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rebel_jax.budget import offered_pairs, remaining_budget, within_budget
 from rebel_jax.human import clips as clips_lib
 from rebel_jax.human.labels import LabelError, LabelFile, SessionAnswers, now, query_id
 from rebel_jax.human.server import Labelling, Query, Server, Session
-from rebel_jax.train import offered_pairs, remaining_budget, within_budget
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,8 +1,8 @@
 """The Method interface: what sets one preference-learning method apart, with PEBBLE's behaviour as every default.
 
-A method is an object whose hooks the trainers call at fixed places of a run (:mod:`rebel_jax.train` on state
-tasks, :mod:`rebel_jax.pixel_train` on pixel tasks). Every hook receives the trainer, so it can read the run's
-config (``trainer.cfg``), sizes and helpers; it returns values and never mutates anything. A method overrides
+A method is an object whose hooks the trainer (:class:`rebel_jax.train.Trainer`, on state and pixel tasks alike)
+calls at fixed places of a run. Every hook receives the trainer, so it can read the run's config
+(``trainer.cfg``), sizes and helpers; it returns values and never mutates anything. A method overrides
 only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e):
 
 - **its config**: ``config_field`` names the section of :class:`rebel_jax.config.Config` it reads (``surf``,
@@ -15,11 +15,11 @@ only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e
   the members' per-step rewards on them);
 - **its schedule of reward steps** in a session: :meth:`train_reward` (PEBBLE's early-stopped epochs by
   default; SURF's fixed iterations), through :mod:`rebel_jax.reward_train`;
-- **hooks with no effect by default**: :meth:`query_segments` (which segments the queries come from),
-  :meth:`sample_batch` (the agent's minibatch from the replay) and :meth:`batch_reward` (an intrinsic reward
-  added to the learned one in that minibatch); on pixel tasks :meth:`pixel_query_segments`,
-  :meth:`pixel_sample_batch` and :meth:`pixel_batch_reward`, whose defaults make the pixel trainer's calls
-  (the same functions, arguments and keys).
+- **hooks with no effect by default**, one each for state and pixel tasks: :meth:`query_segments` (which
+  segments the queries come from), :meth:`sample_batch` (the agent's minibatch from the replay) and
+  :meth:`batch_reward` (an intrinsic reward added to the learned one in that minibatch). Their defaults make the
+  trainer's own calls (the same functions, arguments and keys); the trainer's ``sample_segments``,
+  ``sample_pairs``, ``sample`` and ``reward_members`` serve both kinds of task.
 
 A new method is one file with a subclass, registered in :data:`rebel_jax.methods.REGISTRY` (or at run time
 with :func:`rebel_jax.methods.register`); ``docs/adding_a_method.md`` walks through one.
@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import drqv2, frame_replay, replay, reward_model, reward_train
+from rebel_jax import reward_model, reward_train
 
 
 class Method:
@@ -122,54 +122,33 @@ class Method:
 
     # -- hooks with no effect by default ----------------------------------------------------
     def query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
-        """The session's query pairs on a state task (by ``query.sampling``; uniform at the first feedback session)."""
+        """The session's query pairs, of the stored length (``trainer.stored_length``): by ``query.sampling``,
+        uniform at the first feedback session (``trainer.select_queries``). On state tasks two
+        ``queries.Segments``; on pixel tasks two sets of replay places (``pixel_reward.SegmentPlaces``) over the
+        last ``query.recent_episodes`` complete episodes."""
         return trainer.select_queries(ts, key, first)
 
-    def sample_batch(self, trainer: Any, ts: Any, buffer: replay.Buffer, key: jax.Array) -> replay.Transition:
-        """The agent's minibatch on a state task: uniform over the replay, with the learned reward."""
-        del ts  # Unused.
-        return replay.sample(buffer, key, trainer.cfg.sac.batch_size, True)
-
-    def batch_reward(self, trainer: Any, ts: Any, batch: replay.Transition, t: jax.Array) -> replay.Transition:
-        """The minibatch's reward as the agent sees it (an intrinsic bonus goes here); unchanged by default.
-
-        Args:
-          t: the vector step of the run (unbatched), for a bonus that decays.
-        """
-        del trainer, ts, t  # Unused.
-        return batch
-
-    def pixel_query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:
-        """The session's query pairs on a pixel task, as replay places (``pixel_reward.SegmentPlaces``): by
-        ``query.sampling`` over the last ``query.recent_episodes`` complete episodes (uniform at the first feedback
-        session)."""
-        return trainer.select(ts, key, first)
-
-    def pixel_sample_batch(
-        self, trainer: Any, ts: Any, buffer: frame_replay.FrameBuffer, key: jax.Array
-    ) -> drqv2.PixelTransition:
-        """The agent's n-step minibatch in the DrQ-v2 updates of every step of a pixel task: uniform over the
-        valid rows, with the learned reward. The updates after the critic's reset sample uniformly whatever the
-        method (QPA's ``update_after_reset`` does, huxiao09/QPA@7e9e49e:agent/sac.py:334-337).
+    def sample_batch(self, trainer: Any, ts: Any, buffer: Any, key: jax.Array) -> Any:
+        """The agent's minibatch in the updates of every vector step: uniform over the replay, with the learned
+        reward (``trainer.sample``): SAC's transitions on state tasks, DrQ-v2's n-step transitions on pixel tasks.
+        The updates after the critic's reset sample uniformly whatever the method (QPA's ``update_after_reset``
+        does, huxiao09/QPA@7e9e49e:agent/sac.py:334-337).
 
         Args:
           ts: the state before the step (``ts.reward`` the ensemble and its labels).
-          buffer: the frame replay with the step's transitions written.
+          buffer: the replay with the step's transitions written.
         """
         del ts  # Unused.
-        cfg = trainer.cfg.drqv2
-        return frame_replay.sample(buffer, key, cfg.batch_size, cfg.nstep, cfg.gamma)
+        return trainer.sample(buffer, key, True)
 
-    def pixel_batch_reward(
-        self, trainer: Any, ts: Any, batch: drqv2.PixelTransition, agent_step: jax.Array
-    ) -> drqv2.PixelTransition:
-        """A pixel minibatch's n-step reward as the agent sees it, in every DrQ-v2 update (those after the critic's
-        reset included); unchanged by default.
+    def batch_reward(self, trainer: Any, ts: Any, batch: Any, agent_step: jax.Array) -> Any:
+        """The minibatch's reward as the agent sees it (an intrinsic bonus goes here); unchanged by default.
+        Called in every update on the learned reward (on pixel tasks those after the critic's reset included).
 
         Args:
           ts: the state whose ensemble (``ts.reward.params``) labelled the replay.
-          batch: n-step transitions: ``reward`` is the discounted sum of the learned rewards of their n steps.
-          agent_step: () the seed's agent steps so far, over its training environments (DrQ-v2's step).
+          batch: the minibatch; on pixel tasks ``reward`` is the discounted sum of the learned rewards of its n steps.
+          agent_step: () the seed's agent steps so far, over its training environments (unbatched on state tasks).
         """
         del trainer, ts, agent_step  # Unused.
         return batch

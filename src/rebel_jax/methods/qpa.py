@@ -2,7 +2,7 @@
 
 QPA (huxiao09/QPA@7e9e49e, built on B-Pref) changes three things of PEBBLE:
 
-- **policy-aligned queries** (:meth:`QPA.query_segments`, :meth:`QPA.pixel_query_segments`): every session's pairs
+- **policy-aligned queries** (:meth:`QPA.query_segments`): every session's pairs
   are uniform (``explore=false``) from the last ``qpa.recent_episodes`` complete episodes, the reward model's FIFO
   of ``max_reward_buffer_size`` episodes (reward_model.py:198-205, ``get_queries`` :365-401, train_QPA.py:124-128);
 - **hybrid experience replay** (:mod:`rebel_jax.methods.qpa_replay`): while the label budget lasts, ``int(her_ratio
@@ -22,7 +22,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, queries, reward_model, reward_train, surf
+from rebel_jax import reward_model, reward_train, surf
 from rebel_jax.errors import check
 from rebel_jax.methods import qpa_replay
 from rebel_jax.methods.base import Method
@@ -65,28 +65,16 @@ class QPA(Method):
         cfg.qpa.validate(cfg.query.segment_length)
 
     def query_segments(self, trainer, ts, key, first):
-        """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes (``query.pool``), every session."""
+        """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes, every session (on state tasks
+        from ``query.pool``)."""
         del first  # Unused: the first feedback session is uniform as the others.
-        cfg = trainer.cfg
-        sizes = (trainer.stored_length, cfg.env.episode_length, cfg.qpa.recent_episodes, cfg.query.pool)
-        return queries.sample_pairs(ts.buffer, key, cfg.feedback.queries, *sizes)
-
-    def pixel_query_segments(self, trainer, ts, key, first):
-        """Uniform pairs from the last ``qpa.recent_episodes`` complete episodes of the frame ring, every session."""
-        del first  # Unused: the first feedback session is uniform too.
-        n = trainer.cfg.feedback.queries
-        sizes = (trainer.stored, trainer.episode_length, trainer.cfg.qpa.recent_episodes)
-        both = pixel_reward.sample_segments(key, ts.buffer, 2 * n, *sizes)
-        return jax.tree.map(lambda x: x[:n], both), jax.tree.map(lambda x: x[n:], both)
+        return trainer.sample_pairs(ts.buffer, key, trainer.cfg.feedback.queries, trainer.cfg.qpa.recent_episodes)
 
     def sample_batch(self, trainer, ts, buffer, key):
         """Uniform rows, the last ``int(her_ratio * batch_size)`` of them from the last ``recent_episodes``
-        episodes' rows while the budget lasts (``0 < labels stored < feedback.labels``); the learned reward."""
-        return qpa_replay.state_batch(trainer.cfg, ts.reward.data.count, buffer, key)
-
-    def pixel_sample_batch(self, trainer, ts, buffer, key):
-        """DrQ-v2's n-step batch, hybrid as :meth:`sample_batch`'s, over the valid rows (episodes in agent steps)."""
-        return qpa_replay.pixel_batch(trainer.cfg, ts.reward.data.count, buffer, key, trainer.episode_length)
+        episodes' rows while the budget lasts (``0 < labels stored < feedback.labels``); the learned reward. On
+        pixel tasks DrQ-v2's n-step batch over the valid rows (episodes in agent steps)."""
+        return qpa_replay.hybrid_batch(trainer.cfg, ts.reward.data.count, buffer, key, trainer.episode_length)
 
     def reward_terms(self, trainer, ts, key, agent_step):
         """The BT loss over ``data_aug_ratio`` random crops of every labelled pair (QPA's ``train_reward_iter``,

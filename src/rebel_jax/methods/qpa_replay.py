@@ -92,3 +92,11 @@ def pixel_batch(
     row = jnp.where(recent & any_newest, newest, row)
     env = jax.random.randint(key_env, (size,), 0, buffer.num_envs)
     return frame_replay.gather(buffer, row, env, nstep, cfg.drqv2.gamma)
+
+
+def hybrid_batch(cfg: Any, count: jax.Array, buffer: Any, key: jax.Array, episode_length: int) -> Any:
+    """QPA's hybrid batch from either replay: :func:`pixel_batch` from the frame ring, :func:`state_batch` from the
+    state ring (``episode_length`` the task's, in agent steps)."""
+    if isinstance(buffer, frame_replay.FrameBuffer):
+        return pixel_batch(cfg, count, buffer, key, episode_length)
+    return state_batch(cfg, count, buffer, key)

@@ -64,7 +64,7 @@ class REBEL(Method):
             return jnp.swapaxes(last["obs"], 0, 1), jnp.swapaxes(last["action"], 0, 1), None
         key_segments, key_actions = jax.random.split(key)
         seg = trainer.sample_segments(ts.buffer, key_segments, rebel.num_segments, rebel.segment_length)
-        return seg.obs, trainer.sac.act(ts.sac.actor_params, seg.obs, key_actions), None
+        return seg.obs, trainer.agent.act(ts.agent, seg.obs, key_actions, None), None
 
     def _pixel_trajectories(self, trainer, ts, key: jax.Array, agent_step: jax.Array):
         """V's trajectories on a pixel task. ``onpolicy``: the first ``rebel.horizon`` agent steps of the last
@@ -85,18 +85,15 @@ class REBEL(Method):
 
             return jnp.swapaxes(last["frame"], 0, 1), jnp.swapaxes(last["action"], 0, 1), episode_rewards
         key_segments, key_actions = jax.random.split(key)
-        recent = trainer.cfg.query.recent_episodes
         length = rebel.segment_length
-        places = pixel_reward.sample_segments(
-            key_segments, buffer, rebel.num_segments, length, trainer.episode_length, recent
-        )
+        places = trainer.sample_segments(buffer, key_segments, rebel.num_segments, length)
         rows = pixel_reward.segment_rows(places.row, length)
         envs = jnp.broadcast_to(places.env[:, None], rows.shape)
 
         def act(inputs):
             row, env, key = inputs
             stacks = frame_replay.row_stacks(buffer, row % buffer.rows, env)
-            return trainer.agent.act(ts.sac, stacks, key, agent_step)
+            return trainer.agent.act(ts.agent, stacks, key, agent_step)
 
         actions = jax.lax.map(act, (rows, envs, jax.random.split(key_actions, rebel.num_segments)))  # one at a time
 

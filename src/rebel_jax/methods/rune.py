@@ -7,7 +7,7 @@ with ``self.step``, train_PEBBLE_explore.py:286). RUNE stores the bonus beside t
 both after every session (replay_buffer_explore.py:75-94), so it is always the current ensemble's, as computed
 here on each minibatch. The reward itself is learnt as PEBBLE's.
 
-On pixel tasks (:meth:`RUNE.pixel_batch_reward`) DrQ-v2 learns from n-step transitions whose ``reward`` is the
+On pixel tasks (:meth:`RUNE.batch_reward`) DrQ-v2 learns from n-step transitions whose ``reward`` is the
 discounted sum of the learned rewards of n steps; the bonus added to it is that of the transition's first step
 ``(s_t, a_t)``, the one whose Q-value the update moves, once: ``sum_i gamma^i r_hat_{t+i} + beta_t std(s_t, a_t)``.
 The batch carries that step's stack and action only, so the bonus of the n - 1 later steps (their discounted sum
@@ -28,7 +28,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import replay, reward_model
+from rebel_jax import reward_model
 from rebel_jax.errors import check
 from rebel_jax.methods.base import Method
 
@@ -70,15 +70,10 @@ class RUNE(Method):
         size = getattr(cfg, field).ensemble_size
         check(size >= 2, f"{field}.ensemble_size", size, ">= 2 with --algo rune (its bonus is the members' spread)")
 
-    def batch_reward(self, trainer, ts, batch: replay.Transition, t: jax.Array) -> replay.Transition:
-        """The learned reward plus ``beta_t`` times the ensemble's disagreement, t = ``t * num_envs`` env steps."""
-        bonus = disagreement(trainer.reward_cfg, ts.reward.params, batch.obs, batch.action)
-        weight = bonus_weight(trainer.cfg.rune, t * trainer.cfg.env.num_envs)
-        return batch.replace(reward=batch.reward + weight * bonus)
-
-    def pixel_batch_reward(self, trainer, ts, batch, agent_step):
-        """The n-step learned return plus ``beta_t`` times the members' disagreement on the first step's stack and
-        action, t = ``agent_step`` (the seed's agent steps so far, RUNE's environment steps)."""
-        members = reward_model.predict(trainer.cfg.pixel_reward, ts.reward.params, batch.obs, batch.action)  # (M, B)
+    def batch_reward(self, trainer, ts, batch, agent_step: jax.Array):
+        """The learned reward plus ``beta_t`` times the members' disagreement on the batch's (first) step, t =
+        ``agent_step`` (the seed's environment steps so far). On pixel tasks the learned reward is the n-step
+        return (see the module docstring)."""
+        members = trainer.reward_members(ts.reward.params, batch.obs, batch.action)  # (M, B)
         weight = bonus_weight(trainer.cfg.rune, agent_step)
         return batch.replace(reward=batch.reward + weight * jnp.std(members, axis=0))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, queries, reward_model, reward_train, surf
+from rebel_jax import pixel_reward, reward_model, reward_train, surf
 from rebel_jax.methods.base import Method
 
 
@@ -46,14 +46,10 @@ class SURF(Method):
     def grow_pool(self, trainer, ts, stored, key, kept):
         """``stored`` with ``surf.pool_size`` unlabelled pairs of recent episodes added to its pool (none if no
         answer was kept)."""
-        cfg, size = trainer.cfg, trainer.cfg.surf.pool_size
-        if not cfg.pixels:
-            sizes = (trainer.stored_length, cfg.env.episode_length, cfg.query.recent_episodes, cfg.query.pool)
-            pool_a, pool_b = queries.sample_pairs(ts.buffer, key, size, *sizes)
+        size = trainer.cfg.surf.pool_size
+        pool_a, pool_b = trainer.sample_pairs(ts.buffer, key, size, trainer.cfg.query.recent_episodes)
+        if not trainer.cfg.pixels:
             return surf.add_unlabelled(stored, pool_a, pool_b, kept > 0)
-        sizes = (trainer.stored, trainer.episode_length, cfg.query.recent_episodes)
-        both = pixel_reward.sample_segments(key, ts.buffer, 2 * size, *sizes)
-        pool_a, pool_b = jax.tree.map(lambda x: x[:size], both), jax.tree.map(lambda x: x[size:], both)
         ones = jnp.full((size,), (kept > 0).astype(jnp.float32))
         return stored.replace(pool=pixel_reward.append_segments(stored.pool, ts.buffer, pool_a, pool_b, ones * 0, ones))
 
