@@ -117,14 +117,13 @@ def pearson(x: jax.Array, y: jax.Array) -> jax.Array:
     return jnp.sum(x * y) / jnp.maximum(jnp.sqrt(jnp.sum(x * x) * jnp.sum(y * y)), 1e-12)
 
 
-class StateFeedback:
-    """The feedback session, the learned reward and the pre-training phase of a state task's :class:`Trainer`.
+class RewardFeedback:
+    """What the state and the pixel tasks' feedback sessions share: the trainer's config and reward settings, and
+    the ensemble's learned reward (:mod:`rebel_jax.reward_model`, over either network).
 
     Args:
       trainer: the run's trainer (:class:`rebel_jax.train.Trainer`), whose config, sizes and agent it reads.
     """
-
-    session_metrics = SESSION_METRICS
 
     def __init__(self, trainer: Any):
         self.trainer = trainer
@@ -136,8 +135,26 @@ class StateFeedback:
 
     @property
     def reward_cfg(self):
-        """The reward model's config."""
+        """The reward model's config (``trainer.reward_cfg``: ``reward`` on state tasks, ``pixel_reward`` on pixels)."""
         return self.trainer.reward_cfg
+
+    def mean_reward(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The ensemble-mean learned reward of (obs, action) with any leading axes."""
+        return reward_model.mean_reward(self.reward_cfg, params, obs, action)
+
+    def members(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """Each member's learned reward: (M, ...)."""
+        return reward_model.predict(self.reward_cfg, params, obs, action)
+
+
+class StateFeedback(RewardFeedback):
+    """The feedback session, the learned reward and the pre-training phase of a state task's :class:`Trainer`.
+
+    Args:
+      trainer: the run's trainer (:class:`rebel_jax.train.Trainer`), whose config, sizes and agent it reads.
+    """
+
+    session_metrics = SESSION_METRICS
 
     # -- the reward model -------------------------------------------------------------------
     def init_reward(self, key: jax.Array, obs_shape: tuple[int, ...], action_size: int, pool_capacity: int):
@@ -148,14 +165,6 @@ class StateFeedback:
         if pool_capacity:
             reward = reward.replace(pool=surf.init_pool(pool_capacity, stored, obs_size, action_size))
         return reward
-
-    def mean_reward(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """The ensemble-mean learned reward of (obs, action) with any leading axes."""
-        return reward_model.mean_reward(self.reward_cfg, params, obs, action)
-
-    def members(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """Each member's learned reward: (M, ...)."""
-        return reward_model.predict(self.reward_cfg, params, obs, action)
 
     def trajectory_fields(self, obs_shape: tuple[int, ...], action_size: int) -> dict:
         """What REBEL's on-policy store keeps per evaluation step: the state and the action."""

@@ -55,12 +55,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import frame_replay, pixel_reward, reward_model, teachers
+from rebel_jax import frame_replay, pixel_reward, teachers
 from rebel_jax.budget import within_budget
 from rebel_jax.config import Config
 from rebel_jax.envs.pixels import agent_steps
 from rebel_jax.errors import check
-from rebel_jax.feedback import reward_training_metrics, summary
+from rebel_jax.feedback import RewardFeedback, reward_training_metrics, summary
 from rebel_jax.queries import Segments
 
 PIXEL_SESSION_METRICS = (
@@ -129,7 +129,7 @@ def check_config(cfg: Config) -> None:
     )
 
 
-class PixelFeedback:
+class PixelFeedback(RewardFeedback):
     """The feedback session and the learned reward of a pixel task's :class:`rebel_jax.train.Trainer`.
 
     Args:
@@ -139,18 +139,8 @@ class PixelFeedback:
     session_metrics = PIXEL_SESSION_METRICS
 
     def __init__(self, trainer: Any):
-        self.trainer = trainer
+        super().__init__(trainer)
         self._looped_session = loop_in_place(self._feedback_session)
-
-    @property
-    def cfg(self):
-        """The trainer's config."""
-        return self.trainer.cfg
-
-    @property
-    def reward_cfg(self):
-        """The reward model's config (``pixel_reward``)."""
-        return self.trainer.reward_cfg
 
     # -- the reward model -------------------------------------------------------------------
     def init_reward(self, key: jax.Array, obs_shape: tuple[int, ...], action_size: int, pool_capacity: int):
@@ -160,14 +150,6 @@ class PixelFeedback:
         if pool_capacity:
             reward = reward.replace(pool=pixel_reward.empty_store(pool_capacity, stored, obs_shape, action_size))
         return reward
-
-    def mean_reward(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """The ensemble-mean learned reward of frame stacks and actions with any leading axes."""
-        return reward_model.mean_reward(self.reward_cfg, params, obs, action)
-
-    def members(self, params, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """Each member's learned reward: (M, ...)."""
-        return reward_model.predict(self.reward_cfg, params, obs, action)
 
     def trajectory_fields(self, obs_shape: tuple[int, ...], action_size: int) -> dict:
         """What REBEL's on-policy store keeps per evaluation step: the newest frame (stacks are rebuilt from the
