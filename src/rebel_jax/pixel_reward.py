@@ -28,7 +28,7 @@ Read from alinlab/SURF 214bc1d, branch ``pixel`` (``pixel_reward_model.py``, ``p
   segment's ``L + stack - 1`` frames, each stored once as uint8 as in the frame replay, and its ``L`` actions,
   gathered from the replay when the label is added.
   The frames are those SURF would gather at every use, so the replay may be a ring of recent transitions
-  (``pixel_train``). SURF's unlabelled pool (``u_buffer_seg*_index``, pixel_reward_model_semi.py:69-74) is
+  (:mod:`rebel_jax.train`). SURF's unlabelled pool (``u_buffer_seg*_index``, pixel_reward_model_semi.py:69-74) is
   kept the same way.
 - A session trains ``reward_update`` epochs (README: 20) of minibatches of 16 pairs
   (``train_batch_size = 16``, pixel_reward_model.py:214), each member its own permutation (:816-820,
