@@ -81,9 +81,10 @@ def per_device(
     of a round's program returned only when it had run). Every device runs the
     program compiled for one device, the program a single-GPU run uses: the SPMD forms (``shard_map``,
     or ``jax.jit`` with the seed sharding on its inputs) crashed XLA's GPU compiler with a segmentation
-    fault on 2 GPUs (JAX 0.11.2; ``benchmarks/sharded_compile.py`` compiles each form). On GPUs the
-    persistent compilation cache (on by default, :mod:`rebel_jax.compile_cache`) keys a one-device
-    program without its device, so the second device loads the first one's compiled program.
+    fault on 2 GPUs (JAX 0.11.2; ``benchmarks/sharded_compile.py`` compiles each form). The first call
+    compiles each device's copy in its thread, at the same time; on GPUs the persistent compilation cache
+    (on by default, :mod:`rebel_jax.compile_cache`) keys a one-device program without its device, so a
+    later run loads every device's copy from one entry.
 
     Called on tracers (``jax.eval_shape``, ``jax.make_jaxpr``) it is ``fn`` itself: the same shapes.
 
