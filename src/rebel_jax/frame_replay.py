@@ -300,12 +300,38 @@ def sample(
         A :class:`~rebel_jax.drqv2.PixelTransition` batch.
     """
     key_row, key_env = jax.random.split(key)
-    valid = valid_rows(buffer, nstep)
-    cumulative = jnp.cumsum(valid.astype(jnp.int32))
-    draw = jax.random.randint(key_row, (batch_size,), 0, jnp.maximum(cumulative[-1], 1))
-    row = jnp.searchsorted(cumulative, draw, side="right").astype(jnp.int32)  # the (draw+1)-th valid row
+    row, _ = _draw_valid(key_row, valid_rows(buffer, nstep), batch_size)
     env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
-    return gather(buffer, jnp.minimum(row, buffer.rows - 1), env, nstep, gamma, learned_reward)
+    return gather(buffer, row, env, nstep, gamma, learned_reward)
+
+
+def _draw_valid(key: jax.Array, valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
+    """n rows uniform over the rows where ``valid`` (T,) holds; and () whether any row is valid."""
+    cumulative = jnp.cumsum(valid.astype(jnp.int32))
+    draw = jax.random.randint(key, (n,), 0, jnp.maximum(cumulative[-1], 1))
+    row = jnp.searchsorted(cumulative, draw, side="right").astype(jnp.int32)  # the (draw+1)-th valid row
+    return jnp.minimum(row, valid.shape[0] - 1), cumulative[-1] > 0
+
+
+def sample_recent(
+    buffer: FrameBuffer, key: jax.Array, batch_size: int, nstep: int, gamma: float, recent: jax.Array, window
+) -> PixelTransition:
+    """:func:`sample` with the learned reward, except that the batch positions where ``recent`` holds are drawn
+    from the valid rows among the newest ``window`` (from all valid rows while none of those is: the newest
+    ``nstep - 1`` rows start no complete window). A hybrid batch, as QPA's (huxiao09/QPA@7e9e49e:agent/sac.py:274-285).
+
+    Args:
+        recent: (batch_size,) bool, the positions drawn from the newest rows.
+        window: () int, how many of the newest rows.
+    """
+    key_row, key_recent, key_env = jax.random.split(key, 3)
+    valid = valid_rows(buffer, nstep)
+    age = (buffer.ptr - 1 - jnp.arange(buffer.rows)) % buffer.rows  # 0: the newest row
+    row, _ = _draw_valid(key_row, valid, batch_size)
+    newest, any_newest = _draw_valid(key_recent, valid & (age < window), batch_size)
+    row = jnp.where(recent & any_newest, newest, row)
+    env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
+    return gather(buffer, row, env, nstep, gamma)
 
 
 def row_stacks(buffer: FrameBuffer, row: jax.Array, env: jax.Array) -> jax.Array:

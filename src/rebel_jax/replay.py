@@ -13,7 +13,8 @@ one row (one transition per environment) at ``ptr``, as a ring buffer.
   ``num_envs`` properties. The observations differ: ``obs`` / ``next_obs`` here, one ``frames`` ring there;
 - the same functions: ``init``, ``add`` (one vector step, a ``Step`` / ``FrameStep`` with ``true_reward`` and
   ``learned_reward`` fields), ``sample(buffer, key, batch_size, learned_reward, ...)`` (the agent's minibatch
-  with the learned or the true reward as its ``reward``) and ``relabel(buffer, reward_fn, chunk_rows)``
+  with the learned or the true reward as its ``reward``), ``sample_recent`` (a batch with a share from the newest
+  rows, QPA's hybrid replay) and ``relabel(buffer, reward_fn, chunk_rows)``
   (``learned_reward`` of every row recomputed by ``reward_fn(obs, action)`` over any leading axes).
 """
 
@@ -211,6 +212,24 @@ def sample(buffer: Buffer, key: jax.Array, batch_size: int, learned_reward: bool
         next_obs=buffer.next_obs[row, env],
         discount=1.0 - buffer.terminal[row, env],
     )
+
+
+def sample_recent(buffer: Buffer, key: jax.Array, batch_size: int, recent: jax.Array, window: jax.Array) -> Transition:
+    """:func:`sample` with the learned reward, except that the batch positions where ``recent`` holds are drawn
+    from the newest ``window`` rows (a hybrid batch, as QPA's: huxiao09/QPA@7e9e49e:agent/sac.py:274-285).
+
+    Args:
+        recent: (batch_size,) bool, the positions drawn from the newest rows.
+        window: () int, how many of the newest rows (1 to ``size``).
+    """
+    key_row, key_back, key_env = jax.random.split(key, 3)
+    back = jax.random.randint(key_back, (batch_size,), 0, window)
+    row = jax.random.randint(key_row, (batch_size,), 0, buffer.size)
+    row = jnp.where(recent, (buffer.ptr - 1 - back) % buffer.rows, row)
+    env = jax.random.randint(key_env, (batch_size,), 0, buffer.num_envs)
+    fields = (buffer.obs, buffer.action, buffer.learned_reward, buffer.next_obs, buffer.terminal)
+    obs, action, reward, next_obs, terminal = (field[row, env] for field in fields)
+    return Transition(obs, action, reward, next_obs, 1.0 - terminal)
 
 
 def _chunked(x: jax.Array, chunk_rows: int) -> jax.Array:

@@ -5,7 +5,7 @@ QPA (huxiao09/QPA@7e9e49e, built on B-Pref) changes three things of PEBBLE:
 - **policy-aligned queries** (:meth:`QPA.query_segments`): every session's pairs
   are uniform (``explore=false``) from the last ``qpa.recent_episodes`` complete episodes, the reward model's FIFO
   of ``max_reward_buffer_size`` episodes (reward_model.py:198-205, ``get_queries`` :365-401, train_QPA.py:124-128);
-- **hybrid experience replay** (:mod:`rebel_jax.methods.qpa_replay`): while the label budget lasts, ``int(her_ratio
+- **hybrid experience replay** (:meth:`QPA.sample_batch`): while the label budget lasts, ``int(her_ratio
   * batch_size)`` transitions of each agent batch come from the last ``recent_episodes`` episodes' worth of
   transitions, the rest from the whole replay (train_QPA.py:258-262, agent/sac.py:274-285);
 - **temporal-crop augmentation** (:meth:`QPA.reward_terms`): every labelled pair is seen in ``data_aug_ratio``
@@ -18,13 +18,13 @@ Its other settings (one reward member, B-Pref's ``asked`` budget) are the ``qpa`
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import reward_model, reward_train, surf
+from rebel_jax import frame_replay, replay, reward_model, reward_train, surf
 from rebel_jax.errors import check
-from rebel_jax.methods import qpa_replay
 from rebel_jax.methods.base import Method
 
 
@@ -74,7 +74,18 @@ class QPA(Method):
         """Uniform rows, the last ``int(her_ratio * batch_size)`` of them from the last ``recent_episodes``
         episodes' rows while the budget lasts (``0 < labels stored < feedback.labels``); the learned reward. On
         pixel tasks DrQ-v2's n-step batch over the valid rows (episodes in agent steps)."""
-        return qpa_replay.hybrid_batch(trainer.cfg, ts.reward.data.count, buffer, key, trainer.episode_length)
+        cfg, count = trainer.cfg, ts.reward.data.count
+        pixels = isinstance(buffer, frame_replay.FrameBuffer)
+        size = cfg.drqv2.batch_size if pixels else cfg.sac.batch_size
+        # QPA's recent part: the last int(her_ratio B) positions while 0 < count < labels (train_QPA.py:258-262),
+        # from the last recent_episodes x L transitions (replay_buffer.py:107-108), ceil(episodes L / E) rows.
+        hybrid = (count > 0) & (count < cfg.feedback.labels)
+        recent = hybrid & (jnp.arange(size) >= size - int(cfg.qpa.her_ratio * size))
+        rows = min(buffer.rows, math.ceil(cfg.qpa.recent_episodes * trainer.episode_length / buffer.num_envs))
+        window = jnp.clip(rows, 1, jnp.maximum(buffer.size, 1)).astype(jnp.int32)
+        if pixels:
+            return frame_replay.sample_recent(buffer, key, size, cfg.drqv2.nstep, cfg.drqv2.gamma, recent, window)
+        return replay.sample_recent(buffer, key, size, recent, window)
 
     def reward_terms(self, trainer, ts, key, agent_step):
         """The BT loss over ``data_aug_ratio`` random crops of every labelled pair (QPA's ``train_reward_iter``,
