@@ -33,7 +33,7 @@ class SessionQueries:
     key_learn: jax.Array
 
 
-SESSION_METRICS = (
+COMMON_SESSION_METRICS = (
     "session",
     "labels_used",
     "session_labels",
@@ -44,6 +44,10 @@ SESSION_METRICS = (
     "reward_accuracy_all",
     "reward_epochs",
     "reward_loss",
+)
+"""Per-round metrics of a feedback session on either kind of task."""
+
+SESSION_METRICS = COMMON_SESSION_METRICS + (
     "reward_correlation",
     "reward_correlation_return",
     "reward_correlation_queries",

@@ -60,22 +60,10 @@ from rebel_jax.budget import within_budget
 from rebel_jax.config import Config
 from rebel_jax.envs.pixels import agent_steps
 from rebel_jax.errors import check
-from rebel_jax.feedback import RewardFeedback, reward_training_metrics, summary
+from rebel_jax.feedback import COMMON_SESSION_METRICS, RewardFeedback, reward_training_metrics, summary
 from rebel_jax.queries import Segments
 
-PIXEL_SESSION_METRICS = (
-    "session",
-    "labels_used",
-    "session_labels",
-    "session_skipped",
-    "session_equal",
-    "session_oracle_agreement",
-    "reward_accuracy_new",
-    "reward_accuracy_all",
-    "reward_epochs",
-    "reward_loss",
-    "reward_correlation_replay",
-)
+PIXEL_SESSION_METRICS = (*COMMON_SESSION_METRICS, "reward_correlation_replay")
 """Per-round metrics of a pixel feedback session (NaN in rounds without one, except ``labels_used``).
 ``reward_correlation_replay`` is the Pearson correlation of the relabelled (learned) and the true reward over
 every written row of the replay, per step (logs written before it had this name call it ``reward_correlation``;
