@@ -41,3 +41,33 @@ def test_a_run_without_timed_rounds_is_refused(tmp_path):
     only_compile = _run(tmp_path / "two", 2, 10, [90.0])
     with pytest.raises(SystemExit, match="no round from round 1"):
         _scaling().run_rate(only_compile)
+
+
+def _differences():
+    spec = importlib.util.spec_from_file_location("run_differences", SCRIPT.with_name("run_differences.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _metrics(path: pathlib.Path, rows: list[dict]) -> pathlib.Path:
+    path.mkdir()
+    (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def test_run_differences_are_the_largest_relative_gap_over_the_seeds(tmp_path, capsys):
+    a = _metrics(tmp_path / "a", [{"round": 0, "eval_return": [10.0, 20.0]}, {"round": 1, "eval_return": [3.0, 4.0]}])
+    b = _metrics(tmp_path / "b", [{"round": 0, "eval_return": [10.0, 25.0]}, {"round": 2, "eval_return": [1.0, 1.0]}])
+    _differences().main([str(a), str(b), "--keys", "eval_return", "q"])
+    out = capsys.readouterr().out
+    gaps = [abs(10.0 - 10.0) / 10.0, abs(20.0 - 25.0) / 25.0]  # by hand: round 0 only (round 1, 2 not in both)
+    assert f"| 0 | {max(gaps):.3f} | - |" in out, out
+    assert "| 1 |" not in out and "| 2 |" not in out
+
+
+def test_run_differences_refuse_different_seed_counts(tmp_path):
+    a = _metrics(tmp_path / "a", [{"round": 0, "q": [1.0, 2.0]}])
+    b = _metrics(tmp_path / "b", [{"round": 0, "q": [1.0]}])
+    with pytest.raises(SystemExit, match="different seed counts"):
+        _differences().table(a, b, ["q"])

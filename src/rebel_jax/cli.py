@@ -391,7 +391,10 @@ def main(argv: list[str] | None = None) -> dict:
             status, resuming = sweep.from_primary((status, resuming))
             if status:
                 raise SystemExit(status)
-            return run(args, run_dir, command_line(argv), bool(resuming))
+            result = run(args, run_dir, command_line(argv), bool(resuming))
+            if args.distributed:  # Leave together: process 0 hosts the coordinator the others still watch.
+                jax.distributed.shutdown()
+            return result
         except (*HumanError, ConfigError) as err:  # No OpenGL for the clips, a checkpoint of other code, ...
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(EXIT_USAGE) from None
