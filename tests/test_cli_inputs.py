@@ -147,18 +147,31 @@ def test_a_run_dir_holding_a_run_is_refused_without_resume_or_overwrite(tmp_path
 
 
 @pytest.mark.parametrize(
-    "argv,message",
+    "argv,what,padding",
     [
-        (["--seeds", "3"], "seeds=3 is invalid"),
-        (["--algo", "rebel", "--seeds", "1", "--lam-grid", "0", "-0.01", "-0.1"], "seeds=1 x 3 lambdas = 3 columns"),
+        (["--seeds", "3"], "seeds=3 on 2 devices: each runs 2", 1),
+        (["--algo", "rebel", "--seeds", "1", "--lam-grid", "0", "-0.01", "-0.1"], "3 columns on 2 devices", 1),
+        (["--seeds", "4"], None, 0),
     ],
-    ids=["seeds", "lam-grid-columns"],
+    ids=["seeds", "lam-grid-columns", "even"],
 )
-def test_columns_that_do_not_split_over_the_devices_are_refused(tmp_path, monkeypatch, capsys, argv, message):
+def test_columns_that_do_not_split_over_the_devices_are_padded_with_a_note(capsys, argv, what, padding):
+    cli.check_devices(cli.parse([*TINY, *argv]), 2)
+    err = capsys.readouterr().err
+    if what is None:
+        assert err == ""
+    else:
+        assert what in err and f"{padding} column(s) repeat the last one" in err, err
+
+
+def test_a_host_teacher_on_several_devices_is_refused(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(jax, "device_count", lambda: 2)
-    line = _refused([*argv, "--run-dir", str(tmp_path / "run")], capsys)
-    assert message in line and "multiple of the 2 devices" in line, line
-    assert not (tmp_path / "run").exists()
+    line = _refused(
+        ["--algo", "pebble", "--teacher", "replay", "--human.labels", __file__, "--run-dir", str(tmp_path / "r")],
+        capsys,
+    )
+    assert "--teacher replay labels one column on one device, and 2 are visible" in line, line
+    assert not (tmp_path / "r").exists()
 
 
 def test_more_labels_than_the_run_can_ask_are_warned_about(capsys):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import re
 import shutil
 import stat
 import subprocess
@@ -375,3 +376,26 @@ def test_io_errors_name_the_first_failure():
     line = rundir.io_error_line(info.value)
     assert line.startswith("error: /runs/a/checkpoints/3: No space left on device;"), line
     assert "free space" in line and "--resume" in line
+
+
+@pytest.mark.parametrize(
+    "saved,devices,expected",
+    [
+        (None, 2, 4),
+        (4, 1, 4),
+        (4, 4, 4),
+        (6, 2, 6),
+        (4, 3, "hold 4 columns (3 and 1 padding): resume on 1, 2, 4 devices, not 3"),
+    ],
+    ids=["new-run", "padded-on-fewer", "padded-on-more", "other-padding", "refused"],
+)
+def test_a_resumed_run_keeps_its_checkpoints_padding(tmp_path, saved, devices, expected):
+    args = cli.parse(["sac", "--preset", "tiny", "--task", "probe_point", "--seeds", "3"])
+    meta = {"columns": 3} if saved is None else {"columns": 3, "device_columns": saved}
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    if isinstance(expected, str):
+        with pytest.raises(cli.ConfigError, match=re.escape(expected)):
+            cli.device_columns(tmp_path, args, devices, resuming=True)
+    else:
+        resumed = cli.device_columns(tmp_path, args, devices, resuming=saved is not None)
+        assert resumed == expected

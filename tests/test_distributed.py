@@ -235,3 +235,28 @@ def test_two_processes_run_an_mjx_task(tmp_path):
     _train(run_dir, 2, 1, "--task", "walker_walk", "--video-steps", "0")
     assert len(_final(run_dir)["final_eval_return"]) == 2
     assert [row["round"] for row in _metrics(run_dir)] == list(range(ROUNDS))
+
+
+def _first_column(rows: list[dict]) -> list[dict]:
+    """Each row's per-seed lists cut to their first seed, without the means over the seeds."""
+    return [{k: v[:1] if isinstance(v, list) else v for k, v in row.items() if not k.endswith("_mean")} for row in rows]
+
+
+@pytest.mark.heavy  # make test-heavy: 2 CLI processes, then a resume, about a minute on 2 cores
+def test_seeds_that_do_not_split_over_the_devices_are_padded_and_dropped(same_devices, tmp_path):
+    # 1 seed over 2 processes of one device each: the seed and a padding copy of it, one per device.
+    run_dir = tmp_path / "run"
+    _train(run_dir, 2, 1, "--seeds", "1")
+    meta = json.loads((run_dir / "meta.json").read_text())
+    assert (meta["columns"], meta["device_columns"]) == (1, 2)
+    # Seed 0 runs the per-device program of the 2-seed run on 2 devices, with seed 0's key: the same numbers.
+    assert _first_column(_metrics(run_dir)) == _first_column(_metrics(same_devices))
+    for row in _metrics(run_dir):  # the padding is left out of the means
+        assert all(row[f"{k}_mean"] == row[k][0] for k in row if f"{k}_mean" in row and row[k][0] is not None), row
+    assert _final(run_dir)["final_eval_return"] == _final(same_devices)["final_eval_return"][:1]
+    # Its checkpoints hold both columns; one device resumes them as they are.
+    resumed = _killed_before_last_checkpoint(run_dir, tmp_path / "resumed")
+    cli.main([*MICRO_FLAGS, "--seeds", "1", "--run-dir", str(resumed), "--resume"])
+    assert [row["round"] for row in _metrics(resumed)] == list(range(ROUNDS))
+    assert len(_final(resumed)["final_eval_return"]) == 1
+    assert {np.shape(x)[0] for x in _saved_arrays(resumed, ROUNDS).values() if np.ndim(x)} == {2}

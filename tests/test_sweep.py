@@ -58,3 +58,19 @@ def test_each_device_runs_its_block_as_the_one_device_program():
     env = dict(os.environ, XLA_FLAGS=flags, PYTHONPATH=f"{root}/src")
     done = subprocess.run([sys.executable, "-c", TWO_DEVICES], env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-3000:]
+
+
+def test_padded_columns_round_up_to_the_devices_and_repeat_the_last_column():
+    import jax.numpy as jnp
+    import numpy as np
+
+    from rebel_jax import sweep
+
+    assert [sweep.padded_columns(c, 2) for c in (1, 2, 3, 4, 5)] == [2, 2, 4, 4, 6]
+    assert [sweep.padded_columns(5, d) for d in (1, 3, 4, 5, 8)] == [5, 6, 8, 5, 8]
+    tree = {"key": jnp.arange(6).reshape(3, 2), "lam": jnp.array([0.0, 0.1, 0.2])}
+    padded = sweep.pad_columns(tree, 5)
+    reference = {k: np.concatenate([np.asarray(v), np.repeat(np.asarray(v)[-1:], 2, axis=0)]) for k, v in tree.items()}
+    for k in tree:  # a NumPy reference: the last row twice more
+        np.testing.assert_array_equal(np.asarray(padded[k]), reference[k])
+    assert sweep.pad_columns(tree, 3) is not None and sweep.pad_columns(tree, 3)["key"] is tree["key"]

@@ -75,6 +75,7 @@ from rebel_jax.cli_rundir import (  # noqa: F401 - re-exported
     _record_resume,
     _write_meta,
     command_line,
+    device_columns,
     flatten,
     keep_rounds_before,
     prepare_run_dir,
@@ -190,18 +191,20 @@ def _slow_checkpoint_note(r: int, saving: float, seconds: float, every: int) -> 
     )
 
 
-def column_keys(args: Args, sharding: NamedSharding | None = None) -> jax.Array:
-    """One key per column: the seed keys tiled over the grid (each lambda's and teacher's seed i uses key i)."""
+def column_keys(args: Args, sharding: NamedSharding | None = None, total: int | None = None) -> jax.Array:
+    """One key per column: the seed keys tiled over the grid (each lambda's and teacher's seed i uses key i), then
+    the last one repeated up to ``total`` columns (``sweep.padded_columns``; default ``args.columns``)."""
     keys = jnp.tile(seed_keys(args.config.train.seed, args.seeds), (args.columns // args.seeds, 1))
-    return sweep.shard_seeds(keys, sharding)
+    return sweep.shard_seeds(sweep.pad_columns(keys, total or args.columns), sharding)
 
 
 def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSharding | None = None, trainer=None):
     """The run's first state: ``init`` (of ``train.compiled``) of the :func:`column_keys`, with each column's
     lambda and teacher knobs set by the trainer (``Trainer.with_knobs``; ``api.make_trainer(args.config)`` unless
-    given)."""
+    given); padding columns (beyond ``args.columns``) take the last column's."""
     trainer = trainer or api.make_trainer(args.config)
     grid = args.grid()
+    grid += grid[-1:] * (keys.shape[0] - len(grid))
     lams = [lam for lam, _ in grid] if swept_knob(args.config) else None
     teacher_cfgs = [teachers.PRESETS[t] for _, t in grid] if args.teacher_grid else None
     return sweep.shard_seeds(trainer.with_knobs(init(keys), lams, teacher_cfgs), sharding)
@@ -231,9 +234,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     trainer = api.make_trainer(cfg, host_teacher=bool(args.host_teacher))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
-    sharding = sweep.seed_sharding(args.columns)
+    total = device_columns(run_dir, args, jax.device_count(), resuming)  # args.columns, padded for the devices
+    sharding = sweep.seed_sharding(total)
     init, round_fn, evaluate = compiled(trainer, sharding)
-    keys = column_keys(args, sharding)
+    keys = column_keys(args, sharding, total)
     sizes = rundir.tree_bytes(jax.eval_shape(init, keys))  # nothing allocated yet
     devices = sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1]
     rundir.check_memory(sizes, devices, STATE_FLAGS, memory_of=jax.local_devices()[0])
@@ -253,6 +257,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         keep_rounds_before(run_dir / "metrics.jsonl", 0)
         _write_meta(run_dir, args, command)
     names = args.column_names()
+
+    def real_columns(tree):  # the run's columns, without the padding
+        return jax.tree.map(lambda x: x[: args.columns], tree)
+
     per_round = cfg.train.steps_per_round
     logger = None
     if primary:
@@ -281,7 +289,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                 state, session = host.before_round(state, r)
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
-            metrics = {**sweep.to_host(metrics), **session}
+            metrics = {**real_columns(sweep.to_host(metrics)), **session}
             seconds = time.perf_counter() - t0
             slowest = max(slowest, seconds) if r > start else 0.0
             env_steps = (r + 1) * per_round
@@ -318,8 +326,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                     slow_save_noted = True
                     print(_slow_checkpoint_note(r, saving, seconds, args.checkpoint_every), file=sys.stderr)
         policy = trainer.policy_params(state)
-        final = np.asarray(sweep.to_host(evaluate(policy, keys)))
-        random = np.asarray(sweep.to_host(evaluate(policy, keys, True)))  # The same initial states.
+        final = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys))))
+        random = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys, True))))  # The same initial states.
         result = _final_result(final, random, ever_diverged, names)
         files = []
         if primary:

@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from rebel_jax import methods, rundir, teachers
+from rebel_jax import methods, rundir, sweep, teachers
 from rebel_jax.budget import session_due
 from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
@@ -235,15 +235,20 @@ def _warn_about(args: Args) -> None:
 
 
 def check_devices(args: Args, devices: int) -> None:
-    """The columns (seeds x lambdas x teachers) must split evenly over the devices (raises ConfigError)."""
-    if args.columns % devices:
-        grids = ""
-        if args.columns != args.seeds:
-            sizes = [f"{len(args.lam_grid)} lambdas"] if args.lam_grid else []
-            sizes += [f"{len(args.teacher_grid)} teachers"] if args.teacher_grid else []
-            grids = f" x {' x '.join(sizes)} = {args.columns} columns"
+    """Columns (seeds x lambdas x teachers) that do not split evenly over the devices are padded
+    (``sweep.padded_columns``), said in a note; a host teacher's one column needs one device (raises ConfigError)."""
+    if args.host_teacher and devices > 1:
         raise ConfigError(
-            f"seeds={args.seeds}{grids} is invalid: allowed a multiple of the {devices} devices to shard over, in all"
+            f"--teacher {args.host_teacher} labels one column on one device, and {devices} are visible: "
+            "make one visible (e.g. CUDA_VISIBLE_DEVICES=0)"
+        )
+    total = sweep.padded_columns(args.columns, devices)
+    if total != args.columns:
+        what = f"{args.columns} columns" if args.columns != args.seeds else f"seeds={args.seeds}"
+        print(
+            f"note: {what} on {devices} devices: each runs {total // devices}, so {total - args.columns} column(s) "
+            f"repeat the last one and are dropped (a multiple of {devices} wastes none)",
+            file=sys.stderr,
         )
 
 

@@ -16,7 +16,7 @@ import time
 
 import jax
 
-from rebel_jax import compile_cache, rundir
+from rebel_jax import compile_cache, rundir, sweep
 from rebel_jax.cli_args import Args, swept_knob
 from rebel_jax.config import Config, ConfigError
 from rebel_jax.human import redact_token
@@ -186,10 +186,27 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
         "command": command,
         **_run_fields(args),
         "columns": args.columns,
+        "device_columns": sweep.padded_columns(args.columns, jax.device_count()),
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
     }
     write_json(run_dir / "meta.json", meta)
     _write_config(run_dir, args)  # last: a run counts as saved (for --resume) once config.json exists
+
+
+def device_columns(run_dir: pathlib.Path, args: Args, devices: int, resuming: bool) -> int:
+    """The columns this run computes over ``devices`` (``sweep.padded_columns``); a resumed run keeps the
+    padding its checkpoints hold, which must split over ``devices`` (raises ConfigError)."""
+    total = sweep.padded_columns(args.columns, devices)
+    if not resuming:
+        return total
+    saved = json.loads((run_dir / "meta.json").read_text()).get("device_columns", args.columns)
+    if saved != total and saved % devices:
+        counts = ", ".join(str(d) for d in range(1, saved + 1) if saved % d == 0)
+        raise ConfigError(
+            f"{run_dir}'s checkpoints hold {saved} columns ({args.columns} and {saved - args.columns} padding): "
+            f"resume on {counts} devices, not {devices}"
+        )
+    return saved
 
 
 def _record_resume(run_dir: pathlib.Path, args: Args, command: str, start: int) -> None:

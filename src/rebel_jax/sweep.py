@@ -21,6 +21,7 @@ import os
 from collections.abc import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -126,6 +127,23 @@ def _device_blocks(args: tuple, batched: tuple[bool, ...], device) -> tuple:
         return next(s.data for s in x.addressable_shards if s.device == device)
 
     return tuple(jax.tree.map(lambda x, s=seeded: block(x, s), a) for a, seeded in zip(args, batched, strict=True))
+
+
+def padded_columns(columns: int, devices: int) -> int:
+    """The columns a run computes over ``devices``: ``columns`` rounded up to a multiple of ``devices``. The
+    extra ones (:func:`pad_columns`) repeat the last column and are dropped from every output, so 5 seeds run on
+    2 GPUs as 3 + 3 columns, one of them wasted."""
+    return -(-columns // devices) * devices
+
+
+def pad_columns(tree, total: int):
+    """Every leaf of ``tree`` (columns on its leading axis) with its last column repeated up to ``total``."""
+
+    def pad(x):
+        extra = total - x.shape[0]
+        return x if extra == 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])
+
+    return jax.tree.map(pad, tree)
 
 
 def shard_seeds(tree, sharding: NamedSharding | None):
