@@ -1,12 +1,15 @@
-"""The worked extension (examples/l2_reward.py): a new method in one file, trained on state and pixel tasks.
+"""The worked extensions: examples/l2_reward.py, a new method in one file, trained on state and pixel tasks, and
+examples/rebel_on_qpa.py, two methods composed.
 
-Its penalty is checked against a NumPy loop; trained with a large weight, the learned reward it leaves is
-smaller than PEBBLE's from the same keys (the only difference between the two runs is the method).
+The L2 penalty is checked against a NumPy loop; trained with a large weight, the learned reward it leaves is
+smaller than PEBBLE's from the same keys (the only difference between the two runs is the method). REBEL on QPA
+at lambda 0 is QPA bit for bit, through the command line, and not at lambda 1.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import pathlib
 import sys
 
@@ -16,11 +19,14 @@ import numpy as np
 import pytest
 from test_pixel_preference import MICRO as PIXEL_MICRO
 from test_preference_train import MICRO_PEBBLE
+from test_qpa_rune import METHOD_FLAGS
+from test_qpa_rune import MICRO_FLAGS as QPA_MICRO
 
-from rebel_jax import api, methods, train
+from rebel_jax import api, cli, config, methods, train
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "examples"))
 from l2_reward import L2Reward, l2_penalty  # noqa: E402
+from rebel_on_qpa import REBELOnQPA  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -75,3 +81,40 @@ def test_the_example_trains_on_a_pixel_task_and_shrinks_the_reward(strong_l2):
     pebble = _learned_square(PIXEL_MICRO, rounds)
     l2 = _learned_square(dataclasses.replace(PIXEL_MICRO, algo=strong_l2.name), rounds)
     assert l2 < pebble / 2
+
+
+@pytest.fixture(scope="module")
+def rebel_on_qpa():
+    """examples/rebel_on_qpa.py registered as ``rebel_qpa``."""
+    method = methods.register(REBELOnQPA())
+    yield method
+    del methods.REGISTRY[method.name]
+
+
+def _qpa_run(run_dir: pathlib.Path, *flags: str) -> tuple[list[dict], dict]:
+    """The QPA micro run of tests/test_qpa_rune.py with ``flags`` last: its metrics rows (no timings) and final.json."""
+    cli.main([*QPA_MICRO, *METHOD_FLAGS["qpa"].split(), *flags, "--run-dir", str(run_dir)])
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    rows = [{k: v for k, v in row.items() if k not in ("seconds", "env_steps_per_s")} for row in rows]
+    return rows, json.loads((run_dir / "final.json").read_text())
+
+
+@pytest.mark.heavy  # make test-heavy: three QPA micro runs through the command line, 1-4 minutes on 2 cores
+def test_rebel_on_qpa_at_lambda_0_is_qpa_bit_for_bit(rebel_on_qpa, tmp_path):
+    rebel = ("--algo", rebel_on_qpa.name, "--rebel.source", "replay", "--rebel.segment-length", "8")
+    qpa_rows, qpa_final = _qpa_run(tmp_path / "qpa")
+    zero_rows, zero_final = _qpa_run(tmp_path / "zero", *rebel, "--rebel.lam", "0")
+    assert zero_final == qpa_final
+    for qpa_row, zero_row in zip(qpa_rows, zero_rows, strict=True):
+        assert {k: zero_row[k] for k in qpa_row} == qpa_row
+    one_rows, _ = _qpa_run(tmp_path / "one", *rebel, "--rebel.lam", "1")  # the term weighs: another reward
+    assert one_rows[-1]["reward_loss"] != qpa_rows[-1]["reward_loss"]
+
+
+def test_a_composed_method_reads_both_sections_and_flags_of_either_are_its_own(rebel_on_qpa):
+    composed = dataclasses.replace(config.PRESETS["qpa"], algo=rebel_on_qpa.name).unused_parts()
+    assert "qpa" not in composed and "rebel" not in composed and composed["surf"] == "--algo surf"
+    qpa_alone = dataclasses.replace(config.PRESETS["qpa"], algo="qpa").unused_parts()
+    assert qpa_alone["rebel"] == "--algo rebel or --algo rebel_qpa"
+    args = cli.parse(["rebel_qpa", "--preset", "qpa", "--task", "probe_point", "--qpa.her-ratio", "0.25"])
+    assert (args.config.qpa.her_ratio, args.config.algo) == (0.25, "rebel_qpa")

@@ -289,11 +289,14 @@ class Config:
             ),
             "reward": "a preference algo on a state task",
             "pixel_reward": "a preference algo on a pixel task",
-            **{m.config_field: f"--algo {m.name}" for m in methods.REGISTRY.values() if m.config_field},
         }
+        for m in methods.REGISTRY.values():  # a method's own parts: surf, rebel, qpa, rune
+            for part in m.sections():
+                readers = [n for n, o in methods.REGISTRY.items() if part in o.sections()]
+                where[part] = "--algo " + " or --algo ".join(readers)
         used = {"drqv2" if self.pixels else "sac"}
-        if self.method is not None and self.method.config_field:
-            used.add(self.method.config_field)  # the method's own part: surf or rebel
+        if self.method is not None:
+            used.update(self.method.sections())
         if self.preference:
             used |= {"feedback", "query", "teacher", "pretrain", "pixel_reward" if self.pixels else "reward"}
         return {part: text for part, text in where.items() if part not in used}

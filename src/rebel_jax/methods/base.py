@@ -39,8 +39,13 @@ class Method:
     """PEBBLE: the Bradley-Terry loss on the labelled pairs, trained in early-stopped epochs each session."""
 
     name: ClassVar[str] = "pebble"
-    config_field: ClassVar[str | None] = None
-    """The section of the run's config this method reads (None: none of its own)."""
+    config_field: ClassVar[str | tuple[str, ...] | None] = None
+    """The section of the run's config this method reads (None: none of its own; a tuple: several)."""
+
+    def sections(self) -> tuple[str, ...]:
+        """The config sections of :attr:`config_field`, as a tuple."""
+        field = self.config_field
+        return () if field is None else (field,) if isinstance(field, str) else tuple(field)
 
     # -- config and sizes ------------------------------------------------------------------
     def validate(self, cfg: Any) -> None:
