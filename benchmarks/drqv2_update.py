@@ -3,7 +3,8 @@
     python benchmarks/drqv2_update.py                      # 84x84, 5 seeds, walker (batch 512, n-step 1)
     python benchmarks/drqv2_update.py --size 16 --batch-size 8 --seeds 2 --repeats 2   # a CPU check
 
-One row per setting (``--seed-loop``, and ``--kernel-grad``: ``drqv2.kernel_grad``): the median
+One row per setting (``--seed-loop``, ``--kernel-grad``: ``drqv2.kernel_grad``, and ``--first-channels``:
+``drqv2.first_channels``, the first convolution's input zero-padded from 9 channels): the median
 milliseconds of one update of every seed (``ms_per_update``), over ``--repeats`` calls of a jitted
 ``lax.scan`` of ``--updates-per-call`` updates after a warm-up call, on fixed random uint8 frame stacks;
 the agent step is unbatched, as in the trainer. ``grouped_convolutions`` counts the compiled program's
@@ -84,8 +85,8 @@ def program_fields(args, cfg: DrQV2Config) -> dict:
 def rows(args):
     base = task_config("walker_walk", DrQV2Config(precision=args.precision))
     base = dataclasses.replace(base, batch_size=args.batch_size or base.batch_size)
-    for loop, grad in itertools.product(args.seed_loop, args.kernel_grad):
-        cfg = dataclasses.replace(base, seed_loop=loop == "on", kernel_grad=grad)
+    for loop, grad, first in itertools.product(args.seed_loop, args.kernel_grad, args.first_channels):
+        cfg = dataclasses.replace(base, seed_loop=loop == "on", kernel_grad=grad, first_channels=first)
         run, state = update_scan(cfg, args.size, args.seeds, args.updates_per_call)
         compiled = run.lower(state, jax.random.PRNGKey(1)).compile()
         grouped = grouped_convolutions(compiled.as_text())
@@ -94,6 +95,7 @@ def rows(args):
             **provenance(),
             **program_fields(args, cfg),
             "kernel_grad": cfg.kernel_grad,
+            "first_channels": cfg.first_channels,
             "ms_per_update": sec * 1e3,
             "ms_per_seed_update": sec * 1e3 / args.seeds,
             "grouped_convolutions": grouped,
@@ -110,6 +112,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--precision", default="tf32", choices=["tf32", "highest", "bf16"])
     p.add_argument("--seed-loop", nargs="+", default=["off", "on"], choices=["off", "on"])
     p.add_argument("--kernel-grad", nargs="+", default=["xla"], choices=["xla", "patches"])
+    p.add_argument("--first-channels", nargs="+", type=int, default=[0], help="0: the 9 channels as they are")
     p.add_argument("--updates-per-call", type=int, default=10)
     p.add_argument("--repeats", type=int, default=5, help="timed calls per row")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
@@ -121,7 +124,7 @@ def main(argv=None):
     merge_rows(
         args.out,
         rows(args),
-        ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "kernel_grad"),
+        ("device", "commit", "seeds", "size", "batch_size", "precision", "seed_loop", "kernel_grad", "first_channels"),
     )
 
 

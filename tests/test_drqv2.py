@@ -359,6 +359,39 @@ def test_patch_kernel_gradients_give_the_same_update(seed_loop):
         DrQV2Config(kernel_grad="cudnn").validate()
 
 
+def test_padding_the_first_convolution_s_channels_keeps_the_encoder_s_parameters_output_and_gradients():
+    """``Encoder(first_channels=16)``: the first convolution sees its 9 channels zero-padded to 16; the parameters
+    (one init, the kernel keeps 9 input channels), the features and the parameters' gradients are the same."""
+    obs = jax.random.randint(jax.random.key(3), (2, *OBS_SHAPE), 0, 256).astype(jnp.uint8)
+    plain, padded = (Encoder(channels=4, precision="highest", first_channels=c) for c in (0, 16))
+    params = plain.init(jax.random.key(0), obs)
+    assert jax.tree.map(jnp.shape, padded.init(jax.random.key(0), obs)) == jax.tree.map(jnp.shape, params)
+    assert params["params"]["Conv_0"]["kernel"].shape == (3, 3, OBS_SHAPE[-1], 4)
+
+    def loss(encoder, params):
+        return jnp.sum(jnp.sin(encoder.apply(params, obs)))
+
+    (want, want_grad), (got, got_grad) = (jax.value_and_grad(loss, 1)(e, params) for e in (plain, padded))
+    _close(got, want, rtol=1e-5, atol=1e-6)
+    _close(got_grad, want_grad, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.heavy  # make test checks the encoder itself (above); this compiles two seed-vmapped updates
+def test_padding_the_first_convolution_s_channels_gives_the_same_update():
+    """``drqv2.first_channels 16``: the same update up to float rounding."""
+    (_, _), (states, batches, keys) = _seed_batch()
+    agents = [DrQV2(dataclasses.replace(SMALL, first_channels=c), OBS_SHAPE, ACTIONS) for c in (0, 16)]
+    padded_params = jax.vmap(agents[1].init)(keys)
+    assert jax.tree.map(jnp.shape, padded_params) == jax.tree.map(jnp.shape, states)  # one init for both
+    want, got = (
+        jax.jit(jax.vmap(agent.update, in_axes=(0, 0, 0, None)))(states, batches, keys, jnp.int32(40))
+        for agent in agents
+    )
+    _close(got, want, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ConfigError, match="drqv2.first_channels"):
+        DrQV2Config(first_channels=-1).validate()
+
+
 def test_act_explores_around_the_deterministic_action():
     agent, init, _ = _small()
     state = init(jax.random.key(0))

@@ -94,6 +94,10 @@ class DrQV2Config:
     product of the input patches with the output gradient each (:func:`rebel_jax.networks.conv_patch_kernel_grad`).
     The same gradients up to float rounding; a speed setting, not a DrQ-v2 one. On one H100 (bf16, 5 seeds
     looped, 2026-11-25) ``patches`` was 28% slower (BENCHMARKS.md), so ``xla`` stays the default."""
+    first_channels: int = 0
+    """The encoder's first convolution sees its 9 input channels (3 stacked RGB frames) zero-padded to this many
+    (:func:`rebel_jax.networks.channel_padded`; 0: as they are). The same function and parameters up to float
+    rounding; a speed setting for convolution kernels that want a multiple of 8 channels, not a DrQ-v2 one."""
     critic_out_f32: bool = False
     """With ``precision`` bf16, compute each critic's output layer (1024 -> 1) in float32, so that Q and the TD
     target are not rounded to bfloat16 (not a DrQ-v2 setting: DrQ-v2 is float32 throughout). Rounded, Q near 5
@@ -123,6 +127,7 @@ class DrQV2Config:
         _check(self.pad >= 0, "drqv2.pad", self.pad, ">= 0")
         _check(self.precision in ("tf32", "highest", "bf16"), "drqv2.precision", self.precision, "tf32, highest, bf16")
         _check(self.kernel_grad in ("xla", "patches"), "drqv2.kernel_grad", self.kernel_grad, "xla, patches")
+        _check(self.first_channels >= 0, "drqv2.first_channels", self.first_channels, ">= 0")
         _check(isinstance(self.seed_loop, bool), "drqv2.seed_loop", self.seed_loop, "True, False")
         _check(isinstance(self.critic_out_f32, bool), "drqv2.critic_out_f32", self.critic_out_f32, "True, False")
 
@@ -334,7 +339,7 @@ class DrQV2:
 
     def __init__(self, cfg: DrQV2Config, obs_shape: tuple[int, int, int], action_size: int):
         self.cfg, self.obs_shape, self.action_size = cfg, tuple(obs_shape), action_size
-        self.encoder = Encoder(precision=cfg.precision, kernel_grad=cfg.kernel_grad)
+        self.encoder = Encoder(precision=cfg.precision, kernel_grad=cfg.kernel_grad, first_channels=cfg.first_channels)
         self.actor = PixelActor(cfg.feature_dim, cfg.hidden, cfg.depth, action_size, cfg.precision)
         self.critic = PixelCritic(cfg.feature_dim, cfg.hidden, cfg.depth, cfg.precision, cfg.critic_out_f32)
         self.optimizer = optax.adam(cfg.lr)  # One learning rate for all three (drqv2.py:148-150).
