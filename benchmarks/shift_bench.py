@@ -1,5 +1,6 @@
-"""DrQ-v2's random shift, two ways: the per-image window (``drqv2.shift_images``, a gather once vmapped) against
-separable selects over the ``2 pad + 1`` row and column offsets (:func:`shift_by_selects`, the same pixels).
+"""DrQ-v2's random shift, three ways: the per-image window (``drqv2.shift_images``, a gather once vmapped), the same
+with its shifts behind ``jax.lax.optimization_barrier`` (``drqv2.random_shift``'s form: the draws are not fused into
+the window), and separable selects over the ``2 pad + 1`` row and column offsets (:func:`shift_by_selects`).
 
     python benchmarks/shift_bench.py                  # walker's batch 512, 84x84, 9 channels, pad 4
     python benchmarks/shift_bench.py --batch-size 8 --size 16 --repeats 2   # a CPU check
@@ -46,7 +47,12 @@ def shift_by_selects(obs: jax.Array, shifts: jax.Array, pad: int) -> jax.Array:
     return out
 
 
-WAYS = {"gather": shift_images, "selects": shift_by_selects}
+WAYS = {
+    "gather": shift_images,
+    "selects": shift_by_selects,
+    # The shifts drawn once, kept out of the window's fusion (as drqv2.random_shift does).
+    "gather_barrier": lambda obs, shifts, pad: shift_images(obs, jax.lax.optimization_barrier(shifts), pad),
+}
 
 
 def scaled(images: jax.Array) -> jax.Array:

@@ -221,6 +221,9 @@ def shift_images(obs: jax.Array, shifts: jax.Array, pad: int) -> jax.Array:
 def random_shift(key: jax.Array, obs: jax.Array, pad: int) -> jax.Array:
     """DrQ-v2's random-shift augmentation: :func:`shift_images` at :func:`draw_shifts`.
 
+    The shifts pass through ``jax.lax.optimization_barrier``, which changes no value: without it XLA fused the
+    threefry draws into the per-pixel window loop and recomputed them there (a GPU profile, BENCHMARKS.md).
+
     Args:
         key: PRNG key.
         obs: (B, H, W, C) images.
@@ -231,7 +234,7 @@ def random_shift(key: jax.Array, obs: jax.Array, pad: int) -> jax.Array:
     """
     if pad == 0:
         return obs
-    return shift_images(obs, draw_shifts(key, obs.shape[0], pad), pad)
+    return shift_images(obs, jax.lax.optimization_barrier(draw_shifts(key, obs.shape[0], pad)), pad)
 
 
 def std_schedule(cfg: DrQV2Config, step: jax.Array) -> jax.Array:
