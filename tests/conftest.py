@@ -10,6 +10,7 @@ by :func:`pytest_xdist_make_scheduler` below.
 from __future__ import annotations
 
 import functools
+import importlib
 import os
 import pathlib
 import warnings
@@ -97,6 +98,14 @@ class CompiledEnv:
     @functools.cached_property
     def observe(self):
         return jax.jit(jax.vmap(self.env.observe))
+
+
+@pytest.fixture
+def benchmark_script(monkeypatch):
+    """``benchmark_script(name)``: the script ``benchmarks/<name>.py`` as a module, with ``benchmarks/`` on
+    ``sys.path`` for this test (the scripts import each other: ``timing``, ``kernel_profile``, ...)."""
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    return importlib.import_module
 
 
 @pytest.fixture(scope="session")

@@ -3,16 +3,13 @@ the numbers BENCHMARKS.md quotes from earlier commits stay in the results files.
 
 from __future__ import annotations
 
-import importlib
 import json
-import pathlib
 
 FIELDS = ("device", "commit", "batch")
 
 
-def test_a_measurement_replaces_its_own_commits_row_and_keeps_other_commits_rows(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
-    merge_rows = importlib.import_module("timing").merge_rows
+def test_a_measurement_replaces_its_own_commits_row_and_keeps_other_commits_rows(tmp_path, benchmark_script):
+    merge_rows = benchmark_script("timing").merge_rows
     out = tmp_path / "rows.json"
     first = {"device": "H100", "commit": "aaa", "batch": 1, "ms": 12.5}
     other_batch = {**first, "batch": 200, "ms": 13.4}
@@ -25,9 +22,8 @@ def test_a_measurement_replaces_its_own_commits_row_and_keeps_other_commits_rows
     assert json.loads(out.read_text())["rows"] == [first, other_batch, again]
 
 
-def test_the_checkpoint_checksum_benchmark_measures_a_small_state(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
-    bench = importlib.import_module("checkpoint_checksums")
+def test_the_checkpoint_checksum_benchmark_measures_a_small_state(tmp_path, benchmark_script):
+    bench = benchmark_script("checkpoint_checksums")
     row = bench.row(1 / 1024, repeats=2, scratch=tmp_path / "scratch")  # a 1 MiB leaf
     assert row["step_bytes"] > 2**20 and row["gib"] == 1 / 1024 and row["commit"] and row["device"]
     timings = ("save_s", "checksums_s", "restore_checked_s", "restore_unchecked_s")

@@ -7,14 +7,12 @@ must be found. (On the GPU it measures whether the runs are reproducible; RESULT
 from __future__ import annotations
 
 import json
-import pathlib
 import sys
 
 import jax
 import numpy as np
 import pytest
 
-BENCHMARKS = pathlib.Path(__file__).parents[1] / "benchmarks"
 # The sac flags of test_cli_runs.MICRO_FLAGS (its compiled round, shared through the compilation cache).
 FLAGS = (
     "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 20 --sac.hidden 16 --sac.batch-size 16"
@@ -24,11 +22,8 @@ FLAGS = (
 
 
 @pytest.fixture
-def determinism(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import determinism
-
-    return determinism
+def determinism(benchmark_script):
+    return benchmark_script("determinism")
 
 
 def test_a_repeat_on_the_cpu_is_identical_and_the_row_says_so(determinism, tmp_path, monkeypatch):

@@ -5,28 +5,19 @@ from __future__ import annotations
 
 import collections
 import json
-import pathlib
 
 import numpy as np
 import pytest
 
-BENCHMARKS = pathlib.Path(__file__).parents[1] / "benchmarks"
+
+@pytest.fixture
+def profile(benchmark_script):
+    return benchmark_script("drqv2_profile")
 
 
 @pytest.fixture
-def profile(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import drqv2_profile
-
-    return drqv2_profile
-
-
-@pytest.fixture
-def shift_bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import shift_bench
-
-    return shift_bench
+def shift_bench(benchmark_script):
+    return benchmark_script("shift_bench")
 
 
 HLO = """

@@ -3,9 +3,7 @@ on a state whose replay and label store are full, and its rows say what ran (CPU
 
 from __future__ import annotations
 
-import importlib
 import json
-import pathlib
 
 import jax
 import numpy as np
@@ -13,9 +11,8 @@ import pytest
 
 
 @pytest.fixture
-def parts_module(monkeypatch):
-    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
-    return importlib.import_module("pixel_session_parts")
+def parts_module(benchmark_script):
+    return benchmark_script("pixel_session_parts")
 
 
 def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_full_state(tmp_path, parts_module):

@@ -6,30 +6,21 @@ from __future__ import annotations
 import collections
 import inspect
 import json
-import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-BENCHMARKS = pathlib.Path(__file__).parents[1] / "benchmarks"
+
+@pytest.fixture
+def kp(benchmark_script):
+    return benchmark_script("kernel_profile")
 
 
 @pytest.fixture
-def kp(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import kernel_profile
-
-    return kernel_profile
-
-
-@pytest.fixture
-def sp(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import sac_profile
-
-    return sac_profile
+def sp(benchmark_script):
+    return benchmark_script("sac_profile")
 
 
 # A GPU-compiled SAC update as XLA prints it, cut down: library GEMMs, a Triton GEMM, elementwise and reduction

@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pathlib
 
 import pytest
 
-SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "scaling.py"
+
+@pytest.fixture
+def scaling(benchmark_script):
+    return benchmark_script("scaling")
 
 
-def _scaling():
-    spec = importlib.util.spec_from_file_location("scaling", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture
+def differences(benchmark_script):
+    return benchmark_script("run_differences")
 
 
 def _run(path: pathlib.Path, devices: int, columns: int, seconds: list[float]) -> pathlib.Path:
@@ -27,27 +27,20 @@ def _run(path: pathlib.Path, devices: int, columns: int, seconds: list[float]) -
     return path
 
 
-def test_efficiency_is_the_rate_ratio_over_the_device_count(tmp_path, capsys):
+def test_efficiency_is_the_rate_ratio_over_the_device_count(scaling, tmp_path, capsys):
     multi = _run(tmp_path / "two", 2, 10, [90.0, 21.0, 20.0, 23.0])
     one = _run(tmp_path / "one", 1, 5, [80.0, 19.0, 20.5, 20.0])
-    _scaling().main([str(multi), str(one)])
+    scaling.main([str(multi), str(one)])
     out = capsys.readouterr().out
     expected = (10 / 21.0) / (2 * 5 / 20.0)  # medians of rounds 1-3: 21.0 and 20.0
     assert f"**{expected:.3f}**" in out, out
     assert "21.00, 20.00, 23.00" in out and "90.00" not in out  # round 0 (the compile) is left out
 
 
-def test_a_run_without_timed_rounds_is_refused(tmp_path):
+def test_a_run_without_timed_rounds_is_refused(scaling, tmp_path):
     only_compile = _run(tmp_path / "two", 2, 10, [90.0])
     with pytest.raises(SystemExit, match="no round from round 1"):
-        _scaling().run_rate(only_compile)
-
-
-def _differences():
-    spec = importlib.util.spec_from_file_location("run_differences", SCRIPT.with_name("run_differences.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+        scaling.run_rate(only_compile)
 
 
 def _metrics(path: pathlib.Path, rows: list[dict]) -> pathlib.Path:
@@ -56,18 +49,18 @@ def _metrics(path: pathlib.Path, rows: list[dict]) -> pathlib.Path:
     return path
 
 
-def test_run_differences_are_the_largest_relative_gap_over_the_seeds(tmp_path, capsys):
+def test_run_differences_are_the_largest_relative_gap_over_the_seeds(differences, tmp_path, capsys):
     a = _metrics(tmp_path / "a", [{"round": 0, "eval_return": [10.0, 20.0]}, {"round": 1, "eval_return": [3.0, 4.0]}])
     b = _metrics(tmp_path / "b", [{"round": 0, "eval_return": [10.0, 25.0]}, {"round": 2, "eval_return": [1.0, 1.0]}])
-    _differences().main([str(a), str(b), "--keys", "eval_return", "q"])
+    differences.main([str(a), str(b), "--keys", "eval_return", "q"])
     out = capsys.readouterr().out
     gaps = [abs(10.0 - 10.0) / 10.0, abs(20.0 - 25.0) / 25.0]  # by hand: round 0 only (round 1, 2 not in both)
     assert f"| 0 | {max(gaps):.3f} | - |" in out, out
     assert "| 1 |" not in out and "| 2 |" not in out
 
 
-def test_run_differences_refuse_different_seed_counts(tmp_path):
+def test_run_differences_refuse_different_seed_counts(differences, tmp_path):
     a = _metrics(tmp_path / "a", [{"round": 0, "q": [1.0, 2.0]}])
     b = _metrics(tmp_path / "b", [{"round": 0, "q": [1.0]}])
     with pytest.raises(SystemExit, match="different seed counts"):
-        _differences().table(a, b, ["q"])
+        differences.table(a, b, ["q"])
