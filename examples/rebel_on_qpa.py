@@ -29,7 +29,8 @@ class REBELOnQPA(QPA, REBEL):
         REBEL.validate(self, cfg)
 
     def reward_terms(self, trainer, ts, key, agent_step):
-        """QPA's terms, then REBEL's value term (REBEL's first term, the plain Bradley-Terry loss, is QPA's)."""
+        """QPA's terms, then REBEL's value term (REBEL's first term, the plain Bradley-Terry loss, gives way to
+        QPA's over crops)."""
         value_terms = REBEL.reward_terms(self, trainer, ts, key, agent_step)[1:]
         return [*QPA.reward_terms(self, trainer, ts, key, agent_step), *value_terms]
 

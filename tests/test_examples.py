@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_cli_runs import _metrics
 from test_pixel_preference import MICRO as PIXEL_MICRO
 from test_preference_train import MICRO_PEBBLE
 from test_qpa_rune import METHOD_FLAGS
@@ -94,9 +95,7 @@ def rebel_on_qpa():
 def _qpa_run(run_dir: pathlib.Path, *flags: str) -> tuple[list[dict], dict]:
     """The QPA micro run of tests/test_qpa_rune.py with ``flags`` last: its metrics rows (no timings) and final.json."""
     cli.main([*QPA_MICRO, *METHOD_FLAGS["qpa"].split(), *flags, "--run-dir", str(run_dir)])
-    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    rows = [{k: v for k, v in row.items() if k not in ("seconds", "env_steps_per_s")} for row in rows]
-    return rows, json.loads((run_dir / "final.json").read_text())
+    return _metrics(run_dir), json.loads((run_dir / "final.json").read_text())
 
 
 @pytest.mark.heavy  # make test-heavy: three QPA micro runs through the command line, 1-4 minutes on 2 cores

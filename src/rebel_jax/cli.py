@@ -255,7 +255,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         if args.resume:
             print(f"note: --resume: no run in {run_dir} yet; starting the run from scratch", file=sys.stderr)
         keep_rounds_before(run_dir / "metrics.jsonl", 0)
-        _write_meta(run_dir, args, command)
+        _write_meta(run_dir, args, command, total)
     names = args.column_names()
 
     def real_columns(tree):  # the run's columns, without the padding

@@ -174,7 +174,7 @@ def _write_config(run_dir: pathlib.Path, args: Args) -> None:
     write_json(run_dir / "config.json", dataclasses.asdict(args.config), strict_json=False)  # keeps beta = inf
 
 
-def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
+def _write_meta(run_dir: pathlib.Path, args: Args, command: str, device_columns: int) -> None:
     meta = {
         "jax": jax.__version__,
         "devices": [d.device_kind for d in jax.devices()],
@@ -186,7 +186,7 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str) -> None:
         "command": command,
         **_run_fields(args),
         "columns": args.columns,
-        "device_columns": sweep.padded_columns(args.columns, jax.device_count()),
+        "device_columns": device_columns,  # the columns computed, padding included
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
     }
     write_json(run_dir / "meta.json", meta)

@@ -290,10 +290,11 @@ class Config:
             "reward": "a preference algo on a state task",
             "pixel_reward": "a preference algo on a pixel task",
         }
-        for m in methods.REGISTRY.values():  # a method's own parts: surf, rebel, qpa, rune
+        readers: dict[str, list[str]] = {}  # a method's own parts (surf, rebel, qpa, rune) and who reads each
+        for m in methods.REGISTRY.values():
             for part in m.sections():
-                readers = [n for n, o in methods.REGISTRY.items() if part in o.sections()]
-                where[part] = "--algo " + " or --algo ".join(readers)
+                readers.setdefault(part, []).append(m.name)
+        where |= {part: "--algo " + " or --algo ".join(names) for part, names in readers.items()}
         used = {"drqv2" if self.pixels else "sac"}
         if self.method is not None:
             used.update(self.method.sections())
