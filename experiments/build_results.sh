@@ -28,6 +28,9 @@ run experiments/baselines.py
 # rebel_teachers_walker_walk.png.
 run experiments/rebel.py
 
+# QPA and RUNE beside the five above: results/qpa_rune.json and results/qpa_rune_<task>.png.
+run experiments/qpa_rune.py
+
 # REBEL's first runs on B-Pref's protocol, stopped at 140k, against the baselines cut there.
 run experiments/compare.py $B/pebble_walker_100_utd1 $B/pebble_walker_100_utd1_bf16_seed1 $B/surf_walker_100_utd1_bf16 \
   $E/rebel_walker_100_lams_0.1_-0.1_bf16_stopped140k $E/rebel_walker_100_lams_0.01_-0.01_bf16_stopped140k \

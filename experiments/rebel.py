@@ -12,8 +12,8 @@ row per method:
 - ``iqm_ci``: the 95% percentile-bootstrap interval of the IQM over seeds;
 - ``steps_to_threshold``: the env steps (interpolated) at which the seed-mean curve first reaches the task's
   ``threshold``, ``analysis.common_threshold`` of the baselines' final means (80% of the lowest among SAC,
-  PEBBLE and PEBBLE+SURF: REBEL's rows do not move it, so adding a REBEL run changes no other row; a REBEL
-  row whose curve never reaches it has steps null and ratio 0);
+  PEBBLE and PEBBLE+SURF, ``BASELINES``: REBEL's rows do not move it, so adding a REBEL run changes no other
+  row; a REBEL row whose curve never reaches it has steps null and ratio 0);
 - ``efficiency_vs_pebble``: PEBBLE's steps to the threshold over the method's
   (``analysis.sample_efficiency_ratio``): 1.7 reads "70% more sample-efficient than PEBBLE", the
   paper's claim; ``efficiency_ci`` its seed-bootstrap interval (``sample_efficiency_ratio_ci``); ``pebble``
@@ -115,6 +115,9 @@ SIGMOID_VARIANT = "lower_bound, raw, sigmoid output"
 """``rows``' ``variant`` of the literal lower bound with the reward r >= 0 it assumes (``--reward.output sigmoid``)."""
 PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
+BASELINES = ("sac", "pebble", "surf")
+"""The algorithms whose final means set the threshold (``common_threshold``): a row of any other method (REBEL,
+QPA, RUNE) never moves it."""
 SURF = {"walker_walk": "surf", "cheetah_run": "surf (reward_update 100)"}
 """Per task the method label of the PEBBLE+SURF run that met its published figure, the reference of
 ``efficiency_vs_surf`` (the paper's claim names both baselines): on cheetah_run ``reward_update`` 100."""
@@ -153,7 +156,7 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     surf = surf if surf in curves else None
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
-    baselines = [label for label in curves if infos[label]["algo"] != "rebel" or label in PEBBLE]
+    baselines = [label for label in curves if infos[label]["algo"] in BASELINES or label in PEBBLE]
     threshold = common_threshold(np.nanmean(final_returns(curves[label][1])) for label in baselines)
     stats = compare(curves, reference, threshold)
 

@@ -229,3 +229,44 @@ def test_a_pooled_method_lists_every_runs_provenance_and_refuses_runs_of_other_s
     _edit(runs[2], "config.json", **{"env.num_envs": 7})
     with pytest.raises(ValueError, match="num_envs values differ"):
         compare.gather(runs)
+
+
+def _write_run(run_dir: pathlib.Path, algo: str, returns: np.ndarray, train_seed: int = 0) -> None:
+    """A one-method run (no grid) of ``algo`` whose seed j's evaluation return at round i is ``returns[i, j]``."""
+    run_dir.mkdir(parents=True)
+    cfg = dataclasses.asdict(PRESETS["tiny"])
+    cfg["algo"], cfg["train"]["seed"], cfg["feedback"]["labels"] = algo, train_seed, 100
+    seeds = returns.shape[1]
+    meta = {"devices": ["cpu"], "command": "train.py --preset tiny", "seeds": seeds, "columns": seeds}
+    (run_dir / "config.json").write_text(json.dumps(cfg))
+    (run_dir / "meta.json").write_text(json.dumps(meta | {"started": "2026-11-27T10:00:00"}))
+    rows = [{"env_steps": 10 * (i + 1), "round": i, "eval_return": r.tolist()} for i, r in enumerate(returns)]
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    (run_dir / "final.json").write_text(json.dumps({"final_eval_return": returns[-1].tolist()}))
+
+
+def test_qpa_rows_leave_the_threshold_to_the_baselines_and_pair_with_pebble_by_key(tmp_path):
+    import qpa_rune
+    import rebel
+
+    rng = np.random.default_rng(0)
+    pebble0, pebble1 = rng.uniform(100, 200, (4, 2)), rng.uniform(100, 200, (4, 2))
+    sac, qpa = rng.uniform(300, 400, (4, 2)), rng.uniform(0, 50, (4, 3))
+    _write_run(tmp_path / "p0", "pebble", pebble0)
+    _write_run(tmp_path / "p1", "pebble", pebble1, train_seed=1)
+    _write_run(tmp_path / "sac", "sac", sac)
+    _write_run(tmp_path / "qpa", "qpa", qpa)
+    dirs = [tmp_path / name for name in ("p0", "p1", "sac", "qpa")]
+    rows = {r["method"]: r for r in rebel.rows("probe_point", dirs)}
+    lowest_baseline = min(np.mean(pebble0.mean(0).tolist() + pebble1.mean(0).tolist()), sac.mean(0).mean())
+    assert rows["qpa"]["threshold"] == pytest.approx(0.8 * lowest_baseline, abs=0.01)
+
+    mine = qpa_rune.keyed_returns([tmp_path / "qpa"], "qpa")
+    pebble = qpa_rune.keyed_returns([tmp_path / "p0", tmp_path / "p1"], "pebble")
+    out = qpa_rune.paired(mine, pebble)
+    expected = [qpa[:, i].mean() - pebble0[:, i].mean() for i in range(2)]  # keys (0, 0) and (0, 1) only
+    assert out["keys"] == [[0, 0], [0, 1]]
+    np.testing.assert_allclose(out["differences"], expected, atol=0.01)
+    assert out["positive"] == 0 and out["pairs"] == 2
+    end = qpa_rune.end_of_run([tmp_path / "qpa"], [[0, 1, 2]])
+    assert end["mean"] == pytest.approx(qpa[-1].mean(), abs=0.01) and end["seeds"] == 3
