@@ -53,6 +53,9 @@ def test_a_pixel_run_s_policy_restores_as_in_a_full_restore_and_alone(tmp_path):
         assert isinstance(got, jax.Array) and got.dtype == full.dtype and got.shape == full.shape
         np.testing.assert_array_equal(got, full)
         np.testing.assert_array_equal(got, saved)
+    # The full restore is the saved state, leaf by leaf: the frame replay, the reward ensemble, the optimisers.
+    for restored, saved in zip(jax.tree.leaves(whole), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(restored, saved)
 
 
 # Orbax's failed restore of the damaged checkpoint leaves its reader behind (harmless): reports of it during this

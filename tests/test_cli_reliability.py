@@ -343,9 +343,10 @@ PIXEL = (
 @pytest.mark.parametrize(
     "algo",
     [
-        [],
-        # SURF's unlabelled pool and REBEL's kept evaluation frames are in the checkpoint too; make test covers
-        # their restore only through the CLI's shared code.
+        # All three in make test-heavy (PEBBLE's alone is about 110 s on 2 cores): make test covers the CLI's resume
+        # on state runs (above) and a pixel run's whole state saved and restored, leaf by leaf (test_checkpoint.py).
+        pytest.param([], marks=pytest.mark.heavy),
+        # SURF's unlabelled pool and REBEL's kept evaluation frames are in the checkpoint too.
         pytest.param(
             [
                 "--algo",
