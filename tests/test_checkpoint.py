@@ -216,3 +216,38 @@ def test_a_pixel_checkpoint_of_the_code_before_the_one_trainer_is_refused_naming
     ckpt.close()
     message = str(refused.value)
     assert "\n" not in message and "holds another state" in message and "git_commit 4972dfe" in message, message
+
+
+def test_a_save_without_waiting_survives_the_donation_of_its_arrays_and_completes_at_the_next_call(tmp_path):
+    # The trainer's next round donates the state it saved (its buffers are reused in place) while orbax writes.
+    state = _state(buffer_rows=2048)  # 8 MiB
+    expected = jax.tree.map(np.asarray, state)
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, state, wait=False)
+    step = jax.jit(lambda s: jax.tree.map(lambda x: x + 1, s), donate_argnums=0)
+    state = step(step(state))  # the saved arrays are donated, then overwritten
+    assert ckpt.latest() == 1  # completes step 1
+    assert (tmp_path / "checkpoints" / "1" / CHECKSUMS).exists() and not checkpoint.checksum_differences(
+        tmp_path / "checkpoints" / "1"
+    )
+    _, restored = ckpt.restore(jax.eval_shape(lambda: state))
+    ckpt.close()
+    for got, want in zip(jax.tree.leaves(restored), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_the_error_of_a_save_in_flight_is_raised_by_the_next_call_naming_its_step(tmp_path, monkeypatch):
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(1, _state(), wait=False)
+    ckpt.manager.wait_until_finished()  # orbax's own threads are done; the error below stands for theirs
+
+    def failed():
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ckpt.manager, "wait_until_finished", failed)
+    with pytest.raises(checkpoint.CheckpointSaveError, match="checkpoint 1 not saved: No space left on device"):
+        ckpt.save(2, _state())
+    monkeypatch.undo()
+    assert ckpt.steps() == [1]  # step 2 was not started; step 1's files are there, without checksums
+    assert not (tmp_path / "checkpoints" / "1" / CHECKSUMS).exists()
+    ckpt.close()

@@ -57,7 +57,7 @@ KILLED_TRAIN = textwrap.dedent(
         if where == "log" and env_steps == int(at):
             kill()
 
-    def save_killed(self, step, state):
+    def save_killed(self, step, state, wait=True):
         if where == "save" and step == int(at):
             start_saving = self.manager.save
 
@@ -66,7 +66,7 @@ KILLED_TRAIN = textwrap.dedent(
                 kill_once_writing(self.directory)
 
             self.manager.save = start_saving_then_kill
-        save(self, step, state)
+        save(self, step, state, wait)
 
     RunLogger.write, Checkpointer.save = write_then_kill, save_killed
     sys.argv[0] = "rebel_jax.train"
@@ -394,9 +394,9 @@ def test_a_checkpoint_slower_than_its_round_is_noted_once_with_a_larger_interval
 
     save = Checkpointer.save
 
-    def slow_save(self, step, state):  # a probe round takes milliseconds; a large replay's save, seconds
+    def slow_save(self, step, state, wait=True):  # a probe round takes milliseconds; a large replay's save, seconds
         time.sleep(0.5)
-        save(self, step, state)
+        save(self, step, state, wait)
 
     monkeypatch.setattr(Checkpointer, "save", slow_save)
     run_dir = tmp_path / "run"

@@ -185,14 +185,14 @@ FAILING_SAVE = textwrap.dedent(
     at, how = os.environ["FAIL_AT"].split(":")
     save = Checkpointer.save
 
-    def failing_save(self, step, state):
+    def failing_save(self, step, state, wait=True):
         if step == int(at):
             if how == "chmod":
                 os.chmod(self.directory, 0o555)
             else:
                 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
                 resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
-        save(self, step, state)
+        save(self, step, state, wait)
 
     Checkpointer.save = failing_save
     sys.argv[0] = "rebel_jax.train"

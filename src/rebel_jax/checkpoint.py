@@ -19,6 +19,10 @@ the arrays, and orbax's primary process (process 0) writes the metadata and comm
 The saved arrays are whole arrays, so a checkpoint restores on any number of processes and
 devices (tested: saved from 2 processes, resumed in 1, and back).
 
+``save(step, state, wait=False)`` returns once the arrays are on the host (orbax's asynchronous save): the files
+are written while the caller goes on, and the next call of the checkpointer completes the step and its checksums
+(the trainer's rounds overlap the writing of the checkpoint before them; a state run's replay is about 1 GB).
+
 A save that fails (disk full, a directory made read-only) raises :class:`CheckpointSaveError`, an ``OSError``
 naming the step and the cause, once orbax's threads have ended: the steps already on disk are untouched, and the
 process can exit. Orbax creates a step's directory in the calling thread (not in a background thread, whose
@@ -209,18 +213,42 @@ class Checkpointer:
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, async_options=synchronous_dirs)
         handler = ocp.StandardCheckpointHandler()
         self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handler)
+        self._unfinished: tuple[int, bool] | None = None  # (step, whether orbax saved it): see :meth:`save`
 
-    def save(self, step: int, state) -> None:
-        """Saves ``state`` as ``step``, waits until it is complete on disk, then writes its checksums.
+    def save(self, step: int, state, wait: bool = True) -> None:
+        """Saves ``state`` as ``step``; with ``wait``, until it is complete on disk with its checksums.
 
+        The previous save is finished first (:meth:`finish`). Without ``wait`` the call returns once orbax has
+        copied the arrays to the host (its save's blocking part): the files are written in orbax's threads while
+        the caller goes on (the next round may donate the arrays), and the next :meth:`save`, :meth:`finish`,
+        :meth:`latest` or :meth:`close` completes the step, writes its checksums and raises its error, if any.
         A step already on disk is left as it is (orbax skips it).
 
         Raises:
-          CheckpointSaveError: if the step could not be written (the steps on disk before are kept).
+          CheckpointSaveError: if this step or the unfinished one before it could not be written (the steps on
+            disk before it are kept).
         """
+        self.finish()
         step_dir = self.directory / str(step)
         try:
             saved = self.manager.save(step, args=ocp.args.StandardSave(_nonempty_leaves(state)))
+        except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
+            raise save_error(step, step_dir, err) from err
+        self._unfinished = (step, saved)
+        if wait:
+            self.finish()
+
+    def finish(self) -> None:
+        """Waits for the save in flight (if any) to be on disk, then writes its step's ``checksums.json``.
+
+        Raises:
+          CheckpointSaveError: if that step could not be written.
+        """
+        if self._unfinished is None:
+            return
+        (step, saved), self._unfinished = self._unfinished, None
+        step_dir = self.directory / str(step)
+        try:
             self.manager.wait_until_finished()
             if saved and jax.process_index() == 0:  # Every process's files are in the step once orbax renamed it.
                 partial = step_dir / (CHECKSUMS + ".part")
@@ -232,11 +260,13 @@ class Checkpointer:
             multihost_utils.sync_global_devices(f"checkpoint {step} checksummed")
 
     def latest(self) -> int | None:
-        """The newest complete step, or None."""
+        """The newest complete step (the save in flight finished first), or None."""
+        self.finish()
         return self.manager.latest_step()
 
     def steps(self) -> list[int]:
-        """Every complete step on disk, oldest first."""
+        """Every complete step on disk, oldest first (the save in flight finished first)."""
+        self.finish()
         return sorted(self.manager.all_steps())
 
     def stored_shapes(self, step: int) -> dict[str, tuple[int, ...]]:
@@ -370,4 +400,8 @@ class Checkpointer:
         return target
 
     def close(self) -> None:
-        self.manager.close()
+        """Finishes the save in flight (raising its error, if any), then ends orbax's threads."""
+        try:
+            self.finish()
+        finally:
+            self.manager.close()

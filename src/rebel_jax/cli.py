@@ -319,8 +319,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                 if which:
                     print(f"warning: round {r}: {which} diverged; going on (--on-divergence continue)", file=sys.stderr)
             if args.checkpoint_every and ((r + 1) % args.checkpoint_every == 0 or r + 1 == cfg.train.num_rounds):
-                t0 = time.perf_counter()
-                ckpt.save(r + 1, state)
+                t0 = time.perf_counter()  # The wait for the previous save and this one's copy to the host; its
+                ckpt.save(r + 1, state, wait=r + 1 == cfg.train.num_rounds)  # files are written during the next round.
                 saving = time.perf_counter() - t0
                 if primary and not slow_save_noted and saving > seconds and r + 1 < cfg.train.num_rounds:
                     slow_save_noted = True

@@ -81,9 +81,10 @@ class RunOptions:
     overwrite: bool = False
     """Replace the run in ``run_dir``: its config, logs, checkpoints and TensorBoard files are deleted first."""
     checkpoint_every: int = 1
-    """Rounds between checkpoints; 0 disables them (``--resume`` still reads existing ones). A save is
-    synchronous: the first one that takes longer than its round (a large replay on a GPU) prints a note
-    with an interval that keeps saving under a fifth of the time."""
+    """Rounds between checkpoints; 0 disables them (``--resume`` still reads existing ones). A save's files are
+    written during the next round (the last round's before the final evaluation); a save that still holds up the
+    run longer than its round (a large pixel replay on a GPU) prints a note with an interval that keeps saving
+    under a fifth of the time."""
     time_limit: float = 0.0
     """Seconds of wall time: stop after the last round that ends within it (checkpointing that
     round) and continue later with ``--resume``. For calls with a wall-clock limit; 0: none."""
