@@ -6,7 +6,8 @@ Usage:
 
 Each run directory (``python -m rebel_jax.train``) contributes one method per grid point: a
 REBEL run with ``--lam-grid`` is split into its lambdas (``rebel lam=-0.1``; lambda 0 is
-labelled ``pebble (rebel lam=0)``, which it equals bit for bit), a ``--teacher-grid`` run into
+labelled ``pebble (rebel lam=0)``, which it equals bit for bit; a method composed with REBEL's term, such as
+examples/rebel_on_qpa.py's, by its name: ``rebel_qpa lam=0``), a ``--teacher-grid`` run into
 its teachers (``..., noisy``; a single ``--teacher`` other than the oracle is named the same way); other
 runs are labelled by their algo, and budgets other than 100 labels are named (``pebble 1000 labels``), as are
 a SURF ``reward_update`` other than 1000, a pixel reward stepped as SURF's (``pixel_reward.per_member_adam``),
@@ -52,9 +53,14 @@ from analysis import (  # noqa: E402
 )
 
 from rebel_jax import teachers  # noqa: E402
-from rebel_jax.methods import REGISTRY as PREFERENCE_METHODS  # noqa: E402
+from rebel_jax.config import AGENTS  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
+
+
+def _learns_from_preferences(cfg: dict) -> bool:
+    """Every method but the agents on the true reward, registered here or not (a method of an example file)."""
+    return cfg["algo"] not in AGENTS
 
 
 def _teacher_name(knobs: dict) -> str:
@@ -67,7 +73,7 @@ def _info(run_dir: pathlib.Path, lam, teacher) -> dict:
     """What a method's numbers are: the run's settings, device, date and command."""
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text())
-    preference = cfg["algo"] in PREFERENCE_METHODS
+    preference = _learns_from_preferences(cfg)
     return {
         "task": cfg["env"]["task"],
         "algo": cfg["algo"],
@@ -113,19 +119,21 @@ def methods(run_dir: pathlib.Path) -> dict[str, tuple[tuple[np.ndarray, np.ndarr
     lams = meta.get("lams") or [None] * columns
     # Outside a --teacher-grid the run's own teacher names the method unless it is the oracle, so that runs
     # of one method under different teachers never merge.
-    own = _teacher_name(cfg["teacher"]) if cfg["algo"] in PREFERENCE_METHODS else None
+    own = _teacher_name(cfg["teacher"]) if _learns_from_preferences(cfg) else None
     teachers = meta.get("teachers") or [None if own == "oracle" else own] * columns
     out: dict[str, tuple[list[int], dict]] = {}
     for i, (lam, teacher) in enumerate(zip(lams, teachers, strict=True)):
         if lam is None:
             label = cfg["algo"]
-        else:
+        elif cfg["algo"] == "rebel":
             label = "pebble (rebel lam=0)" if lam == 0 else f"rebel lam={lam:g}"
+        else:  # a method composed with REBEL's term (examples/rebel_on_qpa.py): its lambdas, 0 included
+            label = f"{cfg['algo']} lam={lam:g}"
         settings = _term_settings(cfg) if lam else []
-        if cfg["algo"] in PREFERENCE_METHODS and cfg["reward"].get("output", "tanh") != "tanh":
+        if _learns_from_preferences(cfg) and cfg["reward"].get("output", "tanh") != "tanh":
             settings.append(f"{cfg['reward']['output']} output")
         label += f" ({', '.join(settings)})" if settings else ""
-        if cfg["algo"] in PREFERENCE_METHODS and cfg["feedback"]["labels"] != 100:
+        if _learns_from_preferences(cfg) and cfg["feedback"]["labels"] != 100:
             label += f" {cfg['feedback']['labels']} labels"
         if cfg["algo"] == "surf" and cfg.get("surf", {}).get("reward_update", 1000) != 1000:  # SURF's walker value
             label += f" (reward_update {cfg['surf']['reward_update']})"

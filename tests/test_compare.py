@@ -270,3 +270,11 @@ def test_qpa_rows_leave_the_threshold_to_the_baselines_and_pair_with_pebble_by_k
     assert out["positive"] == 0 and out["pairs"] == 2
     end = qpa_rune.end_of_run([tmp_path / "qpa"], [[0, 1, 2]])
     assert end["mean"] == pytest.approx(qpa[-1].mean(), abs=0.01) and end["seeds"] == 3
+
+
+def test_a_method_composed_with_rebels_term_names_its_lambdas_by_its_own_name(tmp_path):
+    # examples/rebel_on_qpa.py registers rebel_qpa in its own process only: its lambda 0 is QPA, not PEBBLE.
+    write_grid_run(tmp_path / "run", algo="rebel_qpa")
+    _edit(tmp_path / "run", "meta.json", lams=[lam for lam, _ in GRID])
+    labels = sorted(compare.methods(tmp_path / "run"))
+    assert labels == sorted(f"rebel_qpa lam={lam:g}, {t}" for lam in (0.0, -0.1) for t in ("noisy", "skip"))
