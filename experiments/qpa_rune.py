@@ -53,7 +53,7 @@ PUBLISHED = {
     # Zhu, Liu, Gu et al., "Improving Reward Models with Proximal Policy Exploration for Preference-Based
     # Reinforcement Learning", Table 1: their runs of each method's official code at QPA's budgets (walker_walk
     # 100 labels 500k steps, cheetah_run 100 labels 1M), 5 seeds, mean +- std of the final 10 evaluation episodes
-    # pooled over seeds. QPA's own table could not be read; RUNE's paper reports Meta-World only.
+    # pooled over seeds. QPA's own paper is not quoted; RUNE's paper reports Meta-World only.
     ("walker_walk", "pebble"): (453.43, 159.43),
     ("walker_walk", "surf"): (661.01, 91.72),
     ("walker_walk", "rune"): (414.62, 182.16),
