@@ -95,8 +95,15 @@ def whole(tmp_path_factory) -> pathlib.Path:
     return run_dir
 
 
-def _same_run(a: pathlib.Path, b: pathlib.Path) -> None:
-    assert _metrics(a) == _metrics(b)
+def _same_run(a: pathlib.Path, b: pathlib.Path, rounded: tuple[str, ...] = ()) -> None:
+    """The same metrics, bit for bit but those named in ``rounded`` (within float32 rounding), and final results."""
+    rows_a, rows_b = _metrics(a), _metrics(b)
+    for row_a, row_b in zip(rows_a, rows_b, strict=True):
+        for key in rounded:
+            if key in row_a or key in row_b:
+                got, want = (np.asarray(row.pop(key), float) for row in (row_a, row_b))  # null: NaN
+                np.testing.assert_allclose(got, want, rtol=1e-6, err_msg=key)
+    assert rows_a == rows_b
     assert [row["round"] for row in _metrics(b)] == list(range(ROUNDS))
     assert _final(a) == _final(b) and _final(b)["status"] == "completed"
 
@@ -377,7 +384,9 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
     assert _steps_on_disk(extended) == [1, 2]
     assert [row["labels_used"] for row in _metrics(extended)] == [[0.0, 0.0], [4.0, 4.0]]
     cli.main([*flags, "--run-dir", str(extended), "--resume"])  # round 2, after the checkpoint of round 1
-    _same_run(whole, extended)
+    # The replay's reward correlation sums over the replay's capacity (the run's steps: 60 here, 40 in the first
+    # part), so XLA's full optimisation may add it up in another order.
+    _same_run(whole, extended, rounded=("reward_correlation_replay", "reward_correlation_replay_mean"))
     assert _metrics(extended)[-1]["labels_used"] == [8.0, 8.0]
     _same_checkpoint(whole, extended)
     # `python -m rebel_jax.video RUN_DIR`'s policy of each column is the one final.json evaluated.
