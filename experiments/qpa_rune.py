@@ -24,9 +24,9 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure, final_returns, sign_test_p
+from analysis import curve_figure, final_returns
 from compare import gather, methods
-from rebel import PEBBLE, RESULTS, rows
+from rebel import PEBBLE, RESULTS, rows, sign_counted
 
 RUNS = {  # task -> run directories under results/runs
     "walker_walk": [
@@ -87,17 +87,9 @@ def keyed_returns(run_dirs: list[pathlib.Path], label: str) -> dict[tuple[int, i
 
 
 def paired(mine: dict, pebble: dict) -> dict:
-    """The method minus PEBBLE over the keys both have, with the sign test."""
+    """The method minus PEBBLE over the keys both have, with the sign test (:func:`rebel.sign_counted`)."""
     keys = sorted(set(mine) & set(pebble))
-    diffs = [round(mine[k] - pebble[k], 2) for k in keys]
-    positive, nonzero = sum(d > 0 for d in diffs), sum(d != 0 for d in diffs)
-    return {
-        "keys": [list(k) for k in keys],
-        "differences": diffs,
-        "positive": int(positive),
-        "pairs": int(nonzero),
-        "sign_test_p": round(sign_test_p(int(positive), int(nonzero)), 4) if nonzero else None,
-    }
+    return sign_counted({"keys": [list(k) for k in keys], "differences": [round(mine[k] - pebble[k], 2) for k in keys]})
 
 
 def task_rows(task: str, logs: list[str]) -> list[dict]:

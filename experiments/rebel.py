@@ -289,22 +289,20 @@ def _differences(a: dict, b: dict) -> list[float]:
     return [round(float(x) - float(y), 2) for x, y in zip(a["final_returns"], b["final_returns"], strict=True)]
 
 
+def sign_counted(entry: dict) -> dict:
+    """``entry`` with how many of its non-zero ``differences`` are positive (``positive`` of ``pairs``) and
+    :func:`sign_test_p` (null without a non-zero difference)."""
+    nonzero = [d for d in entry["differences"] if d != 0]
+    positive = int(sum(d > 0 for d in nonzero))
+    p = round(sign_test_p(positive, len(nonzero)), 4) if nonzero else None
+    return entry | {"positive": positive, "pairs": len(nonzero), "sign_test_p": p}
+
+
 def _sign_tested(entries: list[dict]) -> list[dict]:
-    """Each entry with how many of its non-zero ``differences`` are positive and :func:`sign_test_p`; then
-    one entry pooling every pair (``lam`` "all"), if there is any entry."""
-
-    def counted(entry: dict) -> dict:
-        nonzero = [d for d in entry["differences"] if d != 0]
-        positive = int(sum(d > 0 for d in nonzero))
-        return entry | {
-            "positive": positive,
-            "pairs": len(nonzero),
-            "sign_test_p": round(sign_test_p(positive, len(nonzero)), 4),
-        }
-
-    out = [counted(e) for e in entries]
+    """Each entry :func:`sign_counted`; then one entry pooling every pair (``lam`` "all"), if there is any entry."""
+    out = [sign_counted(e) for e in entries]
     if out:
-        out.append(counted({"lam": "all", "differences": [d for e in out for d in e["differences"]]}))
+        out.append(sign_counted({"lam": "all", "differences": [d for e in out for d in e["differences"]]}))
     return out
 
 
