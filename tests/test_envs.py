@@ -230,3 +230,35 @@ def test_solver_strings_name_the_newton_loop():
     assert parse_solver("2/5/noeulerdamp:unrolled").newton_loop == "unrolled"
     with pytest.raises(ValueError, match="NEWTON_LOOP"):
         parse_solver("default:fast")
+
+
+def test_plain_cholesky_factors_and_solves_as_lapack_does():
+    """``_mjx.plain_cholesky``'s factor and solve (plain JAX operations) against SciPy's LAPACK on a batch of
+    random symmetric positive definite matrices of the quadruped's size (22 degrees of freedom)."""
+    import scipy.linalg
+
+    from rebel_jax.envs._mjx import _cho_factor, _cho_solve
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(5, 22, 40))
+    a = x @ x.transpose(0, 2, 1) + 0.1 * np.eye(22)
+    b = rng.normal(size=(5, 22))
+    u, lower = _cho_factor(jnp.asarray(a, jnp.float32))
+    assert lower is False
+    ref = np.stack([scipy.linalg.cholesky(m, lower=False) for m in a])
+    np.testing.assert_allclose(u, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+    solved = _cho_solve((u, False), jnp.asarray(b, jnp.float32))
+    np.testing.assert_allclose(solved, np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-4, atol=1e-4)
+
+
+def test_cpu_physics_makes_no_lapack_call():
+    """On the CPU the task's step traces MJX's Cholesky factorizations as plain JAX operations
+    (``_mjx.plain_cholesky``): jaxlib 0.10.2's CPU LAPACK kernels can hang on large batches. MJX's own step,
+    traced the same way outside the env, does call LAPACK, so the check can fail."""
+    from mujoco import mjx
+
+    env = make_env("walker_walk")
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    ours = jax.jit(env.step).lower(state, jnp.zeros(env.action_size)).as_text()
+    mjxs = jax.jit(lambda d: mjx.step(env.sys, d)).lower(state.pipeline_state).as_text()
+    assert "lapack" in mjxs and "lapack" not in ours

@@ -149,6 +149,43 @@ def test_model_names_and_sensors_are_dm_controls(task):
     assert env.dt == pytest.approx(_dm_env(task, 0).control_timestep()) and env.spec.n_substeps == 4
 
 
+@pytest.mark.parametrize("seeds,episodes", [((0, 4), 1), pytest.param((1,), 100, marks=pytest.mark.heavy)])
+def test_left_out_pairs_never_near_in_dm_control(seeds, episodes):
+    """The simulated model leaves out exactly the geom pairs between the task's ``never_near`` bodies (the lower legs
+    against the torso and eyes: 36 of MJX's 159), and in dm_control those pairs never reach MuJoCo's narrow phase:
+    over episodes of uniformly random actions (``make test``: one on its toes, one on its back; ``make test-heavy``:
+    100 episodes, 100,000 control steps), its contact filter, called for every pair whose bounding boxes overlap,
+    saw none of them (while it saw thousands of others)."""
+    from mujoco.mjx._src import collision_driver
+
+    full, simulated = mj_model(TASK), mj_model(TASK, simulated=True)
+    pairs = lambda m: {tuple(p[:2]) for v in collision_driver._geom_groups(m).values() for p in v}  # noqa: E731
+    body = lambda g: mujoco.mj_id2name(full, mujoco.mjtObj.mjOBJ_BODY, full.geom_bodyid[g])  # noqa: E731
+    never = {frozenset(b) for b in TASKS[TASK].never_near}
+    left_out = pairs(full) - pairs(simulated)
+    assert pairs(simulated) <= pairs(full) and len(left_out) == 36
+    assert left_out == {p for p in pairs(full) if frozenset(map(body, p)) in never}
+    near, seen = [], [0]
+
+    def contact_filter(m, d, g1, g2):
+        seen[0] += 1
+        if frozenset((body(g1), body(g2))) in never:
+            near.append((g1, g2))
+        return 0  # filter nothing
+
+    mujoco.set_mjcb_contactfilter(contact_filter)
+    try:
+        for seed in seeds:
+            env, rng = _dm_env(TASK, seed), np.random.default_rng(seed)
+            for _ in range(episodes):
+                ts = env.reset()
+                while not ts.last():
+                    ts = env.step(_control(rng.uniform(-1, 1, 12), env.physics.model.actuator_ctrlrange))
+    finally:
+        mujoco.set_mjcb_contactfilter(None)
+    assert not near and seen[0] > 10_000
+
+
 def test_run_is_walk_with_its_own_floor_and_speed():
     """quadruped_run's physics is quadruped_walk's (the floor's size only draws it), so its step is not compiled
     here; its observation and reward are tested on the same states below."""

@@ -75,6 +75,10 @@ class EnvConfig:
     complete episodes to draw queries from (``query.pool='episodes'``), as B-Pref's 10."""
     episode_length: int = 1000
     """Control steps per episode (dm_control: 1000)."""
+    all_contacts: bool = False
+    """Check every pair of geoms for contact at every physics step. Off: leave out the pairs that never came near
+    each other in dm_control (the quadruped's lower legs against its torso and eyes; docs/tasks.md), as MuJoCo's own
+    bounding-box test leaves them out; no effect on walker and cheetah."""
 
     def validate(self) -> None:
         from rebel_jax.envs import PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version

@@ -38,20 +38,27 @@ def no_pixel_version(name: str) -> str | None:
 
 
 def make_env(
-    name: str, solver: str | Solver = "default", episode_length: int | None = 1000, unroll_substeps: bool = False
+    name: str,
+    solver: str | Solver = "default",
+    episode_length: int | None = 1000,
+    unroll_substeps: bool = False,
+    all_contacts: bool = False,
 ) -> DMCEnv | PixelEnv | PointProbe:
     """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
     or :data:`PROBES`.
 
-    A probe has no physics engine: ``solver`` is checked but unused, and so is ``unroll_substeps``.
+    A probe has no physics engine: ``solver`` is checked but unused, and so are ``unroll_substeps`` and
+    ``all_contacts``.
     A pixel task's ``episode_length`` counts environment frames, as its state task's does. ``None``: no
     time limit (brax's convention, for ``brax.envs.wrappers.training.EpisodeWrapper``).
     """
     if name in PIXEL_TASKS:
-        return PixelEnv(dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps))
+        return PixelEnv(
+            dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps, all_contacts)
+        )
     if name in PROBES:
         parse_solver(solver)
-        del unroll_substeps  # Unused.
+        del unroll_substeps, all_contacts  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
     if reason:
@@ -59,7 +66,7 @@ def make_env(
     if name not in TASKS:
         valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
-    return dmc.make_env(name, solver, episode_length, unroll_substeps)
+    return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts)
 
 
 __all__ = [

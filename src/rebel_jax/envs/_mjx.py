@@ -84,12 +84,82 @@ def newton_trips(iterations: int, unroll: bool = False) -> Iterator[list[int]]:
 
         return jax.lax.fori_loop(0, iterations, trip, ctx, unroll=unroll)
 
-    original = solver.jax
-    solver.jax = _Namespace(jax, lax=_Namespace(jax.lax, while_loop=while_loop))
+    original = solver.jax  # jax itself, or another context's namespace (``plain_cholesky``): kept underneath
+    solver.jax = _Namespace(original, lax=_Namespace(original.lax, while_loop=while_loop))
     try:
         yield replaced
     finally:
         solver.jax = original
+
+
+def cholesky_upper(a: jax.Array) -> jax.Array:
+    """The upper Cholesky factor ``u`` of symmetric positive definite matrices (``a = u^T u``; leading axes batch),
+    column by column in plain JAX operations (no LAPACK call): column ``j`` of the lower factor is
+    ``(a[:, j] - l[:, :j] l[j, :j]) / sqrt(.)``, zero above the diagonal."""
+    n = a.shape[-1]
+    rows = jnp.arange(n)
+
+    def column(j, lower):
+        v = a[..., :, j] - jnp.einsum("...ik,...k->...i", lower, lower[..., j, :])  # columns >= j of lower are 0
+        v = v / jnp.sqrt(v[..., j])[..., None]
+        return lower.at[..., :, j].set(jnp.where(rows >= j, v, 0.0))
+
+    return jnp.swapaxes(jax.lax.fori_loop(0, n, column, jnp.zeros_like(a)), -1, -2)
+
+
+def _substitute(u: jax.Array, b: jax.Array, transpose: bool) -> jax.Array:
+    """Solves ``u^T x = b`` (``transpose``, forward) or ``u x = b`` (backward) for upper-triangular ``u``; ``b``
+    is a vector per matrix."""
+    n = u.shape[-1]
+    order = jnp.arange(n) if transpose else jnp.arange(n)[::-1]
+    t = jnp.swapaxes(u, -1, -2) if transpose else u
+
+    def row(k, x):
+        i = order[k]
+        rest = jnp.einsum("...j,...j->...", t[..., i, :], x)  # x is 0 where not yet solved
+        return x.at[..., i].set((b[..., i] - rest) / t[..., i, i])
+
+    return jax.lax.fori_loop(0, n, row, jnp.zeros_like(b))
+
+
+def _cho_factor(a: jax.Array, lower: bool = False, **_) -> tuple[jax.Array, bool]:
+    if lower:
+        raise NotImplementedError("plain_cholesky: MJX factors with lower=False")
+    return cholesky_upper(a), False
+
+
+def _cho_solve(c_and_lower: tuple[jax.Array, bool], b: jax.Array, **_) -> jax.Array:
+    u, lower = c_and_lower
+    if lower or b.ndim != u.ndim - 1:
+        raise NotImplementedError("plain_cholesky: MJX solves one vector per upper factor")
+    return _substitute(u, _substitute(u, b, transpose=True), transpose=False)
+
+
+@contextlib.contextmanager
+def plain_cholesky() -> Iterator[None]:
+    """While code is traced under it, MJX factors and solves with its mass matrix and its Newton solver's Hessian
+    (``jax.scipy.linalg.cho_factor`` and ``cho_solve`` in ``smooth.py``, ``solver.py`` and ``forward.py``, mujoco
+    3.17) by :func:`cholesky_upper` and substitution, in plain JAX operations, instead of LAPACK.
+
+    Why: jaxlib 0.10.2's CPU LAPACK kernels split a large batch over XLA's CPU thread pool and wait for the parts
+    from inside that pool (``jax::ParallelBatchMap``, jaxlib/cpu/lapack_kernels.cc). When as many factorizations
+    run at once as the pool has threads, every thread waits and none computes: the program hangs. On 2 cores a
+    quadruped step of 60 or 64 environments hung in each of 4 tries (of 4, 32 and 48 it did not).
+    :class:`rebel_jax.envs.dmc.DMCEnv` traces its physics under this context on the CPU only; GPU programs keep
+    MJX's calls.
+    """
+    from mujoco.mjx._src import forward, smooth, solver
+
+    modules = (forward, smooth, solver)
+    originals = [m.jax for m in modules]
+    for m, original in zip(modules, originals, strict=True):
+        linalg = _Namespace(original.scipy.linalg, cho_factor=_cho_factor, cho_solve=_cho_solve)
+        m.jax = _Namespace(original, scipy=_Namespace(original.scipy, linalg=linalg))
+    try:
+        yield
+    finally:
+        for m, original in zip(modules, originals, strict=True):
+            m.jax = original
 
 
 def _plane_capsule(plane, capsule):

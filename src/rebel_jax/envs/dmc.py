@@ -12,6 +12,7 @@ References:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 from collections.abc import Callable
@@ -25,7 +26,7 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from rebel_jax.envs import models, quadruped
-from rebel_jax.envs._mjx import mujoco_contact_frames, newton_trips
+from rebel_jax.envs._mjx import mujoco_contact_frames, newton_trips, plain_cholesky
 from rebel_jax.envs.rewards import tolerance
 
 
@@ -92,6 +93,12 @@ class TaskSpec:
       mujoco_frames: collide planes and capsules with MuJoCo's contact frames (``_mjx.mujoco_contact_frames``)
         instead of MJX's, which differ for capsules near the plane's normal: needed in 3-D (the quadruped);
         in a planar model (walker, cheetah) both frames span the same friction pyramid.
+      never_near: body pairs whose geoms the simulation leaves out of its collision checks (unless
+        ``all_contacts``), as excluded pairs of the model. MuJoCo's C engine tests a pair only once its bounding
+        boxes overlap; MJX tests every pair at every physics step. The quadruped's lower legs against its torso
+        and eyes are 36 geom pairs that MJX computes by 10 steps of gradient descent each (its SDF colliders),
+        about two thirds of the quadruped's step on a CPU, and in dm_control their bounding boxes never overlapped
+        under random actions (tests/test_envs_quadruped.py), so leaving them out changes no step seen there.
     """
 
     name: str
@@ -107,6 +114,7 @@ class TaskSpec:
     sensors: bool = False
     has_pixels: bool = True
     mujoco_frames: bool = False
+    never_near: tuple[tuple[str, str], ...] = ()
 
 
 def _uncommitted(leaf):
@@ -213,6 +221,9 @@ def _quadruped(name: str, speed: float) -> TaskSpec:
         sensors=True,
         has_pixels=False,  # ellipsoid and cylinder geoms, which the pure-JAX camera does not draw
         mujoco_frames=True,
+        never_near=tuple(
+            ("torso", f"{part}_{leg}") for leg, _, _ in models.QUADRUPED_LEGS for part in ("knee", "ankle", "toe")
+        ),
     )
 
 
@@ -236,10 +247,11 @@ TASKS: dict[str, TaskSpec] = {
 }
 
 
-def mj_model(task: str, solver: Solver | None = None) -> mujoco.MjModel:
-    """The compiled MuJoCo model of ``task``, with ``solver``'s options applied."""
+def mj_model(task: str, solver: Solver | None = None, simulated: bool = False) -> mujoco.MjModel:
+    """The compiled MuJoCo model of ``task`` (dm_control's), with ``solver``'s options applied; ``simulated``: with
+    the task's ``never_near`` body pairs excluded, the model :class:`DMCEnv` simulates by default."""
     spec = TASKS[task]
-    model = models.compile_model(spec.xml(), spec.total_mass)
+    model = models.compile_model(spec.xml(), spec.total_mass, spec.never_near if simulated else ())
     if solver is not None:
         model.opt.iterations = solver.iterations
         model.opt.ls_iterations = solver.ls_iterations
@@ -269,14 +281,21 @@ class DMCEnv(Env):
     are built so.
     """
 
-    def __init__(self, task: str, solver: Solver, episode_length: int | None = 1000, unroll_substeps: bool = False):
+    def __init__(
+        self,
+        task: str,
+        solver: Solver,
+        episode_length: int | None = 1000,
+        unroll_substeps: bool = False,
+        all_contacts: bool = False,
+    ):
         if episode_length is not None and episode_length < 1:
             raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
         self.spec = TASKS[task]
         self.solver = solver
         self.episode_length = episode_length
         self.unroll_substeps = unroll_substeps
-        self.mj_model = mj_model(task, solver)
+        self.mj_model = mj_model(task, solver, simulated=not all_contacts)
         # ``mjx.put_model`` and ``mjx.make_data`` commit their arrays to the first device
         # (``jax.device_put(..., jax.devices()[0])``, mujoco 3.17 mjx/_src/io.py:463 and :771). Traced into
         # the programs that ``shard_map`` runs on every GPU, such arrays pin each device's part to the
@@ -328,12 +347,15 @@ class DMCEnv(Env):
         return self
 
     def _solved(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
-        """``fn(d)``, traced with the solver's Newton loop (``Solver.newton_loop``) and, where the task says so,
-        MuJoCo's contact frames (``TaskSpec.mujoco_frames``)."""
-        if self.spec.mujoco_frames:
-            with mujoco_contact_frames():
-                return self._solved_by_loop(fn, d)
-        return self._solved_by_loop(fn, d)
+        """``fn(d)``, traced with the solver's Newton loop (``Solver.newton_loop``), where the task says so
+        MuJoCo's contact frames (``TaskSpec.mujoco_frames``), and on the CPU with Cholesky factorizations in plain
+        JAX operations (``_mjx.plain_cholesky``: jaxlib's CPU LAPACK calls can hang on large batches)."""
+        with contextlib.ExitStack() as stack:
+            if self.spec.mujoco_frames:
+                stack.enter_context(mujoco_contact_frames())
+            if jax.default_backend() == "cpu":
+                stack.enter_context(plain_cholesky())
+            return self._solved_by_loop(fn, d)
 
     def _solved_by_loop(self, fn: Callable[[mjx.Data], mjx.Data], d: mjx.Data) -> mjx.Data:
         loop, iterations = self.solver.newton_loop, self.solver.iterations
@@ -427,7 +449,11 @@ def parse_solver(solver: str | Solver) -> Solver:
 
 
 def make_env(
-    name: str, solver: str | Solver = "default", episode_length: int | None = 1000, unroll_substeps: bool = False
+    name: str,
+    solver: str | Solver = "default",
+    episode_length: int | None = 1000,
+    unroll_substeps: bool = False,
+    all_contacts: bool = False,
 ) -> DMCEnv:
     """Builds a task by name.
 
@@ -439,7 +465,8 @@ def make_env(
         convention: ``EpisodeWrapper`` adds it).
       unroll_substeps: unroll the physics substeps of a control step in the compiled
         program instead of looping over them (longer compile, fewer loop round trips).
+      all_contacts: check every geom pair, also the task's ``never_near`` ones (:class:`TaskSpec`).
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}")
-    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps)
+    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts)

@@ -172,15 +172,21 @@ CHEETAH_TOTAL_MASS = 14.0
 """dm_control's cheetah sets ``<compiler settotalmass="14"/>``; we scale after compiling."""
 
 
-def compile_model(xml: str, total_mass: float | None = None) -> mujoco.MjModel:
+def compile_model(
+    xml: str, total_mass: float | None = None, excludes: tuple[tuple[str, str], ...] = ()
+) -> mujoco.MjModel:
     """Compiles MJCF text with MuJoCo's own compiler.
 
     Args:
       xml: MJCF text.
       total_mass: if given, scales all masses and inertias so that they sum to it
         (what MJCF's deprecated ``settotalmass`` compiler attribute does).
+      excludes: body pairs whose geoms never collide (MJCF's ``<contact><exclude>``), added to the model.
     """
-    model = mujoco.MjModel.from_xml_string(xml)
+    spec = mujoco.MjSpec.from_string(xml)
+    for body1, body2 in excludes:
+        spec.add_exclude(bodyname1=body1, bodyname2=body2)
+    model = spec.compile()
     if total_mass is not None:
         mujoco.mj_setTotalmass(model, total_mass)
         mujoco.mj_setConst(model, mujoco.MjData(model))

@@ -29,8 +29,10 @@ PREFIX = "rebel_"
 
 
 def _task_factory(task: str) -> Callable[..., dmc.DMCEnv]:
-    def make(solver: str | dmc.Solver = "default", unroll_substeps: bool = False) -> dmc.DMCEnv:
-        return dmc.make_env(task, solver, episode_length=None, unroll_substeps=unroll_substeps)
+    def make(
+        solver: str | dmc.Solver = "default", unroll_substeps: bool = False, all_contacts: bool = False
+    ) -> dmc.DMCEnv:
+        return dmc.make_env(task, solver, None, unroll_substeps, all_contacts)
 
     make.__name__ = make.__qualname__ = f"{PREFIX}{task}"
     make.__doc__ = f"{task} without a time limit, for brax's registry (see {__name__})."
