@@ -1,4 +1,5 @@
-"""``mujoco.mjx``, imported with its optional-backend messages sent to logging; its Newton loop with known trips.
+"""``mujoco.mjx``, imported with its optional-backend messages sent to logging; its Newton loop with known trips;
+MuJoCo's contact frames for capsules on a plane; Cholesky factorizations in plain JAX operations (CPU).
 
 Without the optional Warp backend (absent on the CPU machines and the GPU image alike),
 importing ``mujoco.mjx`` prints "Failed to import warp: No module named 'warp'" and the same
