@@ -28,6 +28,10 @@ run experiments/baselines.py
 # rebel_teachers_walker_walk.png.
 run experiments/rebel.py
 
+# SAC and PEBBLE on quadruped_walk against their published figures: results/quadruped.json and
+# results/quadruped_walk.png.
+run experiments/quadruped.py
+
 # QPA and RUNE beside the five above: results/qpa_rune.json and results/qpa_rune_<task>.png.
 run experiments/qpa_rune.py
 
