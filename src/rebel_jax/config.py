@@ -157,11 +157,23 @@ class TrainConfig:
     ``pixel_feedback.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
     seed: int = 0
     """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
+    overlap: bool = False
+    """The agent's updates at a vector step sample the replay as it was before that step's transitions (one vector
+    step behind), so that they do not wait for its physics: on a GPU the env step then runs on a second stream,
+    beside the updates. A protocol change (B-Pref's updates see the newest transitions), off in every preset; its
+    speed and its learning curves are not yet measured (``benchmarks/overlap.py`` times the two side by side)."""
 
     def validate(self, num_envs: int) -> None:
         for name in ("total_steps", "steps_per_round", "eval_every", "eval_episodes"):
             _check(getattr(self, name) >= 1, f"train.{name}", getattr(self, name), ">= 1")
         _check(self.seed_steps >= 0, "train.seed_steps", self.seed_steps, ">= 0")
+        if self.overlap:  # The first updates must find transitions in the replay of the step before.
+            _check(
+                self.seed_steps > num_envs,
+                "train.seed_steps",
+                self.seed_steps,
+                f"> env.num_envs={num_envs} with train.overlap",
+            )
         _check(
             self.steps_per_round % num_envs == 0,
             "train.steps_per_round",
