@@ -2,7 +2,8 @@
 
 Usage:
   python benchmarks/overlap.py [--task walker_walk] [--columns 5] [--num-envs 20] [--updates 10] [--steps 100]
-      [--modes physics updates serial independent stream] [--hidden 0] [--batch-size 0]
+      [--modes physics updates serial independent stream stream_updates] [--solver default] [--hidden 0]
+      [--batch-size 0]
       [--out benchmarks/results/overlap.json] [--xla-flags=FLAGS]
 
 A vector step of the trainer at B-Pref's protocol is one control step of every column's environments
@@ -16,7 +17,11 @@ minibatch per column), per mode:
   sample a replay that already holds the step's transitions;
 - ``independent``: both, the minibatch not reading them (a replay one vector step behind);
 - ``stream``: ``independent`` with the env step annotated to run on a second GPU stream
-  (``jax.experimental.compute_on.compute_on("gpu_stream:1")``).
+  (``jax.experimental.compute_on.compute_on("gpu_stream:1")``);
+- ``stream_updates``: ``independent`` with the updates on the second stream instead.
+
+``--solver`` picks the physics solver (``default:unrolled`` has no data-dependent loop, whose predicate the host
+reads back on every trip).
 
 If XLA runs the two at once, ``independent`` or ``stream`` take less than ``physics + updates``, at best their
 maximum. Rows merge into ``--out`` by device, commit, XLA flags and settings.
@@ -37,7 +42,7 @@ from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
 from rebel_jax.sac import SAC, Transition
 
-MODES = ("physics", "updates", "serial", "independent", "stream")
+MODES = ("physics", "updates", "serial", "independent", "stream", "stream_updates")
 RESULTS = pathlib.Path(__file__).parent / "results" / "overlap.json"
 
 
@@ -75,7 +80,14 @@ def vector_steps(env, sac: SAC, mode: str, columns: int, num_envs: int, updates:
             def update(agent, key):
                 return jax.vmap(sac.update)(agent, minibatch, jax.random.split(key, columns))[0], None
 
-            agent = jax.lax.scan(update, agent, jax.random.split(key_update, updates))[0]
+            def all_updates(agent, key):
+                return jax.lax.scan(update, agent, jax.random.split(key, updates))[0]
+
+            if mode == "stream_updates":
+                with compute_on("gpu_stream:1"):
+                    agent = jax.jit(all_updates)(agent, key_update)
+            else:
+                agent = all_updates(agent, key_update)
         return (env_state, agent), None
 
     def run(state, key):
@@ -90,7 +102,7 @@ def measure(args):
     cfg = dataclasses.replace(
         base, precision="bf16", hidden=args.hidden or base.hidden, batch_size=args.batch_size or base.batch_size
     )
-    env = make_env(args.task)
+    env = make_env(args.task, args.solver)
     sac = SAC(cfg, env.observation_size, env.action_size)
     for mode in args.modes:
         run, state = vector_steps(env, sac, mode, args.columns, args.num_envs, args.updates, args.steps)
@@ -99,6 +111,7 @@ def measure(args):
         yield {
             **provenance(),
             "task": args.task,
+            "solver": args.solver,
             "columns": args.columns,
             "num_envs": args.num_envs,
             "updates": args.updates,
@@ -112,6 +125,7 @@ def measure(args):
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--task", default="walker_walk")
+    p.add_argument("--solver", default="default", help="the physics solver (rebel_jax.envs.SOLVERS, or ...:unrolled)")
     p.add_argument("--columns", type=int, default=5, help="seeds in one vmapped program")
     p.add_argument("--num-envs", type=int, default=20, help="environments per column (training and evaluation)")
     p.add_argument("--updates", type=int, default=10, help="SAC updates per vector step (utd x training envs)")
@@ -131,7 +145,19 @@ def main():
         if getattr(args, name) < 1:
             raise SystemExit(f"error: --{name.replace('_', '-')} must be >= 1; got {getattr(args, name)}")
     use_xla_flags(args.xla_flags)
-    fields = ("device", "commit", "xla_flags", "task", "columns", "num_envs", "updates", "hidden", "batch_size", "mode")
+    fields = (
+        "device",
+        "commit",
+        "xla_flags",
+        "task",
+        "solver",
+        "columns",
+        "num_envs",
+        "updates",
+        "hidden",
+        "batch_size",
+        "mode",
+    )
     merge_rows(args.out, measure(args), fields)
 
 

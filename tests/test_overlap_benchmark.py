@@ -28,11 +28,13 @@ def _equal(a, b) -> bool:
 
 
 def test_modes_step_the_same_physics_and_only_serial_updates_read_it(benchmark_script):
-    states = _final_states(benchmark_script("overlap"), ("physics", "updates", "serial", "independent", "stream"))
+    bench = benchmark_script("overlap")
+    states = _final_states(bench, bench.MODES)
     env = {mode: s[0] for mode, s in states.items()}
     agent = {mode: s[1] for mode, s in states.items()}
     assert _equal(env["physics"], env["independent"]) and _equal(env["physics"], env["serial"])
     assert _equal(env["stream"], env["independent"])  # the stream annotation changes where, not what
     assert _equal(agent["updates"], agent["independent"]) and _equal(agent["stream"], agent["independent"])
+    assert _equal(agent["stream_updates"], agent["independent"]) and _equal(env["stream_updates"], env["physics"])
     assert not _equal(agent["serial"], agent["independent"])  # serial's minibatches hold the new observations
     assert not _equal(agent["physics"], agent["updates"])  # physics alone leaves the agent as it started
