@@ -17,7 +17,7 @@ minibatch per column), per mode:
   sample a replay that already holds the step's transitions;
 - ``independent``: both, the minibatch not reading them (a replay one vector step behind);
 - ``stream``: ``independent`` with the env step annotated to run on a second GPU stream
-  (``jax.experimental.compute_on.compute_on("gpu_stream:1")``);
+  (:func:`rebel_jax.train.on_second_stream`);
 - ``stream_updates``: ``independent`` with the updates on the second stream instead.
 
 ``--solver`` picks the physics solver (``default:unrolled`` has no data-dependent loop, whose predicate the host
@@ -35,12 +35,12 @@ import pathlib
 
 import jax
 import jax.numpy as jnp
-from jax.experimental.compute_on import compute_on
 from timing import add_xla_flags_argument, median_seconds, merge_rows, provenance, use_xla_flags
 
 from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
 from rebel_jax.sac import SAC, Transition
+from rebel_jax.train import on_second_stream
 
 MODES = ("physics", "updates", "serial", "independent", "stream", "stream_updates")
 RESULTS = pathlib.Path(__file__).parent / "results" / "overlap.json"
@@ -66,11 +66,7 @@ def vector_steps(env, sac: SAC, mode: str, columns: int, num_envs: int, updates:
         key_act, key_update = jax.random.split(key)
         if mode != "updates":
             action = jax.random.uniform(key_act, (columns * num_envs, env.action_size), minval=-1, maxval=1)
-            if mode == "stream":
-                with compute_on("gpu_stream:1"):
-                    env_state = jax.jit(physics)(env_state, action)
-            else:
-                env_state = physics(env_state, action)
+            env_state = (on_second_stream(physics) if mode == "stream" else physics)(env_state, action)
         if mode != "physics":
             minibatch = batch
             if mode == "serial":  # Row 0 of each column's minibatch: its first environment's new observation.
@@ -83,11 +79,7 @@ def vector_steps(env, sac: SAC, mode: str, columns: int, num_envs: int, updates:
             def all_updates(agent, key):
                 return jax.lax.scan(update, agent, jax.random.split(key, updates))[0]
 
-            if mode == "stream_updates":
-                with compute_on("gpu_stream:1"):
-                    agent = jax.jit(all_updates)(agent, key_update)
-            else:
-                agent = all_updates(agent, key_update)
+            agent = (on_second_stream(all_updates) if mode == "stream_updates" else all_updates)(agent, key_update)
         return (env_state, agent), None
 
     def run(state, key):

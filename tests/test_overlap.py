@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -58,3 +59,21 @@ def test_overlap_needs_transitions_before_the_first_update(capsys):
         parse(["--preset", "tiny", "--overlap", "--seed-steps", "10", "--num-envs", "10"])
     assert "train.seed_steps=10" in capsys.readouterr().err
     assert parse(["--preset", "tiny", "--overlap", "--seed-steps", "11", "--num-envs", "10"]).config.train.overlap
+
+
+def _two_rounds(cfg: Config):
+    init, round_fn, _ = compiled(Trainer(cfg))
+    state = init(seed_keys(0, 1))
+    text = round_fn.lower(state, jnp.int32(0)).as_text()
+    for r in range(2):
+        state, _ = round_fn(state, jnp.int32(r))
+    return state, text
+
+
+def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the_same(monkeypatch):
+    cfg = dataclasses.replace(MICRO, train=dataclasses.replace(MICRO.train, overlap=True))
+    plain, plain_text = _two_rounds(cfg)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the trace as on a GPU; it still runs here
+    streamed, text = _two_rounds(cfg)
+    assert "_xla_stream_annotation" in text and "_xla_stream_annotation" not in plain_text
+    chex.assert_trees_all_equal(plain, streamed)

@@ -46,7 +46,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
-from jax.experimental.compute_on import compute_on
+from jax.experimental.compute_on import compute_on2
 from jax.sharding import NamedSharding
 
 from rebel_jax import budget, frame_replay, pixel_feedback, replay, sweep, teachers
@@ -268,8 +268,7 @@ class Trainer:
         """Every environment's step; with ``train.overlap`` on a GPU, annotated to run on a second stream, where
         nothing of the step's updates waits for it."""
         if self.cfg.train.overlap and jax.default_backend() == "gpu":
-            with compute_on("gpu_stream:1"):
-                return jax.jit(self.envs.step)(env_state, action)
+            return on_second_stream(self.envs.step)(env_state, action)
         return self.envs.step(env_state, action)
 
     def vector_step(self, ts: TrainState, t: jax.Array) -> tuple[TrainState, dict]:
@@ -473,6 +472,12 @@ def grow_replay(state: TrainState, like: TrainState) -> TrainState:
 
     grown = jax.tree.map(pad, state.buffer, like.buffer)
     return state.replace(buffer=grown.replace(ptr=jnp.array(grown.size, copy=True)))  # not donated twice
+
+
+def on_second_stream(f: Callable) -> Callable:
+    """``f`` annotated to run on the GPU's second stream (XLA's ``gpu_stream:1``), beside the work of the first
+    that does not read its outputs; its outputs stay in device memory. Other backends ignore the annotation."""
+    return compute_on2(f, compute_type="gpu_stream:1", out_memory_spaces=jax.memory.Space.Device)
 
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:
