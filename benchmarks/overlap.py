@@ -34,12 +34,12 @@ import dataclasses
 import pathlib
 
 import jax
-import jax.numpy as jnp
+from sac_profile import random_minibatch
 from timing import add_xla_flags_argument, median_seconds, merge_rows, provenance, use_xla_flags
 
 from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
-from rebel_jax.sac import SAC, Transition
+from rebel_jax.sac import SAC
 from rebel_jax.train import on_second_stream
 
 MODES = ("physics", "updates", "serial", "independent", "stream", "stream_updates")
@@ -51,14 +51,7 @@ def vector_steps(env, sac: SAC, mode: str, columns: int, num_envs: int, updates:
     keys = jax.random.split(jax.random.PRNGKey(0), columns)
     env_state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), columns * num_envs))
     agent = jax.jit(jax.vmap(sac.init))(keys)
-    n = sac.cfg.batch_size
-    batch = Transition(
-        obs=jax.random.normal(keys[0], (columns, n, sac.obs_size)),
-        action=jax.random.uniform(keys[0], (columns, n, sac.action_size), minval=-1, maxval=1),
-        reward=jax.random.uniform(keys[0], (columns, n)),
-        next_obs=jax.random.normal(keys[-1], (columns, n, sac.obs_size)),
-        discount=jnp.ones((columns, n)),
-    )
+    batch = random_minibatch(sac, keys)
     physics = jax.vmap(env.step)
 
     def body(carry, key):

@@ -80,20 +80,25 @@ learned reward of the stored transitions and of the update batches as ``learned 
 step's updates does besides (its carry's copies and casts) as ``SAC updates``."""
 
 
-def update_program(sac, columns: int, per_call: int):
-    """(jitted, state-donating ``(state, key) -> state`` doing ``per_call`` seed-vmapped ``sac`` updates of
-    ``columns`` seeds on one fixed random batch, the first state, the batch), as ``train_throughput.py`` builds it.
-    """
-    keys = jax.random.split(jax.random.PRNGKey(0), columns)
-    state = jax.jit(jax.vmap(sac.init))(keys)
-    n = sac.cfg.batch_size
-    batch = Transition(
+def random_minibatch(sac, keys: jax.Array) -> Transition:
+    """One random minibatch of ``sac``'s size for each of ``keys``' columns (leading axis ``len(keys)``)."""
+    columns, n = len(keys), sac.cfg.batch_size
+    return Transition(
         obs=jax.random.normal(keys[0], (columns, n, sac.obs_size)),
         action=jax.random.uniform(keys[0], (columns, n, sac.action_size), minval=-1, maxval=1),
         reward=jax.random.uniform(keys[0], (columns, n)),
         next_obs=jax.random.normal(keys[-1], (columns, n, sac.obs_size)),
         discount=jnp.ones((columns, n)),
     )
+
+
+def update_program(sac, columns: int, per_call: int):
+    """(jitted, state-donating ``(state, key) -> state`` doing ``per_call`` seed-vmapped ``sac`` updates of
+    ``columns`` seeds on one fixed random batch, the first state, the batch), as ``train_throughput.py`` builds it.
+    """
+    keys = jax.random.split(jax.random.PRNGKey(0), columns)
+    state = jax.jit(jax.vmap(sac.init))(keys)
+    batch = random_minibatch(sac, keys)
 
     def many(state, key):
         body = lambda s, k: (jax.vmap(sac.update)(s, batch, jax.random.split(k, columns))[0], None)
