@@ -20,6 +20,7 @@ the field existed: ``BEFORE``'s, else its default in ``Config()`` (as ``--resume
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import pathlib
 import re
@@ -70,6 +71,12 @@ def blocks(text: str) -> list[tuple[list[str], list[list[str]]]]:
     return out
 
 
+@functools.cache
+def _parsed(flags: tuple[str, ...]):
+    """``cli.parse`` of one program's flags, once: a block's programs are compared with each of its runs."""
+    return cli.parse([*flags, "--run-dir", "unused"])
+
+
 def mismatches(run_dir: pathlib.Path, programs: list[list[str]]) -> list[str]:
     """What keeps ``run_dir`` from being a run of one of ``programs`` (empty: it is one).
 
@@ -85,7 +92,7 @@ def mismatches(run_dir: pathlib.Path, programs: list[list[str]]) -> list[str]:
     defaults = cli.flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
     best = None
     for flags in programs:
-        args = cli.parse([*flags, "--run-dir", "unused"])
+        args = _parsed(tuple(flags))
         now = cli.flatten(json.loads(json.dumps(dataclasses.asdict(args.config))))
         unused = tuple(f"{part}." for part in args.config.unused_parts())
         diffs = []
