@@ -24,7 +24,9 @@ minibatch per column), per mode:
 reads back on every trip).
 
 If XLA runs the two at once, ``independent`` or ``stream`` take less than ``physics + updates``, at best their
-maximum. Rows merge into ``--out`` by device, commit, XLA flags and settings.
+maximum. The stream annotation is for GPUs (the trainer applies it only there): on a 2-core CPU (JAX 0.10.2,
+2026-11-28, ``--solver default:unrolled``, 1 column of 2 envs, 2 updates of a 16-wide SAC) ``stream`` took 6.7 s
+per vector step against 2.9 ms for ``physics``. Rows merge into ``--out`` by device, commit, XLA flags and settings.
 """
 
 from __future__ import annotations
