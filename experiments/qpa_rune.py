@@ -65,13 +65,18 @@ PUBLISHED = {
 }
 
 
-def end_of_run(run_dirs: list[pathlib.Path], columns: list[list[int]]) -> dict:
-    """Mean and std over the pooled seeds of the end-of-run evaluation (``final.json``'s ``final_eval_return``)."""
-    values = [
+def end_of_run_returns(run_dirs: list[pathlib.Path], columns: list[list[int]]) -> list[float]:
+    """The end-of-run evaluation (``final.json``'s ``final_eval_return``) of the given columns of each run, pooled."""
+    return [
         json.loads((d / "final.json").read_text())["final_eval_return"][i]
         for d, cols in zip(run_dirs, columns, strict=True)
         for i in cols
     ]
+
+
+def end_of_run(run_dirs: list[pathlib.Path], columns: list[list[int]]) -> dict:
+    """Mean and std over the pooled seeds of the end-of-run evaluation (:func:`end_of_run_returns`)."""
+    values = end_of_run_returns(run_dirs, columns)
     return {"mean": round(float(np.mean(values)), 2), "std": round(float(np.std(values)), 2), "seeds": len(values)}
 
 

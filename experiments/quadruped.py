@@ -19,7 +19,7 @@ import json
 import numpy as np
 from analysis import bootstrap_ci, curve_figure, iqm
 from compare import compare, gather, methods
-from qpa_rune import end_of_run
+from qpa_rune import end_of_run, end_of_run_returns
 from rebel import RESULTS
 
 RUNS = ["quadruped/sac_quadruped_walk_1m_bf16", "quadruped/pebble_quadruped_walk_1000_1m_bf16"]
@@ -51,13 +51,7 @@ def main() -> None:
         dirs = infos[label]["run_dirs"]
         columns = [methods(d)[label][1]["columns"] for d in dirs]
         end = end_of_run(dirs, columns)
-        values = np.array(
-            [
-                json.loads((d / "final.json").read_text())["final_eval_return"][i]
-                for d, cols in zip(dirs, columns, strict=True)
-                for i in cols
-            ]
-        )
+        values = np.array(end_of_run_returns(dirs, columns))
         end |= {"iqm": round(float(iqm(values)), 1), "iqm_ci": [round(float(x), 1) for x in bootstrap_ci(values, iqm)]}
         published = PUBLISHED[label]
         info = {k: v for k, v in infos[label].items() if k != "run_dirs"}
