@@ -12,6 +12,7 @@ import pytest
 
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+from rebel_jax import train
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 MICRO = Config(
@@ -69,8 +70,11 @@ def test_overlap_needs_transitions_before_the_first_update(capsys):
     assert parse(["--preset", "tiny", "--overlap", "--seed-steps", "11", "--num-envs", "10"]).config.train.overlap
 
 
-def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the_same(behind, monkeypatch):
+@pytest.mark.parametrize("api", ["compute_on2", "compute_on"])
+def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the_same(behind, monkeypatch, api):
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the trace as on a GPU; it still runs here
+    if api == "compute_on":  # as on a JAX without compute_on2
+        monkeypatch.delattr(train.jax_compute_on, "compute_on2")
     streamed, text, _ = _two_rounds(OVERLAP)
     assert "_xla_stream_annotation" in text and "_xla_stream_annotation" not in behind[1]
     chex.assert_trees_all_equal(behind[0], streamed)

@@ -46,7 +46,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
-from jax.experimental.compute_on import compute_on2
+from jax.experimental import compute_on as jax_compute_on
 from jax.sharding import NamedSharding
 
 from rebel_jax import budget, frame_replay, pixel_feedback, replay, sweep, teachers
@@ -476,8 +476,13 @@ def grow_replay(state: TrainState, like: TrainState) -> TrainState:
 
 def on_second_stream(f: Callable) -> Callable:
     """``f`` annotated to run on the GPU's second stream (XLA's ``gpu_stream:1``), beside the work of the first
-    that does not read its outputs; its outputs stay in device memory. Other backends ignore the annotation."""
-    return compute_on2(f, compute_type="gpu_stream:1", out_memory_spaces=jax.memory.Space.Device)
+    that does not read its outputs; its outputs stay in device memory. Other backends ignore the annotation.
+
+    JAX's ``compute_on2`` where it has one (0.10); else (0.11, which kept only the older form) ``compute_on`` around
+    a jitted ``f``, which annotates the same ops."""
+    if hasattr(jax_compute_on, "compute_on2"):
+        return jax_compute_on.compute_on2(f, compute_type="gpu_stream:1", out_memory_spaces=jax.memory.Space.Device)
+    return jax_compute_on.compute_on("gpu_stream:1")(jax.jit(f))
 
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:
