@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rebel_jax import train
 from rebel_jax.cli import parse
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
-from rebel_jax import train
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 MICRO = Config(
