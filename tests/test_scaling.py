@@ -64,3 +64,15 @@ def test_run_differences_refuse_different_seed_counts(differences, tmp_path):
     b = _metrics(tmp_path / "b", [{"round": 0, "q": [1.0]}])
     with pytest.raises(SystemExit, match="different seed counts"):
         differences.table(a, b, ["q"])
+
+
+def test_runs_per_gpu_hour_project_the_first_round_and_the_median_of_the_rest(benchmark_script, tmp_path, capsys):
+    runs_per_hour = benchmark_script("runs_per_hour")
+    run = _run(tmp_path / "two", 2, 20, [100.0, 30.0, 26.0, 27.0])
+    (run / "config.json").write_text(json.dumps({"train": {"steps_per_round": 10_000}}))
+    runs_per_hour.main([str(run), "--total-steps", "45000"])
+    out = capsys.readouterr().out
+    job = 100.0 + 4 * 27.0  # 5 rounds of 10k (the last one partial): the first, then 4 at the median of 30, 26, 27
+    assert f"| {job:,.0f} | {20 * 3600 / (2 * job):.1f} |" in out, out
+    with pytest.raises(SystemExit, match="--total-steps must be >= 1"):
+        runs_per_hour.main([str(run), "--total-steps", "0"])
