@@ -79,15 +79,20 @@ class EnvConfig:
     """Check every pair of geoms for contact at every physics step. Off: leave out the pairs that never came near
     each other in dm_control (the quadruped's lower legs against its torso and eyes; docs/tasks.md), as MuJoCo's own
     bounding-box test leaves them out; no effect on walker and cheetah."""
+    impl: str = "jax"
+    """The physics step's implementation: ``jax`` (MJX in JAX operations) or ``warp`` (MuJoCo Warp's kernels through
+    MJX, needs ``pip install -e '.[warp]'``). Observations and rewards are computed in JAX either way; the two agree
+    to float rounding (tests/test_warp.py), which chaos then amplifies over an episode."""
 
     def validate(self) -> None:
-        from rebel_jax.envs import PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version
+        from rebel_jax.envs import IMPLS, PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version
 
         if no_pixel_version(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
         known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS
         _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *PROBES]}")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
+        _check(self.impl in IMPLS, "env.impl", self.impl, f"one of {list(IMPLS)}")
         _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
         _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")
 

@@ -113,7 +113,9 @@ class Trainer:
         if self.pixels:
             pixel_feedback.check_config(cfg)
         self.host_teacher = host_teacher
-        self.env = make_env(cfg.env.task, cfg.env.solver, cfg.env.episode_length, all_contacts=cfg.env.all_contacts)
+        self.env = make_env(
+            cfg.env.task, cfg.env.solver, cfg.env.episode_length, all_contacts=cfg.env.all_contacts, impl=cfg.env.impl
+        )
         self.episode_length = self.env.episode_length  # agent steps
         env, actions = self.env, self.env.action_size
         self.obs_shape = env.observation_shape if self.pixels else (env.observation_size,)

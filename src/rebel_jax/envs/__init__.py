@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
 from rebel_jax.envs import dmc, pixels, registry
-from rebel_jax.envs.dmc import SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
+from rebel_jax.envs.dmc import IMPLS, SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
 from rebel_jax.envs.pixel_probe import PixelProbe
 from rebel_jax.envs.pixels import PixelEnv
 from rebel_jax.envs.probe import PointProbe
@@ -43,21 +43,23 @@ def make_env(
     episode_length: int | None = 1000,
     unroll_substeps: bool = False,
     all_contacts: bool = False,
+    impl: str = "jax",
 ) -> DMCEnv | PixelEnv | PointProbe:
     """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
     or :data:`PROBES`.
 
-    A probe has no physics engine: ``solver`` is checked but unused, and so are ``unroll_substeps`` and
-    ``all_contacts``.
+    A probe has no physics engine: ``solver`` and ``impl`` are checked but unused, and so are ``unroll_substeps``
+    and ``all_contacts``.
     A pixel task's ``episode_length`` counts environment frames, as its state task's does. ``None``: no
     time limit (brax's convention, for ``brax.envs.wrappers.training.EpisodeWrapper``).
     """
     if name in PIXEL_TASKS:
         return PixelEnv(
-            dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps, all_contacts)
+            dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps, all_contacts, impl)
         )
     if name in PROBES:
         parse_solver(solver)
+        dmc.check_impl(impl)
         del unroll_substeps, all_contacts  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
@@ -66,7 +68,7 @@ def make_env(
     if name not in TASKS:
         valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
-    return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts)
+    return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts, impl)
 
 
 __all__ = [
@@ -85,4 +87,5 @@ __all__ = [
     "make_env",
     "no_pixel_version",
     "parse_solver",
+    "IMPLS",
 ]

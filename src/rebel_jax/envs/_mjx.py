@@ -1,5 +1,6 @@
-"""``mujoco.mjx``, imported with its optional-backend messages sent to logging; its Newton loop with known trips;
-MuJoCo's contact frames for capsules on a plane; Cholesky factorizations in plain JAX operations (CPU).
+"""``mujoco.mjx``, imported with its optional-backend messages sent to logging (and Warp quiet where installed);
+its Newton loop with known trips; MuJoCo's contact frames for capsules on a plane; Cholesky factorizations in
+plain JAX operations (CPU).
 
 Without the optional Warp backend (absent on the CPU machines and the GPU image alike),
 importing ``mujoco.mjx`` prints "Failed to import warp: No module named 'warp'" and the same
@@ -12,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import sys
 import types
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -33,6 +35,9 @@ def import_quietly() -> None:
             logger.debug("mujoco.mjx: %s", line)
         else:
             print(line)
+    warp = sys.modules.get("warp")  # imported by mujoco.mjx where installed (env.impl='warp')
+    if warp is not None:
+        warp.config.log_level = warp.LOG_WARNING  # no banner and no line per kernel module loaded
 
 
 import_quietly()

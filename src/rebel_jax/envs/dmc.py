@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import importlib.util
 from collections.abc import Callable
 from typing import Literal
 
@@ -288,10 +289,13 @@ class DMCEnv(Env):
         episode_length: int | None = 1000,
         unroll_substeps: bool = False,
         all_contacts: bool = False,
+        impl: str = "jax",
     ):
         if episode_length is not None and episode_length < 1:
             raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
+        check_impl(impl)
         self.spec = TASKS[task]
+        self.impl = impl
         self.solver = solver
         self.episode_length = episode_length
         self.unroll_substeps = unroll_substeps
@@ -306,6 +310,14 @@ class DMCEnv(Env):
         local = jax.local_devices()[0]
         self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model, device=local))
         self._data0 = jax.device_get(mjx.make_data(self.sys, device=local))
+        if impl == "warp":  # the physics steps' engine; observations and rewards keep the JAX one (_warp_steps)
+            sys = mjx.put_model(self.mj_model, device=local, impl="warp")
+            # The solver's iteration caps are this project's setting (Solver), not an overflow to print at every
+            # step; buffer overflows (contacts, constraints) still print.
+            quiet = sys.opt._impl.warn_overflow & ~(_warp_overflow().ITERATIONS | _warp_overflow().LS_ITERATIONS)
+            sys = sys.replace(opt=sys.opt.replace(_impl=sys.opt._impl.replace(warn_overflow=quiet)))
+            self._warp_sys = jax.tree.map(_uncommitted, sys)
+            self._warp_data0 = jax.device_get(mjx.make_data(self.mj_model, device=local, impl="warp"))
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
         # [-pi, pi] where the task says so (walker; dm_control's cheetah leaves its root
@@ -371,7 +383,18 @@ class DMCEnv(Env):
         return d
 
     def _physics_steps(self, d: mjx.Data, n: int, unroll: bool = False) -> mjx.Data:
+        if self.impl == "warp":
+            return self._warp_steps(d, n, unroll)
         return self._solved(lambda d: jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self.sys, x), d, unroll=unroll), d)
+
+    def _warp_steps(self, d: mjx.Data, n: int, unroll: bool) -> mjx.Data:
+        """``n`` steps of MuJoCo Warp (MJX's ``impl="warp"``) from the state of ``d``, a JAX-implementation
+        ``mjx.Data``: what a step carries over (:data:`STEP_STATE`) goes to a Warp data and comes back with the
+        step's accelerations and sensor values; the position-dependent fields are recomputed by :meth:`_observe`,
+        as after every step."""
+        w = jax.tree.map(_traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in STEP_STATE})
+        w = jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self._warp_sys, x), w, unroll=unroll)
+        return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, *STEP_RESULTS)})
 
     def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
         d = _observed(d, self.sys, self.spec.sensors)
@@ -425,6 +448,34 @@ class DMCEnv(Env):
         return self._observe(d, done, dict(state.info, steps=steps, truncation=done))
 
 
+IMPLS = ("jax", "warp")
+"""MJX's implementations of the physics step: ``jax`` (MJX in JAX operations) or ``warp`` (MuJoCo Warp's kernels,
+called from JAX; needs the ``warp-lang`` package, ``pip install -e '.[warp]'``)."""
+
+STEP_STATE = ("qpos", "qvel", "act", "ctrl", "time", "qacc_warmstart")
+"""The ``mjx.Data`` fields one physics step reads from the last (MuJoCo's state, its control and the solver's
+warm start; the tasks have no mocap bodies)."""
+
+STEP_RESULTS = ("qacc", "sensordata")
+"""Fields a physics step computes that the observations read without recomputing them (the acceleration and
+force sensors); kept for inspection as well."""
+
+
+def _warp_overflow():
+    """MuJoCo Warp's overflow flags (``mujoco_warp.OverflowType``), imported only with ``impl='warp'``."""
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
+    return OverflowType
+
+
+def check_impl(impl: str) -> None:
+    """Raises a one-line ValueError for an unknown ``impl`` or for ``warp`` without the ``warp-lang`` package."""
+    if impl not in IMPLS:
+        raise ValueError(f"unknown physics impl {impl!r}; one of {', '.join(IMPLS)}")
+    if impl == "warp" and importlib.util.find_spec("warp") is None:
+        raise ValueError("env.impl='warp' needs the warp-lang package: pip install -e '.[warp]'")
+
+
 def parse_solver(solver: str | Solver) -> Solver:
     """A :class:`Solver` from a preset name or ``"ITERATIONS/LS_ITERATIONS[/noeulerdamp]"``, then ``":NEWTON_LOOP"``."""
     if isinstance(solver, Solver):
@@ -454,6 +505,7 @@ def make_env(
     episode_length: int | None = 1000,
     unroll_substeps: bool = False,
     all_contacts: bool = False,
+    impl: str = "jax",
 ) -> DMCEnv:
     """Builds a task by name.
 
@@ -466,7 +518,8 @@ def make_env(
       unroll_substeps: unroll the physics substeps of a control step in the compiled
         program instead of looping over them (longer compile, fewer loop round trips).
       all_contacts: check every geom pair, also the task's ``never_near`` ones (:class:`TaskSpec`).
+      impl: the physics step's implementation, one of :data:`IMPLS`.
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}")
-    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts)
+    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts, impl)

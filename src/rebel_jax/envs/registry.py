@@ -30,9 +30,12 @@ PREFIX = "rebel_"
 
 def _task_factory(task: str) -> Callable[..., dmc.DMCEnv]:
     def make(
-        solver: str | dmc.Solver = "default", unroll_substeps: bool = False, all_contacts: bool = False
+        solver: str | dmc.Solver = "default",
+        unroll_substeps: bool = False,
+        all_contacts: bool = False,
+        impl: str = "jax",
     ) -> dmc.DMCEnv:
-        return dmc.make_env(task, solver, None, unroll_substeps, all_contacts)
+        return dmc.make_env(task, solver, None, unroll_substeps, all_contacts, impl)
 
     make.__name__ = make.__qualname__ = f"{PREFIX}{task}"
     make.__doc__ = f"{task} without a time limit, for brax's registry (see {__name__})."
