@@ -27,7 +27,13 @@ $(VENV)/.base: pyproject.toml
 	touch $@
 
 $(VENV)/.test: $(VENV)/.base
-	$(PY) -m pip install -q -e '.[test,warp]'
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+# warp-lang (--impl warp) for make test-heavy's tests of MuJoCo Warp's step: importing it costs every process that
+# imports mujoco.mjx about 3 s, which make test leaves out.
+$(VENV)/.warp: $(VENV)/.base
+	$(PY) -m pip install -q -e '.[warp]'
 	touch $@
 
 train: $(VENV)/.base
@@ -56,10 +62,11 @@ test: lint system-deps
 
 # What `make test` leaves out (pytest marker `heavy`) to stay within 10 minutes on 2 cores: the minutes-long
 # end-to-end runs (the command `make train` runs, checked to learn; SAC on walker_stand; the pixel PEBBLE,
-# REBEL and SURF runs; the 2-process --distributed runs) and checks whose every compile is another 10-40 s
+# REBEL and SURF runs; the 2-process --distributed runs; MuJoCo Warp's step, with warp-lang installed) and checks
+# whose every compile is another 10-40 s
 # while make test covers the same code another way (each test says how: grep "mark.heavy" tests/).
 # Run it before changing the physics, the trainer's round or the pixel agents.
-test-heavy: $(VENV)/.test
+test-heavy: $(VENV)/.test $(VENV)/.warp
 	$(PY) -m pytest -q -n 2 --dist loadgroup -m heavy $(PYTEST_ARGS)
 
 # The checkout's own files only: the tests' compilation cache (.jax_cache) and the runs. The training command's

@@ -1,12 +1,12 @@
 """Env throughput (steps/s, ms per step) and solver fidelity against dm_control.
 
 Usage:
-  python benchmarks/env_throughput.py throughput [--batches 1 16 256 1024 4096] [--out FILE]
+  python benchmarks/env_throughput.py throughput [--batches 1 16 256 1024 4096] [--impl warp] [--out FILE]
   python benchmarks/env_throughput.py fidelity [--out FILE]   # needs dm_control (CPU is fine)
 
 ``throughput`` times one jitted vmapped control step per task, batch size and solver
-preset (``default`` and ``dm_control``) after a warm-up, as the median of repeated
-scans of 20 steps. ``fidelity`` compares MJX under several solver settings with
+preset (``default`` and ``dm_control``), with MJX's JAX or Warp step (``--impl``), after a
+warm-up, as the median of repeated scans of 20 steps. ``fidelity`` compares MJX under several solver settings with
 dm_control on (a) one control step from the same 200 states along a random-action
 trajectory and (b) 1000-step open-loop rollouts of the same action sequence from the
 same initial state. Results are merged into ``benchmarks/results/env_throughput.json``.
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from timing import add_xla_flags_argument, provenance, random_steps_seconds, use_xla_flags
 
-from rebel_jax.envs import SOLVERS, TASKS, Solver, make_env
+from rebel_jax.envs import IMPLS, SOLVERS, TASKS, Solver, make_env
 from rebel_jax.logging import write_json
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "env_throughput.json"
@@ -46,7 +46,9 @@ def throughput(args):
     """Yields one result row per (task, solver, batch)."""
     for task in args.tasks:
         for solver in args.solvers:
-            env = make_env(task, solver=solver, unroll_substeps=args.unroll, all_contacts=args.all_contacts)
+            env = make_env(
+                task, solver=solver, unroll_substeps=args.unroll, all_contacts=args.all_contacts, impl=args.impl
+            )
             for batch in args.batches:
                 if solver == "dm_control" and batch > args.max_dm_batch:
                     continue
@@ -57,13 +59,15 @@ def throughput(args):
                     "solver": solver,
                     "unroll_substeps": args.unroll,
                     "all_contacts": args.all_contacts,
+                    "impl": args.impl,
                     "batch": batch,
                     "env_steps_per_s": batch / sec,
                     "ms_per_step": sec * 1e3,
                 }
                 yield row
                 print(
-                    f"{task:13s} {solver:10s} batch {batch:5d}: {sec * 1e3:8.2f} ms/step {batch / sec:12,.0f} steps/s"
+                    f"{task:13s} {solver:10s} {args.impl:4s} batch {batch:5d}: {sec * 1e3:8.2f} ms/step "
+                    f"{batch / sec:12,.0f} steps/s"
                 )
                 sys.stdout.flush()
 
@@ -181,6 +185,7 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="check every geom pair, also those a task leaves out as never near (the quadruped's; docs/tasks.md)",
     )
+    p.add_argument("--impl", choices=IMPLS, default="jax", help="the physics step's implementation (MJX's impl)")
     p.add_argument("--max-dm-batch", type=int, default=4096, help="skip dm_control solver above this batch")
     p.add_argument("--fidelity-states", type=int, default=200)
     p.add_argument(
@@ -209,10 +214,12 @@ def main():
             r.get("unroll_substeps", False),
             r.get("xla_flags", ""),
             r.get("all_contacts"),  # None: measured before the option existed, with every pair
+            r.get("impl", "jax"),
         )
         for row in throughput(args):
             # Rows of the two presets form the main table; every setting also goes to the sweep behind the choice.
-            main_table = row["solver"] in SOLVERS and not args.unroll and not row["xla_flags"] and not args.all_contacts
+            main_table = row["solver"] in SOLVERS and not (args.unroll or row["xla_flags"] or args.all_contacts)
+            main_table = main_table and args.impl == "jax"
             parts = ("rows", "solver_sweep") if main_table else ("solver_sweep",)
             for part in parts:
                 results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]
