@@ -72,6 +72,7 @@ def make_env(
 
 
 __all__ = [
+    "IMPLS",
     "PIXEL_TASKS",
     "PROBES",
     "SOLVERS",
@@ -87,5 +88,4 @@ __all__ = [
     "make_env",
     "no_pixel_version",
     "parse_solver",
-    "IMPLS",
 ]

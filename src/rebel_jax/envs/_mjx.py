@@ -2,7 +2,7 @@
 its Newton loop with known trips; MuJoCo's contact frames for capsules on a plane; Cholesky factorizations in
 plain JAX operations (CPU).
 
-Without the optional Warp backend (absent on the CPU machines and the GPU image alike),
+Without the optional Warp backend (``pip install -e '.[warp]'`` adds it, for ``--impl warp``),
 importing ``mujoco.mjx`` prints "Failed to import warp: No module named 'warp'" and the same
 for ``mujoco_warp``. Those lines go to this module's logger at DEBUG level, which Python's
 default logging does not show; anything else the import prints is passed through.

@@ -311,12 +311,13 @@ class DMCEnv(Env):
         self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model, device=local))
         self._data0 = jax.device_get(mjx.make_data(self.sys, device=local))
         if impl == "warp":  # the physics steps' engine; observations and rewards keep the JAX one (_warp_steps)
-            sys = mjx.put_model(self.mj_model, device=local, impl="warp")
+            model = mjx.put_model(self.mj_model, device=local, impl="warp")
             # The solver's iteration caps are this project's setting (Solver), not an overflow to print at every
             # step; buffer overflows (contacts, constraints) still print.
-            quiet = sys.opt._impl.warn_overflow & ~(_warp_overflow().ITERATIONS | _warp_overflow().LS_ITERATIONS)
-            sys = sys.replace(opt=sys.opt.replace(_impl=sys.opt._impl.replace(warn_overflow=quiet)))
-            self._warp_sys = jax.tree.map(_uncommitted, sys)
+            flags = _warp_overflow()
+            quiet = model.opt._impl.warn_overflow & ~(flags.ITERATIONS | flags.LS_ITERATIONS)
+            model = model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=quiet)))
+            self._warp_sys = jax.tree.map(_uncommitted, model)
             self._warp_data0 = jax.device_get(mjx.make_data(self.mj_model, device=local, impl="warp"))
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
