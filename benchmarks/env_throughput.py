@@ -19,6 +19,7 @@ import functools
 import json
 import pathlib
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -36,10 +37,14 @@ def _load(path: pathlib.Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {"rows": [], "fidelity": {}}
 
 
-def time_rollout(env, batch: int, repeats: int = 5) -> float:
-    """Median seconds per control step of ``batch`` environments."""
+def time_rollout(env, batch: int, repeats: int = 5) -> tuple[float, float]:
+    """Seconds to compile and run a first control step of ``batch`` environments (with ``--impl warp``, Warp also
+    builds its kernels then, where its kernel cache lacks them), and the median seconds per control step after."""
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), batch))
-    return random_steps_seconds(env, state, STEPS_PER_CALL, repeats)
+    start = time.perf_counter()
+    jax.block_until_ready(jax.jit(jax.vmap(env.step))(state, jnp.zeros((batch, env.action_size))))
+    first = time.perf_counter() - start
+    return first, random_steps_seconds(env, state, STEPS_PER_CALL, repeats)
 
 
 def throughput(args):
@@ -52,7 +57,7 @@ def throughput(args):
             for batch in args.batches:
                 if solver == "dm_control" and batch > args.max_dm_batch:
                     continue
-                sec = time_rollout(env, batch)
+                first, sec = time_rollout(env, batch)
                 row = {
                     **provenance(),
                     "task": task,
@@ -63,11 +68,12 @@ def throughput(args):
                     "batch": batch,
                     "env_steps_per_s": batch / sec,
                     "ms_per_step": sec * 1e3,
+                    "first_step_s": first,
                 }
                 yield row
                 print(
                     f"{task:13s} {solver:10s} {args.impl:4s} batch {batch:5d}: {sec * 1e3:8.2f} ms/step "
-                    f"{batch / sec:12,.0f} steps/s"
+                    f"{batch / sec:12,.0f} steps/s (first step {first:.1f} s)"
                 )
                 sys.stdout.flush()
 
