@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rebel_jax.cli import parse
 from rebel_jax.envs import dmc, make_env
 
 suite = pytest.importorskip("dm_control.suite")
@@ -92,12 +93,17 @@ def test_under_the_default_solver_the_warp_step_is_as_close_to_dm_control_as_the
     assert warp.mean() <= jax_.mean() and warp.max() <= jax_.max(), (warp.mean(), warp.max(), jax_.mean(), jax_.max())
 
 
-def test_a_bad_or_missing_impl_is_one_line(monkeypatch):
+def test_a_bad_or_missing_impl_is_one_line(monkeypatch, capsys):
     with pytest.raises(ValueError, match="unknown physics impl 'cuda'; one of jax, warp"):
         make_env("walker_walk", impl="cuda")
     monkeypatch.setattr(dmc.importlib.util, "find_spec", lambda name: None)
     with pytest.raises(ValueError, match=r"needs the warp-lang package: pip install -e '\.\[warp\]'"):
         make_env("walker_walk", impl="warp")
+    # The command line refuses it in one line, before anything is written (exit status 2).
+    with pytest.raises(SystemExit) as end:
+        parse(["sac", "--preset", "tiny", "--task", "walker_walk", "--impl", "warp", "--run-dir", "unused"])
+    err = capsys.readouterr().err.strip()
+    assert end.value.code == 2 and "needs the warp-lang package" in err and len(err.splitlines()) == 1, err
 
 
 @pytest.mark.heavy

@@ -86,6 +86,7 @@ class EnvConfig:
 
     def validate(self) -> None:
         from rebel_jax.envs import IMPLS, PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version
+        from rebel_jax.envs.dmc import check_impl
 
         if no_pixel_version(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
@@ -93,6 +94,11 @@ class EnvConfig:
         _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *PROBES]}")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.impl in IMPLS, "env.impl", self.impl, f"one of {list(IMPLS)}")
+        if self.impl == "warp":
+            try:
+                check_impl(self.impl)
+            except ValueError as err:
+                raise ConfigError(str(err)) from None
         _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
         _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")
 
