@@ -23,7 +23,8 @@ suite = pytest.importorskip("dm_control.suite")
 
 B = 16
 
-warp_step = [pytest.mark.heavy, pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="needs warp-lang")]
+needs_warp = pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="needs warp-lang")
+warp_step = [pytest.mark.heavy, needs_warp]
 
 
 def _trajectory(task: str, seed: int = 0) -> dict[str, np.ndarray]:
@@ -80,7 +81,7 @@ def test_one_warp_control_step_matches_dm_control(task, max_tol):
 
 
 @pytest.mark.heavy
-@pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="needs warp-lang")
+@needs_warp
 def test_under_the_default_solver_the_warp_step_is_as_close_to_dm_control_as_the_jax_step():
     """The default solver stops after 4 Newton iterations: on the walker's contact-rich steps the JAX step then
     errs by up to 0.18 (relative; mean 1.1e-3) against dm_control's converged step, and the Warp step, whose
@@ -107,7 +108,7 @@ def test_a_bad_or_missing_impl_is_one_line(monkeypatch, capsys):
 
 
 @pytest.mark.heavy
-@pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason="needs warp-lang")
+@needs_warp
 def test_a_run_with_the_warp_step_starts_as_the_jax_run_does():
     """A walker run's first transitions with ``--impl warp`` are the JAX run's up to the step's rounding: the same
     reset (in JAX either way), the same random actions from the same keys, next observations within 1e-3
