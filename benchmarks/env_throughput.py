@@ -224,8 +224,8 @@ def main():
         )
         for row in throughput(args):
             # Rows of the two presets form the main table; every setting also goes to the sweep behind the choice.
-            main_table = row["solver"] in SOLVERS and not (args.unroll or row["xla_flags"] or args.all_contacts)
-            main_table = main_table and args.impl == "jax"
+            plain = not (args.unroll or row["xla_flags"] or args.all_contacts) and args.impl == "jax"
+            main_table = row["solver"] in SOLVERS and plain
             parts = ("rows", "solver_sweep") if main_table else ("solver_sweep",)
             for part in parts:
                 results[part] = [r for r in results.get(part, []) if key(r) != key(row)] + [row]

@@ -19,14 +19,13 @@ from scaling import run_rate
 
 
 def projection(run_dir: pathlib.Path, total_steps: int) -> dict:
-    """The run's rate (``scaling.run_rate``), its first round and the projected job: seconds and runs/GPU-hour."""
+    """The run's rate and first round (``scaling.run_rate``) and the projected job: seconds and runs/GPU-hour."""
     rate = run_rate(run_dir)
-    first = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[0])["seconds"]
     per_round = json.loads((run_dir / "config.json").read_text())["train"]["steps_per_round"]
     rounds = -(-total_steps // per_round)
-    job = first + (rounds - 1) * rate["median"]
+    job = rate["first"] + (rounds - 1) * rate["median"]
     per_hour = rate["columns"] * 3600 / (rate["devices"] * job)
-    return {**rate, "first": first, "rounds": rounds, "job": job, "per_hour": per_hour}
+    return {**rate, "rounds": rounds, "job": job, "per_hour": per_hour}
 
 
 def table(rows: list[dict], total_steps: int) -> str:

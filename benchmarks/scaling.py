@@ -19,7 +19,8 @@ import statistics
 
 
 def run_rate(run_dir: pathlib.Path, first_round: int = 1) -> dict:
-    """Columns, devices, round seconds (median and all, from ``first_round``) and seed-rounds/s of one run."""
+    """Columns, devices, round seconds (median and all, from ``first_round``; and round 0's, ``first``) and
+    seed-rounds/s of one run."""
     meta = json.loads((run_dir / "meta.json").read_text())
     rounds = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
     seconds = [r["seconds"] for r in rounds if r["round"] >= first_round]
@@ -36,6 +37,7 @@ def run_rate(run_dir: pathlib.Path, first_round: int = 1) -> dict:
         "started": meta["started"],
         "command": meta["command"],
         "seconds": seconds,
+        "first": rounds[0]["seconds"],
         "median": median,
         "rate": meta["columns"] / median,
     }

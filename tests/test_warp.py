@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_envs_quadruped import _batch  # MJX data holding dm_control's physics states
 
 from rebel_jax.cli import parse
 from rebel_jax.envs import dmc, make_env
@@ -50,13 +51,8 @@ def _trajectory(task: str, seed: int = 0) -> dict[str, np.ndarray]:
 def _one_step(task: str, solver: str, impl: str, ref: dict[str, np.ndarray]):
     """One control step of ``impl`` from the reference's states and actions: observations and rewards."""
     env = make_env(task, solver, impl=impl)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    data = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), (B, *np.shape(x))), env._data0)
-    data = data.replace(
-        qpos=f32(ref["qpos"]), qvel=f32(ref["qvel"]), act=f32(ref["act"]), qacc_warmstart=f32(ref["warm"])
-    )
-    start = jax.vmap(env.observe)(data, jnp.zeros(B, jnp.int32), jnp.zeros(B))
-    nxt = jax.jit(jax.vmap(env.step))(start, f32(ref["action"]))
+    start = jax.vmap(env.observe)(_batch(env, ref), jnp.zeros(B, jnp.int32), jnp.zeros(B))
+    nxt = jax.jit(jax.vmap(env.step))(start, jnp.asarray(ref["action"], jnp.float32))
     return np.asarray(nxt.obs), np.asarray(nxt.reward)
 
 
