@@ -37,7 +37,7 @@ def seconds(fn) -> float:
 def measure(flags: list[str]) -> dict:
     """Compile seconds of the round and of its parts for the run ``flags`` describes."""
     args = parse([*flags, "--run-dir", "unused"])
-    trainer = Trainer(args.config)
+    trainer = Trainer(args.config, columns=args.seeds)
     init, round_fn, _ = compiled(trainer)
     keys = seed_keys(args.config.train.seed, args.seeds)
     state = jax.eval_shape(init, keys)

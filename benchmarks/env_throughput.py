@@ -51,12 +51,11 @@ def throughput(args):
     """Yields one result row per (task, solver, batch)."""
     for task in args.tasks:
         for solver in args.solvers:
-            env = make_env(
-                task, solver=solver, unroll_substeps=args.unroll, all_contacts=args.all_contacts, impl=args.impl
-            )
             for batch in args.batches:
                 if solver == "dm_control" and batch > args.max_dm_batch:
                     continue
+                flags = {"unroll_substeps": args.unroll, "all_contacts": args.all_contacts, "impl": args.impl}
+                env = make_env(task, solver=solver, worlds=batch, **flags)  # Warp's contact buffer: batch worlds
                 first, sec = time_rollout(env, batch)
                 row = {
                     **provenance(),

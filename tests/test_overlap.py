@@ -73,7 +73,8 @@ def test_overlap_needs_transitions_before_the_first_update(capsys):
 @pytest.mark.parametrize("api", ["compute_on2", "compute_on"])
 def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the_same(behind, monkeypatch, api):
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the trace as on a GPU; it still runs here
-    if api == "compute_on":  # as on a JAX without compute_on2
+    if api == "compute_on":  # as on JAX 0.11: the keyword form named compute_on, no compute_on2
+        monkeypatch.setattr(train.jax_compute_on, "compute_on", train.jax_compute_on.compute_on2)
         monkeypatch.delattr(train.jax_compute_on, "compute_on2")
     streamed, text, _ = _two_rounds(OVERLAP)
     assert "_xla_stream_annotation" in text and "_xla_stream_annotation" not in behind[1]

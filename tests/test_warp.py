@@ -28,18 +28,21 @@ needs_warp = pytest.mark.skipif(importlib.util.find_spec("warp") is None, reason
 warp_step = [pytest.mark.heavy, needs_warp]
 
 
-def _trajectory(task: str, seed: int = 0) -> dict[str, np.ndarray]:
-    """B states of a dm_control episode (qpos, qvel, act, warm start), each one's action in [-1, 1], and the next
-    observation and reward."""
+def _trajectory(task: str, seed: int = 0, skip: int = 0, n: int = B) -> dict[str, np.ndarray]:
+    """``n`` states of a dm_control episode after its first ``skip`` steps (qpos, qvel, act, warm start, contacts),
+    each one's action in [-1, 1], and the next observation and reward (random actions throughout)."""
     domain, name = task.split("_", 1)
     env, rng = suite.load(domain, name, task_kwargs={"random": seed}), np.random.default_rng(seed)
     env.reset()
     m, d = env.physics.model, env.physics.data
     low, high = m.actuator_ctrlrange.T
-    out = {k: [] for k in ("qpos", "qvel", "act", "warm", "action", "obs", "reward")}
-    for _ in range(B):
+    for _ in range(skip):
+        env.step(rng.uniform(low, high))
+    out = {k: [] for k in ("qpos", "qvel", "act", "warm", "ncon", "action", "obs", "reward")}
+    for _ in range(n):
         for key, value in (("qpos", d.qpos), ("qvel", d.qvel), ("act", d.act), ("warm", d.qacc_warmstart)):
             out[key].append(value.copy())
+        out["ncon"].append(d.ncon)
         action = rng.uniform(-1, 1, m.nu).astype(np.float32)
         ts = env.step(low + (action.astype(np.float64) + 1) / 2 * (high - low))
         out["action"].append(action)
@@ -48,10 +51,12 @@ def _trajectory(task: str, seed: int = 0) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in out.items()}
 
 
-def _one_step(task: str, solver: str, impl: str, ref: dict[str, np.ndarray]):
-    """One control step of ``impl`` from the reference's states and actions: observations and rewards."""
-    env = make_env(task, solver, impl=impl)
-    start = jax.vmap(env.observe)(_batch(env, ref), jnp.zeros(B, jnp.int32), jnp.zeros(B))
+def _one_step(task: str, solver: str, impl: str, ref: dict[str, np.ndarray], worlds: int | None = None):
+    """One control step of ``impl`` from the reference's states and actions (a contact buffer for ``worlds``
+    environments, default all of them): observations and rewards."""
+    n = len(ref["action"])
+    env = make_env(task, solver, impl=impl, worlds=worlds or n)
+    start = jax.vmap(env.observe)(_batch(env, ref), jnp.zeros(n, jnp.int32), jnp.zeros(n))
     nxt = jax.jit(jax.vmap(env.step))(start, jnp.asarray(ref["action"], jnp.float32))
     return np.asarray(nxt.obs), np.asarray(nxt.reward)
 
@@ -74,6 +79,24 @@ def test_one_warp_control_step_matches_dm_control(task, max_tol):
     rel = np.abs(obs - ref["obs"]) / np.maximum(1.0, np.abs(ref["obs"]))
     assert rel.mean() < 1e-5 and rel.max() < max_tol, (rel.mean(), rel.max())
     assert np.abs(reward - ref["reward"]).max() < 1e-5
+
+
+@pytest.mark.heavy
+@needs_warp
+def test_a_batch_with_more_contacts_than_one_world_holds_keeps_them_all():
+    """MuJoCo Warp keeps the contacts of all the worlds of one vmapped step in one buffer; sized for one world
+    (48 rows for the walker) it drops the rest, and the step goes wrong. 64 walker states after 300 random steps
+    hold more contacts than one world's buffer; with ``worlds=64`` the step still lands on dm_control's."""
+    ref = _trajectory("walker_walk", skip=300, n=64)
+    one_world = dmc.mjx.make_data(make_env("walker_walk", impl="warp", worlds=1).mj_model, impl="warp")._impl.naconmax
+    assert ref["ncon"].sum() > one_world, (ref["ncon"].sum(), one_world)  # a buffer for one world overflows
+    rel = [
+        np.abs(_one_step("walker_walk", "dm_control", "warp", ref, worlds)[0] - ref["obs"])
+        / np.maximum(1.0, np.abs(ref["obs"]))
+        for worlds in (64, 1)
+    ]
+    assert rel[0].mean() < 1e-5 and rel[0].max() < 2e-4, (rel[0].mean(), rel[0].max())
+    assert rel[1].max() > 1e-2, rel[1].max()  # what the sized buffer prevents
 
 
 @pytest.mark.heavy

@@ -21,10 +21,10 @@ from rebel_jax.config import Config
 from rebel_jax.train import Trainer
 
 
-def make_trainer(cfg: Config, host_teacher: bool = False) -> Trainer:
+def make_trainer(cfg: Config, host_teacher: bool = False, columns: int = 1) -> Trainer:
     """The trainer of ``cfg`` (:class:`~rebel_jax.train.Trainer`, state or pixel task; ``host_teacher``: the
-    sessions run on the host, state tasks only)."""
-    return Trainer(cfg, host_teacher=host_teacher)
+    sessions run on the host, state tasks only; ``columns``: the most columns one device runs)."""
+    return Trainer(cfg, host_teacher=host_teacher, columns=columns)
 
 
 def make_train(cfg: Config) -> Callable[[jax.Array], tuple]:

@@ -231,10 +231,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     primary = sweep.is_primary()
     if resuming is None:
         resuming = args.resume and (run_dir / "config.json").exists()
-    trainer = api.make_trainer(cfg, host_teacher=bool(args.host_teacher))
+    total = device_columns(run_dir, args, jax.device_count(), resuming)  # args.columns, padded for the devices
+    trainer = api.make_trainer(cfg, host_teacher=bool(args.host_teacher), columns=-(-total // jax.device_count()))
     # The human teacher's page and renderer start first: a machine that cannot render fails now.
     host = HostTeacher(trainer, args.host_teacher, run_dir, args.human, args.resume) if args.host_teacher else None
-    total = device_columns(run_dir, args, jax.device_count(), resuming)  # args.columns, padded for the devices
     sharding = sweep.seed_sharding(total)
     init, round_fn, evaluate = compiled(trainer, sharding)
     keys = column_keys(args, sharding, total)

@@ -99,12 +99,14 @@ class TrainState:
 class Trainer:
     """Builds the pure functions of one seed's run from a :class:`Config`, on a state or a pixel task."""
 
-    def __init__(self, cfg: Config, host_teacher: bool = False):
+    def __init__(self, cfg: Config, host_teacher: bool = False, columns: int = 1):
         """
         Args:
           cfg: the run's configuration.
           host_teacher: the feedback sessions run on the host between rounds (the human and replay
             teachers): the round leaves them out and the buffer stores physics positions for clips.
+          columns: the most columns (seeds, settings) that one device runs; with ``env.impl='warp'`` the physics
+            step's contact buffer is sized for that many columns' environments.
         """
         self.cfg = cfg.validate()
         self.pixels, self.preference, self.method = cfg.pixels, cfg.preference, cfg.method
@@ -113,8 +115,10 @@ class Trainer:
         if self.pixels:
             pixel_feedback.check_config(cfg)
         self.host_teacher = host_teacher
+        worlds = columns * (cfg.env.num_envs + cfg.train.eval_episodes)  # environments in one vmapped step
+        env = cfg.env
         self.env = make_env(
-            cfg.env.task, cfg.env.solver, cfg.env.episode_length, all_contacts=cfg.env.all_contacts, impl=cfg.env.impl
+            env.task, env.solver, env.episode_length, all_contacts=env.all_contacts, impl=env.impl, worlds=worlds
         )
         self.episode_length = self.env.episode_length  # agent steps
         env, actions = self.env, self.env.action_size
@@ -480,11 +484,10 @@ def on_second_stream(f: Callable) -> Callable:
     """``f`` annotated to run on the GPU's second stream (XLA's ``gpu_stream:1``), beside the work of the first
     that does not read its outputs; its outputs stay in device memory. Other backends ignore the annotation.
 
-    JAX's ``compute_on2`` where it has one (0.10); else (0.11, which kept only the older form) ``compute_on`` around
-    a jitted ``f``, which annotates the same ops."""
-    if hasattr(jax_compute_on, "compute_on2"):
-        return jax_compute_on.compute_on2(f, compute_type="gpu_stream:1", out_memory_spaces=jax.memory.Space.Device)
-    return jax_compute_on.compute_on("gpu_stream:1")(jax.jit(f))
+    The keyword form (``compute_type``, ``out_memory_spaces``) is JAX 0.10's ``compute_on2`` and JAX 0.11's
+    ``compute_on`` (0.11 dropped the positional form and the name ``compute_on2``)."""
+    annotate = getattr(jax_compute_on, "compute_on2", None) or jax_compute_on.compute_on
+    return annotate(f, compute_type="gpu_stream:1", out_memory_spaces=jax.memory.Space.Device)
 
 
 def seed_keys(seed: int, num_seeds: int) -> jax.Array:

@@ -44,23 +44,26 @@ def make_env(
     unroll_substeps: bool = False,
     all_contacts: bool = False,
     impl: str = "jax",
+    worlds: int = 1,
 ) -> DMCEnv | PixelEnv | PointProbe:
     """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
     or :data:`PROBES`.
 
-    A probe has no physics engine: ``solver`` and ``impl`` are checked but unused, and so are ``unroll_substeps``
-    and ``all_contacts``.
+    A probe has no physics engine: ``solver`` and ``impl`` are checked but unused, and so are ``unroll_substeps``,
+    ``all_contacts`` and ``worlds``.
     A pixel task's ``episode_length`` counts environment frames, as its state task's does. ``None``: no
     time limit (brax's convention, for ``brax.envs.wrappers.training.EpisodeWrapper``).
     """
     if name in PIXEL_TASKS:
         return PixelEnv(
-            dmc.make_env(name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps, all_contacts, impl)
+            dmc.make_env(
+                name.removesuffix(pixels.SUFFIX), solver, episode_length, unroll_substeps, all_contacts, impl, worlds
+            )
         )
     if name in PROBES:
         parse_solver(solver)
         dmc.check_impl(impl)
-        del unroll_substeps, all_contacts  # Unused.
+        del unroll_substeps, all_contacts, worlds  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
     if reason:
@@ -68,7 +71,7 @@ def make_env(
     if name not in TASKS:
         valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
-    return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts, impl)
+    return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts, impl, worlds)
 
 
 __all__ = [

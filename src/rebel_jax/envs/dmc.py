@@ -290,6 +290,7 @@ class DMCEnv(Env):
         unroll_substeps: bool = False,
         all_contacts: bool = False,
         impl: str = "jax",
+        worlds: int = 1,
     ):
         if episode_length is not None and episode_length < 1:
             raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
@@ -318,7 +319,13 @@ class DMCEnv(Env):
             quiet = model.opt._impl.warn_overflow & ~(flags.ITERATIONS | flags.LS_ITERATIONS)
             model = model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=quiet)))
             self._warp_sys = jax.tree.map(_uncommitted, model)
-            self._warp_data0 = jax.device_get(mjx.make_data(self.mj_model, device=local, impl="warp"))
+            # MuJoCo Warp keeps the contacts of every world of a vmapped step in one buffer of ``naconmax`` rows
+            # (mujoco 3.17 mjx/_src/io.py:907); MJX sizes it for one world. Contacts past it are dropped, and
+            # the physics goes wrong, so it holds ``worlds`` times one world's default.
+            one = mjx.make_data(self.mj_model, device=local, impl="warp")
+            self._warp_data0 = jax.device_get(
+                mjx.make_data(self.mj_model, device=local, impl="warp", naconmax=worlds * one._impl.naconmax)
+            )
         m = self.mj_model
         # Reset: limited joints uniform in their range; unlimited hinges uniform in
         # [-pi, pi] where the task says so (walker; dm_control's cheetah leaves its root
@@ -507,6 +514,7 @@ def make_env(
     unroll_substeps: bool = False,
     all_contacts: bool = False,
     impl: str = "jax",
+    worlds: int = 1,
 ) -> DMCEnv:
     """Builds a task by name.
 
@@ -520,7 +528,11 @@ def make_env(
         program instead of looping over them (longer compile, fewer loop round trips).
       all_contacts: check every geom pair, also the task's ``never_near`` ones (:class:`TaskSpec`).
       impl: the physics step's implementation, one of :data:`IMPLS`.
+      worlds: with ``impl='warp'``, the most environments that one vmapped step of a device runs at once (all
+        vmapped axes together): MuJoCo Warp's contact buffer is sized for them. Unused by the JAX step.
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}")
-    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts, impl)
+    if worlds < 1:
+        raise ValueError(f"worlds must be >= 1; got {worlds}")
+    return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts, impl, worlds)
