@@ -12,7 +12,7 @@ import pytest
 
 from rebel_jax import train
 from rebel_jax.cli import parse
-from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+from rebel_jax.config import Config, ConfigError, EnvConfig, SACConfig, TrainConfig
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 MICRO = Config(
@@ -79,3 +79,15 @@ def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the
     streamed, text, _ = _two_rounds(OVERLAP)
     assert "_xla_stream_annotation" in text and "_xla_stream_annotation" not in behind[1]
     chex.assert_trees_all_equal(behind[0], streamed)
+
+
+def test_on_a_gpu_with_jax_0_11_overlap_is_refused_in_one_line(monkeypatch):
+    """XLA aborted the second-stream program on an H200 with JAX 0.11.2 (both the trainer and
+    benchmarks/overlap.py's stream modes); such a run stops at once with a one-line error instead."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "__version__", "0.11.2")
+    with pytest.raises(ConfigError, match=r"^--overlap is refused on GPUs with JAX >= 0\.11: XLA aborted") as err:
+        Trainer(OVERLAP)
+    assert "\n" not in str(err.value)
+    monkeypatch.setattr(jax, "__version__", "0.10.2")
+    assert Trainer(OVERLAP).cfg.train.overlap  # JAX 0.10 builds it (its GPU behaviour unmeasured)

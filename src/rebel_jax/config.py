@@ -172,7 +172,8 @@ class TrainConfig:
     """The agent's updates at a vector step sample the replay as it was before that step's transitions (one vector
     step behind), so that they do not wait for its physics: on a GPU the env step then runs on a second stream,
     beside the updates. A protocol change (B-Pref's updates see the newest transitions), off in every preset; its
-    speed and its learning curves are not yet measured (``benchmarks/overlap.py`` times the two side by side)."""
+    speed and its learning curves are not measured. Refused on GPUs with JAX >= 0.11, where XLA aborted the
+    second-stream program (JAX 0.11.2); ``benchmarks/overlap.py`` times the two side by side."""
 
     def validate(self, num_envs: int) -> None:
         for name in ("total_steps", "steps_per_round", "eval_every", "eval_episodes"):

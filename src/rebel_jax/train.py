@@ -51,7 +51,7 @@ from jax.sharding import NamedSharding
 
 from rebel_jax import budget, frame_replay, pixel_feedback, replay, sweep, teachers
 from rebel_jax.agent import Agent
-from rebel_jax.config import Config
+from rebel_jax.config import Config, ConfigError
 from rebel_jax.drqv2 import DrQV2
 from rebel_jax.envs import State, VmapWrapper, make_env
 from rebel_jax.episodes import EpisodeStats, all_finite, init_trajectory, physics_positions, record_trajectory
@@ -115,6 +115,10 @@ class Trainer:
         if self.pixels:
             pixel_feedback.check_config(cfg)
         self.host_teacher = host_teacher
+        if cfg.train.overlap and jax.default_backend() == "gpu" and _jax_version() >= (0, 11):
+            raise ConfigError(
+                "--overlap is refused on GPUs with JAX >= 0.11: XLA aborted its second-stream program with JAX 0.11.2"
+            )
         worlds = columns * (cfg.env.num_envs + cfg.train.eval_episodes)  # environments in one vmapped step
         env = cfg.env
         self.env = make_env(
@@ -478,6 +482,11 @@ def grow_replay(state: TrainState, like: TrainState) -> TrainState:
 
     grown = jax.tree.map(pad, state.buffer, like.buffer)
     return state.replace(buffer=grown.replace(ptr=jnp.array(grown.size, copy=True)))  # not donated twice
+
+
+def _jax_version() -> tuple[int, ...]:
+    """JAX's version as integers, ``(0, 10, 2)``."""
+    return tuple(int(part) for part in jax.__version__.split(".")[:3] if part.isdigit())
 
 
 def on_second_stream(f: Callable) -> Callable:

@@ -34,8 +34,9 @@ def _task_factory(task: str) -> Callable[..., dmc.DMCEnv]:
         unroll_substeps: bool = False,
         all_contacts: bool = False,
         impl: str = "jax",
+        worlds: int = 1,
     ) -> dmc.DMCEnv:
-        return dmc.make_env(task, solver, None, unroll_substeps, all_contacts, impl)
+        return dmc.make_env(task, solver, None, unroll_substeps, all_contacts, impl, worlds)
 
     make.__name__ = make.__qualname__ = f"{PREFIX}{task}"
     make.__doc__ = f"{task} without a time limit, for brax's registry (see {__name__})."
