@@ -27,7 +27,11 @@ def test_every_task_is_tested_here():
     assert set(PHYSICS) | set(SAME_PHYSICS_AS_WALK) | set(QUADRUPED) == set(TASKS)
 
 
-@pytest.mark.parametrize("task", PHYSICS)
+# make test-heavy: cheetah's batched compile (about 25 s); its reset and step are checked against dm_control in
+# tests/test_envs_dm_control.py.
+@pytest.mark.parametrize(
+    "task", [pytest.param(t, marks=pytest.mark.heavy) if t == "cheetah_run" else t for t in PHYSICS]
+)
 def test_batched_reset_and_step_are_finite_with_documented_shapes(compiled_env, task):
     c = compiled_env(task)
     state = c.batch_reset(jax.random.split(jax.random.PRNGKey(0), B))

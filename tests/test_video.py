@@ -47,6 +47,7 @@ def test_config_read_back_from_a_run_directory_equals_the_original(preset):
     assert from_dict(type(cfg), json.loads(text)) == cfg
 
 
+@pytest.mark.heavy  # make test-heavy: compiles a pixel walker's episode, its step and two cameras (about 40 s)
 def test_a_pixel_policy_s_clip_is_its_episode_seen_by_the_clip_camera():
     # A pixel task's policy acts on its own frame stacks (here 16x16); the clip's camera (24x24) draws the same
     # physics. Against a Python loop of reset, policy, step and render.

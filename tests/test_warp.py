@@ -88,7 +88,7 @@ def test_a_batch_with_more_contacts_than_one_world_holds_keeps_them_all():
     (48 rows for the walker) it drops the rest, and the step goes wrong. 64 walker states after 300 random steps
     hold more contacts than one world's buffer; with ``worlds=64`` the step still lands on dm_control's."""
     ref = _trajectory("walker_walk", skip=300, n=64)
-    one_world = dmc.mjx.make_data(make_env("walker_walk", impl="warp", worlds=1).mj_model, impl="warp")._impl.naconmax
+    one_world = make_env("walker_walk", impl="warp", worlds=1)._warp_data0._impl.naconmax
     assert ref["ncon"].sum() > one_world, (ref["ncon"].sum(), one_world)  # a buffer for one world overflows
     rel = [
         np.abs(_one_step("walker_walk", "dm_control", "warp", ref, worlds)[0] - ref["obs"])
@@ -97,6 +97,22 @@ def test_a_batch_with_more_contacts_than_one_world_holds_keeps_them_all():
     ]
     assert rel[0].mean() < 1e-5 and rel[0].max() < 2e-4, (rel[0].mean(), rel[0].max())
     assert rel[1].max() > 1e-2, rel[1].max()  # what the sized buffer prevents
+
+
+@needs_warp
+def test_the_trainer_sizes_the_contact_buffer_for_every_environment_of_a_device():
+    """A device's vmapped step runs ``columns x (num_envs + eval_episodes)`` environments; the trainer's Warp data
+    holds one world's contact rows for each of them."""
+    from rebel_jax.config import Config, EnvConfig, TrainConfig
+    from rebel_jax.train import Trainer
+
+    cfg = Config(
+        env=EnvConfig(task="walker_walk", num_envs=2, episode_length=20, impl="warp"),
+        train=TrainConfig(total_steps=80, seed_steps=20, steps_per_round=40, eval_every=40, eval_episodes=3),
+    )
+    one_world = make_env("walker_walk", impl="warp", worlds=1)._warp_data0._impl.naconmax
+    for columns in (1, 4):
+        assert Trainer(cfg, columns=columns).env._warp_data0._impl.naconmax == columns * (2 + 3) * one_world
 
 
 @pytest.mark.heavy
