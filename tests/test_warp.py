@@ -132,6 +132,8 @@ def test_under_the_default_solver_the_warp_step_is_as_close_to_dm_control_as_the
 def test_a_bad_or_missing_impl_is_one_line(monkeypatch, capsys):
     with pytest.raises(ValueError, match="unknown physics impl 'cuda'; one of jax, warp"):
         make_env("walker_walk", impl="cuda")
+    with pytest.raises(ValueError, match="^worlds must be >= 1; got 0$"):
+        make_env("walker_walk", worlds=0)
     monkeypatch.setattr(dmc.importlib.util, "find_spec", lambda name: None)
     with pytest.raises(ValueError, match=r"needs the warp-lang package: pip install -e '\.\[warp\]'"):
         make_env("walker_walk", impl="warp")
