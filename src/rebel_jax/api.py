@@ -27,8 +27,9 @@ def make_trainer(cfg: Config, host_teacher: bool = False, columns: int = 1) -> T
     return Trainer(cfg, host_teacher=host_teacher, columns=columns)
 
 
-def make_train(cfg: Config) -> Callable[[jax.Array], tuple]:
-    """``train(key) -> (state, metrics)``: the run of ``cfg`` for one seed, every round, as a pure function.
+def make_train(cfg: Config, columns: int = 1) -> Callable[[jax.Array], tuple]:
+    """``train(key) -> (state, metrics)``: the run of ``cfg`` for one seed, every round, as a pure function;
+    ``columns``: the most seeds one device runs of it (with ``env.impl='warp'`` it sizes the contact buffer).
 
     Example::
 
@@ -36,7 +37,7 @@ def make_train(cfg: Config) -> Callable[[jax.Array], tuple]:
         state, metrics = train(jax.random.split(jax.random.key(0), 4))  # 4 seeds
         metrics["eval_return"]  # (4, rounds)
     """
-    trainer = make_trainer(cfg)
+    trainer = make_trainer(cfg, columns=columns)
 
     def train(key: jax.Array):
         def one_round(state, round_index):
