@@ -85,9 +85,9 @@ def test_on_a_gpu_with_jax_0_11_overlap_is_refused_in_one_line(monkeypatch):
     """XLA aborted the second-stream program on an H200 with JAX 0.11.2 (both the trainer and
     benchmarks/overlap.py's stream modes); such a run stops at once with a one-line error instead."""
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(jax, "__version__", "0.11.2")
+    monkeypatch.setattr(jax, "__version_info__", (0, 11, 2))
     with pytest.raises(ConfigError, match=r"^--overlap is refused on GPUs with JAX >= 0\.11: XLA aborted") as err:
         Trainer(OVERLAP)
     assert "\n" not in str(err.value)
-    monkeypatch.setattr(jax, "__version__", "0.10.2")
+    monkeypatch.setattr(jax, "__version_info__", (0, 10, 2))
     assert Trainer(OVERLAP).cfg.train.overlap  # JAX 0.10 builds it (its GPU behaviour unmeasured)

@@ -115,14 +115,17 @@ class Trainer:
         if self.pixels:
             pixel_feedback.check_config(cfg)
         self.host_teacher = host_teacher
-        if cfg.train.overlap and jax.default_backend() == "gpu" and _jax_version() >= (0, 11):
+        if cfg.train.overlap and jax.default_backend() == "gpu" and jax.__version_info__ >= (0, 11):
             raise ConfigError(
                 "--overlap is refused on GPUs with JAX >= 0.11: XLA aborted its second-stream program with JAX 0.11.2"
             )
-        worlds = columns * (cfg.env.num_envs + cfg.train.eval_episodes)  # environments in one vmapped step
-        env = cfg.env
         self.env = make_env(
-            env.task, env.solver, env.episode_length, all_contacts=env.all_contacts, impl=env.impl, worlds=worlds
+            cfg.env.task,
+            cfg.env.solver,
+            cfg.env.episode_length,
+            all_contacts=cfg.env.all_contacts,
+            impl=cfg.env.impl,
+            worlds=columns * (cfg.env.num_envs + cfg.train.eval_episodes),  # environments in one vmapped step
         )
         self.episode_length = self.env.episode_length  # agent steps
         env, actions = self.env, self.env.action_size
@@ -482,11 +485,6 @@ def grow_replay(state: TrainState, like: TrainState) -> TrainState:
 
     grown = jax.tree.map(pad, state.buffer, like.buffer)
     return state.replace(buffer=grown.replace(ptr=jnp.array(grown.size, copy=True)))  # not donated twice
-
-
-def _jax_version() -> tuple[int, ...]:
-    """JAX's version as integers, ``(0, 10, 2)``."""
-    return tuple(int(part) for part in jax.__version__.split(".")[:3] if part.isdigit())
 
 
 def on_second_stream(f: Callable) -> Callable:

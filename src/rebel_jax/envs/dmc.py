@@ -294,6 +294,8 @@ class DMCEnv(Env):
     ):
         if episode_length is not None and episode_length < 1:
             raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
+        if worlds < 1:
+            raise ValueError(f"worlds must be >= 1; got {worlds}")
         check_impl(impl)
         self.spec = TASKS[task]
         self.impl = impl
@@ -533,6 +535,4 @@ def make_env(
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(sorted(TASKS))}")
-    if worlds < 1:
-        raise ValueError(f"worlds must be >= 1; got {worlds}")
     return DMCEnv(name, parse_solver(solver), episode_length, unroll_substeps, all_contacts, impl, worlds)
