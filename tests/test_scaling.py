@@ -76,3 +76,27 @@ def test_runs_per_gpu_hour_project_the_first_round_and_the_median_of_the_rest(be
     assert f"| {job:,.0f} | {20 * 3600 / (2 * job):.1f} |" in out, out
     with pytest.raises(SystemExit, match="--total-steps must be >= 1"):
         runs_per_hour.main([str(run), "--total-steps", "0"])
+
+
+@pytest.fixture
+def learning_check(benchmark_script):
+    return benchmark_script("learning_check")
+
+
+def test_learning_check_is_the_difference_of_seed_means_and_its_standard_error(learning_check, tmp_path, capsys):
+    rows_a = [{"env_steps": 50, "eval_return": [1.0, 3.0, 8.0]}, {"env_steps": 100, "eval_return": [2.0, 4.0, 9.0]}]
+    rows_b = [{"env_steps": 50, "eval_return": [4.0, 4.0]}, {"env_steps": 75, "eval_return": [0.0, 1.0]}]
+    a = _metrics(tmp_path / "a", [{"round": i, **r} for i, r in enumerate(rows_a)])
+    b = _metrics(tmp_path / "b", [{"round": i, **r} for i, r in enumerate(rows_b)])
+    learning_check.main([str(a), str(b), "--every", "25"])
+    out = capsys.readouterr().out
+    # By hand at step 50: A's mean 4, sample variance ((-3)^2 + (-1)^2 + 4^2) / 2 = 13; B's mean 4, variance 0.
+    assert f"| 50 | 4.0 +- {13**0.5:.1f} | 4.0 +- 0.0 | +0.0 | {(13 / 3) ** 0.5:.1f} |" in out, out
+    assert "| 75 |" not in out and "| 100 |" not in out  # only steps both runs logged
+
+
+def test_learning_check_refuses_runs_without_a_shared_step(learning_check, tmp_path):
+    a = _metrics(tmp_path / "a", [{"round": 0, "env_steps": 10, "eval_return": [1.0, 2.0]}])
+    b = _metrics(tmp_path / "b", [{"round": 0, "env_steps": 20, "eval_return": [1.0, 2.0]}])
+    with pytest.raises(SystemExit, match="share no logged step"):
+        learning_check.table(a, b, every=10)
