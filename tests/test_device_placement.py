@@ -92,6 +92,8 @@ def test_the_run_programs_are_tied_to_no_device(algo, task):
     assert _device_ties(jax.make_jaxpr(round_fn)(states, jnp.int32(1))) == []
 
 
+# make test-heavy (16 s, the benchmark's three sharded compiles): make test checks the run programs' placement above.
+@pytest.mark.heavy
 def test_sharded_compile_reports_each_part_over_two_devices():
     script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "sharded_compile.py"
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")

@@ -91,6 +91,8 @@ def test_summarize_sums_each_instruction_and_category_per_update_as_a_loop_does(
         assert entry["category"] == kinds.get(entry["op"], "not in the HLO")
 
 
+# make test-heavy (10 s, a traced pixel update): the categories and the sums are tested above on HLO text.
+@pytest.mark.heavy
 def test_a_traced_cpu_run_finds_every_instruction_in_the_compiled_program(profile, tmp_path):
     out = tmp_path / "profile.json"
     profile.main(["--size", "16", "--batch-size", "4", "--seeds", "2", "--repeats", "1", "--updates-per-call", "2",

@@ -6,6 +6,7 @@ import dataclasses
 
 import jax
 import numpy as np
+import pytest
 
 from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
@@ -27,6 +28,8 @@ def _equal(a, b) -> bool:
     return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
+# make test-heavy (14 s of compiles of a benchmark): the trainer's --overlap path is tested in test_overlap.py.
+@pytest.mark.heavy
 def test_modes_step_the_same_physics_and_only_serial_updates_read_it(benchmark_script):
     bench = benchmark_script("overlap")
     states = _final_states(bench, bench.MODES)

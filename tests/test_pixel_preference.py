@@ -614,6 +614,9 @@ def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
     assert set(counts[False]) == {1, SEEDS} and set(counts[True]) == {1}
 
 
+# make test-heavy (a 28 s compile of the pixel round): make test still checks the looped session's values
+# (test_session_loop_leaves_no_convolution_grouped_over_the_columns and the sessions' NumPy references).
+@pytest.mark.heavy
 def test_looped_session_writes_the_columns_in_place_not_a_stacked_copy_of_the_state():
     """``pixel_reward.session_loop`` inside the seed-vmapped, donated round (``pixel_feedback.loop_in_place``): the
     compiled round's working memory holds about one column's copy of SURF's pool (half of it at 2 seeds, and the

@@ -15,6 +15,9 @@ def parts_module(benchmark_script):
     return benchmark_script("pixel_session_parts")
 
 
+# make test-heavy (16 s of compiles of a benchmark): the session's parts are the trainer's, tested in
+# test_pixel_preference.py.
+@pytest.mark.heavy
 def test_a_rebel_job_times_the_bt_epoch_the_rebel_epoch_and_the_relabel_on_a_full_state(tmp_path, parts_module):
     out = tmp_path / "parts.json"
     args = parts_module.parser().parse_args(["--tiny", "--jobs", "rebel_cheetah", "--labels", "8", "--precisions",

@@ -210,6 +210,8 @@ def test_a_traced_cpu_run_of_the_update_splits_it_into_its_parts(sp, tmp_path):
     assert row["compiled_launches_per_update"] > 0 and row["kernels_per_update"] > 0
 
 
+# make test-heavy (10 s, a traced round): the trace reading and categories are tested on the update above.
+@pytest.mark.heavy
 def test_a_traced_cpu_round_splits_it_into_physics_updates_and_the_rest(sp, tmp_path):
     out = tmp_path / "round.json"
     sp.main(["--part", "round", "--preset", "tiny", "--task", "probe_point", "--algo", "sac", "--columns", "2",
