@@ -14,16 +14,16 @@ kernel) is checked this way against the same command on the same seeds.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 
 import numpy as np
 
+from rebel_jax.rundir import log_records
+
 
 def returns(run_dir: pathlib.Path, key: str = "eval_return") -> dict[int, np.ndarray]:
-    """A run's per-seed ``key`` by env step, for the rows that logged it."""
-    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
-    rows = [json.loads(line) for line in lines if line.strip()]
+    """A run's per-seed ``key`` by env step, for the rows that logged it (a last line cut mid-write left out)."""
+    rows = [record for _, record in log_records(run_dir / "metrics.jsonl")[0]]
     return {r["env_steps"]: np.asarray(r[key], np.float64) for r in rows if r.get(key) is not None}
 
 

@@ -119,13 +119,15 @@ class Trainer:
             raise ConfigError(
                 "--overlap is refused on GPUs with JAX >= 0.11: XLA aborted its second-stream program with JAX 0.11.2"
             )
+        self.num_train = cfg.env.num_envs
+        self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
         self.env = make_env(
             cfg.env.task,
             cfg.env.solver,
             cfg.env.episode_length,
             all_contacts=cfg.env.all_contacts,
             impl=cfg.env.impl,
-            worlds=columns * (cfg.env.num_envs + cfg.train.eval_episodes),  # environments in one vmapped step
+            worlds=columns * self.num_all,  # environments in one vmapped step
         )
         self.episode_length = self.env.episode_length  # agent steps
         env, actions = self.env, self.env.action_size
@@ -136,8 +138,6 @@ class Trainer:
             else SAC(cfg.sac, env.observation_size, actions)
         )
         self.ring = frame_replay if self.pixels else replay
-        self.num_train = cfg.env.num_envs
-        self.num_all = cfg.env.num_envs + cfg.train.eval_episodes
         # brax's VmapWrapper: reset(key) resets the envs on jax.random.split(key, batch_size).
         self.envs = VmapWrapper(self.env, batch_size=self.num_all)  # training, then in-batch evaluation
         self.eval_envs = VmapWrapper(self.env, batch_size=cfg.train.eval_episodes)  # Trainer.evaluate
