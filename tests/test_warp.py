@@ -171,3 +171,34 @@ def test_a_run_with_the_warp_step_starts_as_the_jax_run_does():
     first = np.abs(warp.next_obs[0, 0] - jax_.next_obs[0, 0]) / np.maximum(1.0, np.abs(jax_.next_obs[0, 0]))
     assert first.max() < 1e-3, first.max()
     assert all(np.isfinite(b.next_obs).all() for b in (warp, jax_))
+
+
+@pytest.mark.heavy
+@needs_warp
+def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_its_first_round(
+    tmp_path, monkeypatch, capsys
+):
+    """With ``--impl warp`` the command builds Warp's kernels in a thread while the round compiles ahead of its
+    first call (``cli._compiled_beside_kernels``). Its logged metrics must equal, bit for bit on the CPU, those of
+    the same command whose round compiles at its first call, as with the JAX step."""
+    import json
+
+    from rebel_jax import cli
+
+    flags = ["sac", "--preset", "tiny", "--task", "walker_walk", "--impl", "warp", "--seeds", "1",
+             "--num-envs", "2", "--episode-length", "20", "--total-steps", "80", "--seed-steps", "20",
+             "--steps-per-round", "40", "--eval-every", "40", "--eval-episodes", "1", "--sac.hidden", "16",
+             "--sac.batch-size", "16", "--no-progress", "--no-tensorboard", "--video-steps", "0",
+             "--checkpoint-every", "0", "--no-compile-cache"]  # fmt: skip
+
+    def logged(run_dir):
+        cli.main([*flags, "--run-dir", str(run_dir)])
+        rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+        return [{k: v for k, v in row.items() if k not in ("seconds", "env_steps_per_s")} for row in rows]
+
+    ahead = logged(tmp_path / "ahead")
+    assert "0/80 steps: round 1 of 2\n" in capsys.readouterr().out  # compiled before the first round's line
+    monkeypatch.setattr(cli, "_compiled_beside_kernels", lambda trainer, round_fn, shapes, one: (round_fn, 0.0))
+    at_first_call = logged(tmp_path / "at_first_call")
+    assert len(ahead) == 2
+    assert ahead == at_first_call

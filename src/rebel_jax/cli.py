@@ -31,6 +31,7 @@ human run's answers from its ``labels.jsonl`` (:mod:`rebel_jax.human`).
 
 from __future__ import annotations
 
+import concurrent.futures
 import importlib.metadata
 import importlib.util
 import json
@@ -210,6 +211,28 @@ def initial_state(args: Args, init: Callable, keys: jax.Array, sharding: NamedSh
     return sweep.shard_seeds(trainer.with_knobs(init(keys), lams, teacher_cfgs), sharding)
 
 
+def _compiled_beside_kernels(trainer, round_fn: Callable, shapes, one_device: bool) -> tuple[Callable, float]:
+    """With MuJoCo Warp's step, its kernels built in a thread (``DMCEnv.build_warp_kernels``) while XLA compiles
+    the round ahead of its first call (on one device; several devices compile theirs at the first call), and the
+    seconds that took; ``round_fn`` and 0 with the JAX step. The build ends here, before any program steps the
+    environments (the cheetah's reset does)."""
+    env = trainer.env
+    while not hasattr(env, "build_warp_kernels") and hasattr(env, "env"):  # a PixelEnv holds its DMCEnv
+        env = env.env
+    if getattr(env, "impl", "jax") != "warp":
+        return round_fn, 0.0
+    if sweep.is_primary():
+        print("building MuJoCo Warp's kernels while the round program compiles", flush=True)
+    started = time.perf_counter()
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="warp_kernels") as pool:
+        build = pool.submit(env.build_warp_kernels)
+        if one_device:
+            round_fn = round_fn.lower(shapes, jax.ShapeDtypeStruct((), jnp.int32)).compile()
+        if build.exception() is not None:  # the first step builds them instead
+            print(f"note: MuJoCo Warp's kernels were not built ahead: {build.exception()}", file=sys.stderr)
+    return round_fn, time.perf_counter() - started
+
+
 def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None = None) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
 
@@ -238,9 +261,10 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     sharding = sweep.seed_sharding(total)
     init, round_fn, evaluate = compiled(trainer, sharding)
     keys = column_keys(args, sharding, total)
-    sizes = rundir.tree_bytes(jax.eval_shape(init, keys))  # nothing allocated yet
+    shapes = jax.eval_shape(init, keys)  # nothing allocated yet
     devices = sharding.mesh.devices.ravel().tolist() if sharding else jax.devices()[:1]
-    rundir.check_memory(sizes, devices, STATE_FLAGS, memory_of=jax.local_devices()[0])
+    rundir.check_memory(rundir.tree_bytes(shapes), devices, STATE_FLAGS, memory_of=jax.local_devices()[0])
+    round_fn, ahead = _compiled_beside_kernels(trainer, round_fn, shapes, sharding is None)
     state = initial_state(args, init, keys, sharding, trainer)
     grid = args.grid()
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
@@ -267,11 +291,12 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         logger = RunLogger(run_dir, cfg.train.total_steps, start * per_round, args.progress, args.tensorboard, names)
     if primary and not args.progress and start < cfg.train.num_rounds:  # A plain log says what its first wait is.
         print(
-            f"{start * per_round:,}/{cfg.train.total_steps:,} steps: compiling the round program, then round "
-            f"{start + 1} of {cfg.train.num_rounds} (minutes for a large preset on a CPU)",
+            f"{start * per_round:,}/{cfg.train.total_steps:,} steps: "
+            f"{'' if ahead else 'compiling the round program, then '}round {start + 1} of {cfg.train.num_rounds}"
+            f"{'' if ahead else ' (minutes for a large preset on a CPU)'}",
             flush=True,
         )
-    started, slowest = time.perf_counter(), 0.0
+    started, slowest = time.perf_counter() - ahead, 0.0  # --time-limit counts the compile ahead too
     ever_diverged = np.zeros(args.columns, bool)
     slow_save_noted = False
     try:
@@ -290,7 +315,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
             metrics = {**real_columns(sweep.to_host(metrics)), **session}
-            seconds = time.perf_counter() - t0
+            seconds = time.perf_counter() - t0 + (ahead if r == start else 0.0)  # the first round with its compile
             slowest = max(slowest, seconds) if r > start else 0.0
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:

@@ -406,6 +406,30 @@ class DMCEnv(Env):
         w = jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self._warp_sys, x), w, unroll=unroll)
         return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, *STEP_RESULTS)})
 
+    def build_warp_kernels(self) -> None:
+        """Builds and loads MuJoCo Warp's kernels for this model (``impl='warp'``; nothing for ``jax``).
+
+        One step of one world runs in Warp itself on this process's first device, outside any JAX program. A
+        first vmapped step would otherwise build the same kernels one after the other inside the first round,
+        after its compile; run from a thread (:func:`rebel_jax.cli.run` does) the build overlaps XLA's compile.
+        Warp keeps them in its kernel cache (``~/.cache/warp``, or ``WARP_CACHE_PATH``). Finish it before a program
+        that steps this environment runs: Warp's step inside a program is recorded as a CUDA graph, and loading
+        kernels from another thread meanwhile is not allowed on a GPU.
+        """
+        if self.impl != "warp":
+            return
+        import warp  # noqa: PLC0415 - only with impl='warp' (warp-lang is optional)
+        from mujoco.mjx.third_party import mujoco_warp  # noqa: PLC0415
+
+        local = jax.local_devices()[0]
+        device = warp.get_device(f"cuda:{local.local_hardware_id}" if local.platform == "gpu" else "cpu")
+        with warp.ScopedDevice(device):
+            model = mujoco_warp.put_model(self.mj_model)
+            model.opt.warn_overflow = self._warp_sys.opt._impl.warn_overflow  # the step's, as _warp_steps runs it
+            data = mujoco_warp.make_data(self.mj_model, nworld=1)
+            mujoco_warp.step(model, data)
+            warp.synchronize_device(device)
+
     def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
         d = _observed(d, self.sys, self.spec.sensors)
         reward, metrics = self.spec.reward_fn(d)
