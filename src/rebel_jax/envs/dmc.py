@@ -413,8 +413,8 @@ class DMCEnv(Env):
         first vmapped step would otherwise build the same kernels one after the other inside the first round,
         after its compile; run from a thread (:func:`rebel_jax.cli.run` does) the build overlaps XLA's compile.
         Warp keeps them in its kernel cache (``~/.cache/warp``, or ``WARP_CACHE_PATH``). Finish it before a program
-        that steps this environment runs: Warp's step inside a program is recorded as a CUDA graph, and loading
-        kernels from another thread meanwhile is not allowed on a GPU.
+        that steps this environment runs: inside a program Warp's step is captured as a CUDA graph, and CUDA may
+        refuse a capture while another thread loads kernels.
         """
         if self.impl != "warp":
             return
