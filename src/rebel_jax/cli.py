@@ -228,8 +228,9 @@ def _compiled_beside_kernels(trainer, round_fn: Callable, shapes, one_device: bo
         build = pool.submit(env.build_warp_kernels)
         if one_device:
             round_fn = round_fn.lower(shapes, jax.ShapeDtypeStruct((), jnp.int32)).compile()
-        if build.exception() is not None:  # the first step builds them instead
-            print(f"note: MuJoCo Warp's kernels were not built ahead: {build.exception()}", file=sys.stderr)
+        failed = build.exception()  # waits for the build
+        if failed is not None:  # the first step builds them instead
+            print(f"note: MuJoCo Warp's kernels were not built ahead: {failed}", file=sys.stderr)
     return round_fn, time.perf_counter() - started
 
 
