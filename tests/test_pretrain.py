@@ -28,17 +28,28 @@ def _brute_force_knn(batch, points, k):
     return np.sort(dist, axis=1)[:, k]
 
 
+@pytest.mark.parametrize("select", ["argmin", "top_k"])
 @pytest.mark.parametrize("chunk_size", [16, 103, 1000])
-def test_knn_reward_equals_brute_force(chunk_size):
+@pytest.mark.parametrize("filled", ["scattered", "prefix"])
+def test_knn_reward_equals_brute_force(chunk_size, select, filled):
     rng = np.random.default_rng(0)
     points = rng.normal(size=(103, 5)).astype(np.float32)
-    valid = rng.random(103) < 0.7
+    # "prefix": a buffer filling in order, whose later chunks are skipped.
+    valid = rng.random(103) < 0.7 if filled == "scattered" else np.arange(103) < 37
     batch = np.concatenate([points[valid][:10], rng.normal(size=(6, 5)).astype(np.float32)])
-    knn = jax.jit(pretrain.knn_reward, static_argnums=(3, 4))
-    got = np.asarray(knn(batch, points, valid, 3, chunk_size))
+    knn = jax.jit(pretrain.knn_reward, static_argnums=(3, 4, 5))
+    got = np.asarray(knn(batch, points, valid, 3, chunk_size, select))
     np.testing.assert_allclose(got, _brute_force_knn(batch, points[valid], 3), rtol=1e-4, atol=1e-5)
     # Batch observations drawn from the buffer skip themselves (distance 0): rank k + 1, as B-Pref.
     assert np.all(got[:10] > 0)
+
+
+def test_smallest_equals_sorting_with_ties():
+    rng = np.random.default_rng(3)
+    values = rng.integers(0, 4, size=(9, 12)).astype(np.float32)  # Many equal entries per row.
+    values[0, 5:] = np.inf
+    got = np.asarray(jax.jit(pretrain.smallest, static_argnums=1)(values, 6))
+    np.testing.assert_array_equal(got, np.sort(values, axis=1)[:, :6])
 
 
 def test_knn_reward_is_inf_without_enough_valid_points():

@@ -8,12 +8,13 @@ eq. 3), divided by a running standard deviation of these distances. B-Pref takes
 observation is itself in the buffer at distance 0; ``knn_reward`` does the same.
 
 Distances are computed chunk by chunk over the buffer with a running top-(k+1), so memory is
-O(N * chunk) whatever the buffer size.
+O(N * chunk) whatever the buffer size; chunks past the last filled row are skipped.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Literal
 
 import flax.struct
@@ -146,8 +147,39 @@ def _sq_distances(batch_obs: jax.Array, chunk: jax.Array) -> jax.Array:
     return jnp.maximum(sq, 0.0)
 
 
+def smallest(values: jax.Array, rank: int) -> jax.Array:
+    """The ``rank`` smallest entries of each row, ascending: ``-lax.top_k(-values, rank)[0]``, equal entries
+    counted apart, by ``rank`` passes of ``argmin``, each masking the columns the passes before it took.
+
+    On a GPU ``lax.top_k`` over a few thousand columns is far slower than a few row reductions
+    (BENCHMARKS.md, "The kNN reward of pre-training").
+
+    Args:
+      values: (N, C) with ``C >= rank``.
+      rank: how many (static).
+
+    Returns:
+      (N, rank).
+    """
+    columns = jnp.arange(values.shape[1])[None, :]
+    taken, out = [], []
+    for _ in range(rank):
+        masked = values
+        if taken:
+            hit = functools.reduce(jnp.logical_or, [columns == j[:, None] for j in taken])
+            masked = jnp.where(hit, jnp.inf, values)
+        taken.append(jnp.argmin(masked, axis=1))
+        out.append(jnp.min(masked, axis=1))
+    return jnp.stack(out, axis=1)
+
+
 def knn_reward(
-    batch_obs: jax.Array, buffer_obs: jax.Array, valid_mask: jax.Array, k: int, chunk_size: int = 4096
+    batch_obs: jax.Array,
+    buffer_obs: jax.Array,
+    valid_mask: jax.Array,
+    k: int,
+    chunk_size: int = 4096,
+    select: Literal["argmin", "top_k"] = "argmin",
 ) -> jax.Array:
     """Distance of each batch observation to its k-th nearest neighbour in the buffer (B-Pref).
 
@@ -160,6 +192,7 @@ def knn_reward(
       valid_mask: (P,) bool, True for filled buffer rows.
       k: neighbour rank (static).
       chunk_size: buffer observations per chunk (static).
+      select: how each chunk's smallest distances are found (static): :func:`smallest`, or ``lax.top_k``.
 
     Returns:
       (N,) distances; ``inf`` if fewer than k+1 buffer observations are valid.
@@ -179,10 +212,14 @@ def knn_reward(
         valid = jax.lax.dynamic_slice_in_dim(valid_mask, start, chunk) & fresh
         sq = jnp.where(valid[None, :], _sq_distances(batch_obs, rows), jnp.inf)
         merged = jnp.concatenate([best, sq], axis=1)
-        return -jax.lax.top_k(-merged, rank)[0]
+        return smallest(merged, rank) if select == "argmin" else -jax.lax.top_k(-merged, rank)[0]
 
+    # The chunks up to the last valid row: a pre-training buffer fills in order, so most of the run
+    # reads only its first chunks.
+    last = jnp.max(jnp.where(valid_mask, jnp.arange(num), -1))
+    used_chunks = jnp.minimum((last + chunk) // chunk, num_chunks)
     best = jnp.full((batch_obs.shape[0], rank), jnp.inf, batch_obs.dtype)
-    best = jax.lax.fori_loop(0, num_chunks, body, best)
+    best = jax.lax.fori_loop(0, used_chunks, body, best)
     return jnp.sqrt(best[:, k])
 
 
