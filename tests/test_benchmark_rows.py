@@ -29,3 +29,18 @@ def test_the_checkpoint_checksum_benchmark_measures_a_small_state(tmp_path, benc
     timings = ("save_s", "checksums_s", "restore_checked_s", "restore_unchecked_s")
     assert row["save_s"] > 0 and all(isinstance(row[name], float) and row[name] >= 0 for name in timings), row
     assert not (tmp_path / "scratch").exists()  # its checkpoints are removed
+
+
+def test_the_knn_reward_benchmark_times_each_way_after_checking_they_agree(tmp_path, benchmark_script):
+    bench = benchmark_script("knn_reward")
+    out = tmp_path / "knn.json"
+    small = "--seeds 2 --batch-size 16 --rows 300 --fills 0.2 1 --chunk-sizes 128 --per-call 2 --repeats 1"
+    bench.main([*small.split(), "--out", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["filled"], r["chunk_size"], r["select"]) for r in rows] == [
+        (60, 128, "argmin"),
+        (60, 128, "top_k"),
+        (300, 128, "argmin"),
+        (300, 128, "top_k"),
+    ]
+    assert all(r["ms"] > 0 and r["device"] and r["jax"] for r in rows)
