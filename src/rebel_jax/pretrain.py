@@ -151,8 +151,8 @@ def smallest(values: jax.Array, rank: int) -> jax.Array:
     """The ``rank`` smallest entries of each row, ascending: ``-lax.top_k(-values, rank)[0]``, equal entries
     counted apart, by ``rank`` passes of ``argmin``, each masking the columns the passes before it took.
 
-    On a GPU ``lax.top_k`` over a few thousand columns is far slower than a few row reductions
-    (BENCHMARKS.md, "The kNN reward of pre-training").
+    On a GPU ``lax.top_k`` over a few thousand columns is far slower than a few row reductions; on a CPU it is
+    the faster (BENCHMARKS.md, "The kNN reward of pre-training").
 
     Args:
       values: (N, C) with ``C >= rank``.
@@ -179,7 +179,7 @@ def knn_reward(
     valid_mask: jax.Array,
     k: int,
     chunk_size: int = 4096,
-    select: Literal["argmin", "top_k"] = "argmin",
+    select: Literal["argmin", "top_k"] | None = None,
 ) -> jax.Array:
     """Distance of each batch observation to its k-th nearest neighbour in the buffer (B-Pref).
 
@@ -192,7 +192,9 @@ def knn_reward(
       valid_mask: (P,) bool, True for filled buffer rows.
       k: neighbour rank (static).
       chunk_size: buffer observations per chunk (static).
-      select: how each chunk's smallest distances are found (static): :func:`smallest`, or ``lax.top_k``.
+      select: how each chunk's smallest distances are found (static): ``"argmin"`` (:func:`smallest`) or
+        ``"top_k"`` (``lax.top_k``); the same numbers either way. Default: ``top_k`` on a CPU, whose ``top_k`` is a
+        partial sort and the faster there, else ``argmin``.
 
     Returns:
       (N,) distances; ``inf`` if fewer than k+1 buffer observations are valid.
@@ -200,6 +202,8 @@ def knn_reward(
     References:
       Liu & Abbeel, APT, 2021; Lee, Smith, Abbeel, PEBBLE, ICML 2021, eq. (3).
     """
+    if select is None:
+        select = "top_k" if jax.default_backend() == "cpu" else "argmin"
     num, rank = buffer_obs.shape[0], k + 1
     chunk = min(chunk_size, num)
     num_chunks = -(-num // chunk)
