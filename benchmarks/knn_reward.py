@@ -48,11 +48,10 @@ def reward_scan(args, filled: int, chunk_size: int, select: str):
 
 def rows(args):
     for filled in [int(f * args.rows) for f in args.fills]:
-        ways = [(chunk, select) for chunk in args.chunk_sizes for select in args.selects]
-        totals = [np.asarray(reward_scan(args, filled, c, s)(jnp.zeros(()), jax.random.key(9))) for c, s in ways]
+        runs = {(c, s): reward_scan(args, filled, c, s) for c in args.chunk_sizes for s in args.selects}
+        totals = [np.asarray(run(jnp.zeros(()), jax.random.key(9))) for run in runs.values()]
         np.testing.assert_allclose(totals, totals[0], rtol=1e-5)
-        for chunk, select in ways:
-            run = reward_scan(args, filled, chunk, select)
+        for (chunk, select), run in runs.items():  # each compiled once, by the check above
             seconds = median_seconds(run, jnp.zeros(()), args.per_call, args.repeats)
             print(f"filled {filled:6d}  chunk {chunk:6d}  {select:7s}: {seconds * 1e3:8.3f} ms", flush=True)
             yield dict(

@@ -206,7 +206,6 @@ def knn_reward(
         select = "top_k" if jax.default_backend() == "cpu" else "argmin"
     num, rank = buffer_obs.shape[0], k + 1
     chunk = min(chunk_size, num)
-    num_chunks = -(-num // chunk)
 
     def body(index, best):
         start = jnp.minimum(index * chunk, num - chunk)  # The last chunk overlaps its predecessor...
@@ -219,11 +218,10 @@ def knn_reward(
         return smallest(merged, rank) if select == "argmin" else -jax.lax.top_k(-merged, rank)[0]
 
     # The chunks up to the last valid row: a pre-training buffer fills in order, so most of the run
-    # reads only its first chunks.
+    # reads only its first chunks (every chunk once the buffer is full).
     last = jnp.max(jnp.where(valid_mask, jnp.arange(num), -1))
-    used_chunks = jnp.minimum((last + chunk) // chunk, num_chunks)
     best = jnp.full((batch_obs.shape[0], rank), jnp.inf, batch_obs.dtype)
-    best = jax.lax.fori_loop(0, used_chunks, body, best)
+    best = jax.lax.fori_loop(0, (last + chunk) // chunk, body, best)
     return jnp.sqrt(best[:, k])
 
 
