@@ -4,6 +4,8 @@
         --xla-flags=--xla_gpu_enable_command_buffer=          # the update at the paper preset, 5, 10, 20 columns
     python benchmarks/sac_profile.py --part round --columns 5 \\
         --xla-flags=--xla_gpu_enable_command_buffer=          # one PEBBLE walker_walk round of the paper preset
+    python benchmarks/sac_profile.py --part round --columns 5 --impl warp \\
+        --xla-flags=--xla_gpu_enable_command_buffer=          # the same with MuJoCo Warp's step
     python benchmarks/sac_profile.py --hidden 32 --batch-size 16 --columns 2 --repeats 1   # a CPU check
     python benchmarks/sac_profile.py --part round --preset tiny --task probe_point --columns 2   # a CPU check
 
@@ -184,7 +186,7 @@ def round_config(args):
     cfg = dataclasses.replace(
         cfg,
         algo=args.algo,
-        env=dataclasses.replace(cfg.env, task=args.task or cfg.env.task),
+        env=dataclasses.replace(cfg.env, task=args.task or cfg.env.task, impl=args.impl),
         sac=dataclasses.replace(cfg.sac, precision=args.precision),
         train=dataclasses.replace(cfg.train, steps_per_round=args.steps_per_round or cfg.train.steps_per_round),
     )
@@ -213,6 +215,7 @@ def round_row(args, columns: int) -> dict:
         "preset": args.preset,
         "algo": cfg.algo,
         "task": cfg.env.task,
+        "impl": cfg.env.impl,
         "columns": columns,
         "precision": cfg.sac.precision,
         "hidden": cfg.sac.hidden,
@@ -252,6 +255,7 @@ def parser() -> argparse.ArgumentParser:
     rounds.add_argument("--algo", default="pebble", help="the trainer's algorithm (default pebble)")
     rounds.add_argument("--task", default="", help="the task (default: the preset's, walker_walk for paper)")
     rounds.add_argument("--steps-per-round", type=int, default=0, help="environment steps per round (0: preset's)")
+    rounds.add_argument("--impl", default="jax", choices=["jax", "warp"], help="the physics step (env.impl)")
     rounds.add_argument("--round-index", type=int, default=2, help="which round (2: paper's first without session)")
     add_xla_flags_argument(p)
     return p
@@ -287,7 +291,7 @@ def main(argv=None):
     use_xla_flags(args.xla_flags)
     row = {"update": update_row, "round": round_row}[args.part]
     key = ("device", "commit", "part", "preset", "algo", "task", "columns", "precision", "hidden", "batch_size")
-    key += ("steps_per_round", "round_index", "xla_flags")
+    key += ("impl", "steps_per_round", "round_index", "xla_flags")
     for columns in args.columns:
         result = row(args, columns)
         print(json.dumps({k: v for k, v in result.items() if k != "top"}, indent=1), flush=True)
