@@ -55,9 +55,10 @@ def behind():
 
 def test_overlapping_updates_sample_the_replay_one_vector_step_behind(behind):
     state, _, plain = _two_rounds(MICRO, spy_on_replay=True)
-    # 2 updates (utd 1, 2 envs) at every vector step from the one whose transitions reach seed_steps (row 10 of
-    # 40 vector steps): the same updates, each on a replay of one row (one vector step) fewer.
-    assert len(plain) == 2 * (40 - 9) and plain[0] == 10 and plain[-1] == 40
+    # Updates (2: utd 1, 2 envs) at every vector step from the one whose transitions reach seed_steps (row 10 of
+    # 40 vector steps), the step's minibatches drawn together (one draw a step): the same draws, each on a replay of
+    # one row (one vector step) fewer.
+    assert len(plain) == 40 - 9 and plain[0] == 10 and plain[-1] == 40
     assert behind[2] == [rows - 1 for rows in plain]
     critic, critic_behind = jax.tree.leaves(state.agent.critic_params), jax.tree.leaves(behind[0].agent.critic_params)
     assert not all(np.array_equal(a, b) for a, b in zip(critic, critic_behind, strict=True))

@@ -254,27 +254,42 @@ class Trainer:
         """The agent's minibatch, uniform over the replay (the default of ``Method.sample_batch``)."""
         return self.ring.sample(buffer, key, self.agent.batch_size, learned_reward, **self.agent.sample_args)
 
-    def _updates(self, ts: TrainState, buffer, key: jax.Array, t: jax.Array, intrinsic: bool = False):
-        """The agent's updates of one vector step on the learned (or true, without a method) or the intrinsic reward:
-        the method's batches (``Method.sample_batch``) and reward (``Method.batch_reward``) on a preference run."""
+    def _updates(self, ts: TrainState, buffer, key: jax.Array, t: jax.Array, pretraining: jax.Array | bool = False):
+        """The agent's updates of one vector step: its minibatches drawn first (``Method.sample_batch`` on a
+        preference run), then rewarded (``Method.batch_reward``, or PEBBLE's intrinsic reward while ``pretraining``,
+        unbatched), then one update on each: one update program for every phase."""
         agent_step = t * self.num_train
+        keys = jax.vmap(jax.random.split)(jax.random.split(key, self.updates_per_step))  # (updates, 2): sample, update
 
-        def one(carry, key):
-            state, stats = carry
-            key_sample, key_update = jax.random.split(key)
-            if not self.preference:
-                batch = self.sample(buffer, key_sample, False)
-            else:
-                batch = self.method.sample_batch(self, ts, buffer, key_sample)
-            if intrinsic:
+        def draw(key):
+            if self.preference:
+                return self.method.sample_batch(self, ts, buffer, key)
+            return self.sample(buffer, key, False)
+
+        def stored(batches, stats):  # the stored (learned or true) reward, and the method's bonus on it
+            if self.preference:
+                batches = jax.vmap(lambda batch: self.method.batch_reward(self, ts, batch, agent_step))(batches)
+            return batches, stats
+
+        def intrinsic(batches, stats):  # batch by batch: each updates the running statistics the next one reads
+            def one(stats, batch):
                 batch, stats = self.feedback.intrinsic_batch(batch, stats, buffer)
-            elif self.preference:
-                batch = self.method.batch_reward(self, ts, batch, agent_step)
-            state, metrics = self.agent.update(state, batch, key_update, agent_step)
-            return (state, stats), metrics
+                return stats, batch
 
-        keys = jax.random.split(key, self.updates_per_step)
-        (agent, stats), metrics = jax.lax.scan(one, (ts.agent, ts.entropy_stats), keys)
+            stats, batches = jax.lax.scan(one, stats, batches)
+            return batches, stats
+
+        batches = jax.vmap(draw)(keys[:, 0])
+        if self.pretrain_steps:
+            batches, stats = jax.lax.cond(pretraining, intrinsic, stored, batches, ts.entropy_stats)
+        else:
+            batches, stats = stored(batches, ts.entropy_stats)
+
+        def update(state, inputs):
+            batch, key = inputs
+            return self.agent.update(state, batch, key, agent_step)
+
+        agent, metrics = jax.lax.scan(update, ts.agent, (batches, keys[:, 1]))
         return (agent, stats), jax.tree.map(jnp.mean, metrics)
 
     def _env_step(self, env_state: State, action: jax.Array) -> State:
@@ -305,15 +320,11 @@ class Trainer:
         learning = self.schedule.learning(t, self.num_train, self.cfg.train.seed_steps)
         zeros = {k: jnp.zeros(()) for k in self.agent.metric_names}
         sampled = ts.buffer if self.cfg.train.overlap else buffer  # train.overlap: the replay one step behind
-        branches = [
+        (agent, stats), metrics = jax.lax.cond(  # No updates while seeding; PEBBLE's pre-training before t_pretrain.
+            learning,
+            lambda: self._updates(ts, sampled, key_update, t, pretraining=t < self.pretrain_steps),
             lambda: ((ts.agent, ts.entropy_stats), zeros),
-            lambda: self._updates(ts, sampled, key_update, t),
-        ]
-        phase = learning.astype(jnp.int32)  # 0: seeding, 1: the agent on the stored reward
-        if self.pretrain_steps:
-            branches.append(lambda: self._updates(ts, sampled, key_update, t, intrinsic=True))
-            phase = jnp.where(learning & (t < self.pretrain_steps), 2, phase)  # 2: unsupervised pre-training
-        (agent, stats), metrics = jax.lax.switch(phase, branches)
+        )
         ts = ts.replace(agent=agent, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
         if self.trajectory_size:  # The evaluation environments' step: what was acted on, the action.
             first, end = self.num_train, self.num_train + self.trajectory_size[0]

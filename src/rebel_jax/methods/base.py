@@ -134,10 +134,11 @@ class Method:
         return trainer.select_queries(ts, key, first)
 
     def sample_batch(self, trainer: Any, ts: Any, buffer: Any, key: jax.Array) -> Any:
-        """The agent's minibatch in the updates of every vector step: uniform over the replay, with the learned
+        """The agent's minibatch for one update of a vector step: uniform over the replay, with the learned
         reward (``trainer.sample``): SAC's transitions on state tasks, DrQ-v2's n-step transitions on pixel tasks.
-        The updates after the critic's reset sample uniformly whatever the method (QPA's ``update_after_reset``
-        does, huxiao09/QPA@7e9e49e:agent/sac.py:334-337).
+        The trainer draws a vector step's minibatches together before its updates (this call vmapped over their
+        keys). The updates after the critic's reset sample uniformly whatever the method (QPA's
+        ``update_after_reset`` does, huxiao09/QPA@7e9e49e:agent/sac.py:334-337).
 
         Args:
           ts: the state before the step (``ts.reward`` the ensemble and its labels).
@@ -148,7 +149,8 @@ class Method:
 
     def batch_reward(self, trainer: Any, ts: Any, batch: Any, agent_step: jax.Array) -> Any:
         """The minibatch's reward as the agent sees it (an intrinsic bonus goes here); unchanged by default.
-        Called in every update on the learned reward (on pixel tasks those after the critic's reset included).
+        Called on every minibatch of the updates on the learned reward, a vector step's together (vmapped over them)
+        before its updates (on pixel tasks the updates after the critic's reset included).
 
         Args:
           ts: the state whose ensemble (``ts.reward.params``) labelled the replay.
