@@ -368,3 +368,35 @@ def test_offered_pairs_follow_bprefs_shrunken_last_session(labels, queries):
         np.testing.assert_array_equal(kept, np.arange(queries) < size)
     answered = dataclasses.replace(feedback, budget="answered")
     assert offered_pairs(answered, 1, queries) == queries  # A skipped pair leaves its place to the next.
+
+
+def _updates_one_by_one(trainer, ts, key, t, pretraining):
+    """A vector step's updates as the trainer once ran them: draw, reward and update one minibatch at a time."""
+    state, stats, metrics, agent_step = ts.agent, ts.entropy_stats, [], t * trainer.num_train
+    for key in jax.random.split(key, trainer.updates_per_step):
+        key_sample, key_update = jax.random.split(key)
+        batch = trainer.method.sample_batch(trainer, ts, ts.buffer, key_sample)
+        if pretraining:
+            batch, stats = trainer.feedback.intrinsic_batch(batch, stats, ts.buffer)
+        else:
+            batch = trainer.method.batch_reward(trainer, ts, batch, agent_step)
+        state, step_metrics = trainer.agent.update(state, batch, key_update, agent_step)
+        metrics.append(step_metrics)
+    return (state, stats), jax.tree.map(lambda *m: jnp.mean(jnp.stack(m)), *metrics)
+
+
+@pytest.mark.parametrize(("algo", "pretraining"), [("pebble", True), ("pebble", False), ("rune", False)])
+def test_a_vector_steps_updates_equal_drawing_rewarding_and_updating_one_minibatch_at_a_time(algo, pretraining):
+    cfg = dataclasses.replace(MICRO_PEBBLE, algo=algo, sac=dataclasses.replace(MICRO_PEBBLE.sac, utd=1.5))
+    trainer = Trainer(cfg)
+    assert trainer.updates_per_step == 3 and trainer.pretrain_steps > 0  # several minibatches; a pre-training phase
+    ts = trainer.init(jax.random.key(0))
+    step = jax.jit(trainer.vector_step)
+    for t in range(30):  # past the seed steps: replay rows, learned rewards, the running statistics moved
+        ts, _ = step(ts, jnp.int32(t))
+    key, t = jax.random.key(5), jnp.int32(30)
+    drawn_first = jax.jit(lambda ts: trainer._updates(ts, ts.buffer, key, t, pretraining=pretraining))(ts)
+    one_by_one = jax.jit(lambda ts: _updates_one_by_one(trainer, ts, key, t, pretraining))(ts)
+    chex.assert_trees_all_close(drawn_first, one_by_one, rtol=1e-5, atol=1e-6)
+    before = jax.tree.leaves(ts.agent.critic_params)
+    assert not all(np.array_equal(a, b) for a, b in zip(before, jax.tree.leaves(drawn_first[0][0].critic_params)))
