@@ -373,8 +373,8 @@ def test_offered_pairs_follow_bprefs_shrunken_last_session(labels, queries):
 def _updates_one_by_one(trainer, ts, key, t, pretraining):
     """A vector step's updates as the trainer once ran them: draw, reward and update one minibatch at a time."""
     state, stats, metrics, agent_step = ts.agent, ts.entropy_stats, [], t * trainer.num_train
-    for key in jax.random.split(key, trainer.updates_per_step):
-        key_sample, key_update = jax.random.split(key)
+    for update_key in jax.random.split(key, trainer.updates_per_step):
+        key_sample, key_update = jax.random.split(update_key)
         batch = trainer.method.sample_batch(trainer, ts, ts.buffer, key_sample)
         if pretraining:
             batch, stats = trainer.feedback.intrinsic_batch(batch, stats, ts.buffer)
@@ -398,5 +398,5 @@ def test_a_vector_steps_updates_equal_drawing_rewarding_and_updating_one_minibat
     drawn_first = jax.jit(lambda ts: trainer._updates(ts, ts.buffer, key, t, pretraining=pretraining))(ts)
     one_by_one = jax.jit(lambda ts: _updates_one_by_one(trainer, ts, key, t, pretraining))(ts)
     chex.assert_trees_all_close(drawn_first, one_by_one, rtol=1e-5, atol=1e-6)
-    before = jax.tree.leaves(ts.agent.critic_params)
-    assert not all(np.array_equal(a, b) for a, b in zip(before, jax.tree.leaves(drawn_first[0][0].critic_params)))
+    before, after = jax.tree.leaves(ts.agent.critic_params), jax.tree.leaves(drawn_first[0][0].critic_params)
+    assert not all(np.array_equal(a, b) for a, b in zip(before, after, strict=True))  # the updates moved the critic

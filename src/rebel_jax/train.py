@@ -320,7 +320,8 @@ class Trainer:
         learning = self.schedule.learning(t, self.num_train, self.cfg.train.seed_steps)
         zeros = {k: jnp.zeros(()) for k in self.agent.metric_names}
         sampled = ts.buffer if self.cfg.train.overlap else buffer  # train.overlap: the replay one step behind
-        (agent, stats), metrics = jax.lax.cond(  # No updates while seeding; pre-training's reward before pretrain_steps.
+        # No updates while seeding; pre-training's reward for the steps before pretrain_steps.
+        (agent, stats), metrics = jax.lax.cond(
             learning,
             lambda: self._updates(ts, sampled, key_update, t, pretraining=t < self.pretrain_steps),
             lambda: ((ts.agent, ts.entropy_stats), zeros),
