@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import reward_model
+from rebel_jax import pretrain, reward_model
 from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.budget import offered_pairs, remaining_budget, within_budget
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
@@ -376,8 +376,10 @@ def _updates_one_by_one(trainer, ts, key, t, pretraining):
     for update_key in jax.random.split(key, trainer.updates_per_step):
         key_sample, key_update = jax.random.split(update_key)
         batch = trainer.method.sample_batch(trainer, ts, ts.buffer, key_sample)
-        if pretraining:
-            batch, stats = trainer.feedback.intrinsic_batch(batch, stats, ts.buffer)
+        if pretraining:  # the kNN over the rows written before the replay wraps, as B-Pref's (pretrain.py)
+            early = ts.buffer.replace(obs=ts.buffer.obs[: trainer.pretrain_steps])
+            reward, stats = pretrain.intrinsic_reward(trainer.cfg.pretrain, stats, batch.obs, early)
+            batch = batch.replace(reward=reward)
         else:
             batch = trainer.method.batch_reward(trainer, ts, batch, agent_step)
         state, step_metrics = trainer.agent.update(state, batch, key_update, agent_step)

@@ -325,8 +325,9 @@ class StateFeedback(RewardFeedback):
         """The running statistics of the pre-training kNN distances."""
         return pretrain.init_stats(self.cfg.pretrain.running_std)
 
-    def intrinsic_batch(self, batch, stats, buffer: replay.Buffer):
-        """``batch`` with PEBBLE's state-entropy reward (kNN over the rows written before the buffer wraps)."""
+    def intrinsic_batches(self, batches, stats, buffer: replay.Buffer):
+        """A vector step's minibatches (stacked, in order) with PEBBLE's state-entropy reward: the kNN over the rows
+        written before the buffer wraps, one search for all of them (``pretrain.intrinsic_rewards``)."""
         early = buffer.replace(obs=buffer.obs[: max(self.trainer.pretrain_steps, 1)])
-        reward, stats = pretrain.intrinsic_reward(self.cfg.pretrain, stats, batch.obs, early)
-        return batch.replace(reward=reward), stats
+        rewards, stats = pretrain.intrinsic_rewards(self.cfg.pretrain, stats, batches.obs, early)
+        return batches.replace(reward=rewards), stats

@@ -258,7 +258,29 @@ def intrinsic_reward(
     Returns:
       (N,) rewards and the updated statistics.
     """
+    rewards, stats = intrinsic_rewards(cfg, stats, batch_obs[None], buffer)
+    return rewards[0], stats
+
+
+def intrinsic_rewards(
+    cfg: PretrainConfig, stats: RunningStats, batches_obs: jax.Array, buffer: Any
+) -> tuple[jax.Array, RunningStats]:
+    """:func:`intrinsic_reward` of several SAC batches in order: one kNN search for all their observations, then
+    batch by batch the statistics updated and the batch scaled (each batch's statistics include the ones before).
+
+    Args:
+      batches_obs: (M, N, D) the observations of M batches.
+
+    Returns:
+      (M, N) rewards and the statistics after the last batch.
+    """
     obs, valid = flatten_buffer_obs(buffer)
-    distance = knn_reward(batch_obs, obs, valid, cfg.k, cfg.chunk_size)
-    stats = update_bpref(stats, distance) if cfg.running_std == "bpref" else update(stats, distance)
-    return normalize(stats, distance), stats
+    batches, size = batches_obs.shape[:2]
+    distances = knn_reward(batches_obs.reshape(batches * size, -1), obs, valid, cfg.k, cfg.chunk_size)
+
+    def scale(stats, distance):
+        stats = update_bpref(stats, distance) if cfg.running_std == "bpref" else update(stats, distance)
+        return stats, normalize(stats, distance)
+
+    stats, rewards = jax.lax.scan(scale, stats, distances.reshape(batches, size))
+    return rewards, stats

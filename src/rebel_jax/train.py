@@ -271,13 +271,8 @@ class Trainer:
                 batches = jax.vmap(lambda batch: self.method.batch_reward(self, ts, batch, agent_step))(batches)
             return batches, stats
 
-        def intrinsic(batches, stats):  # batch by batch: each updates the running statistics the next one reads
-            def one(stats, batch):
-                batch, stats = self.feedback.intrinsic_batch(batch, stats, buffer)
-                return stats, batch
-
-            stats, batches = jax.lax.scan(one, stats, batches)
-            return batches, stats
+        def intrinsic(batches, stats):
+            return self.feedback.intrinsic_batches(batches, stats, buffer)
 
         batches = jax.vmap(draw)(keys[:, 0])
         if self.pretrain_steps:
