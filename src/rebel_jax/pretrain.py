@@ -14,7 +14,6 @@ O(N * chunk) whatever the buffer size; chunks past the last filled row are skipp
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, Literal
 
 import flax.struct
@@ -149,7 +148,7 @@ def _sq_distances(batch_obs: jax.Array, chunk: jax.Array) -> jax.Array:
 
 def smallest(values: jax.Array, rank: int) -> jax.Array:
     """The ``rank`` smallest entries of each row, ascending: ``-lax.top_k(-values, rank)[0]``, equal entries
-    counted apart, by ``rank`` passes of ``argmin``, each masking the columns the passes before it took.
+    counted apart, by ``rank`` passes of ``argmin``, each masking the column it took for the next.
 
     On a GPU ``lax.top_k`` over a few thousand columns is far slower than a few row reductions; on a CPU it is
     the faster (BENCHMARKS.md, "The kNN reward of pre-training").
@@ -162,14 +161,10 @@ def smallest(values: jax.Array, rank: int) -> jax.Array:
       (N, rank).
     """
     columns = jnp.arange(values.shape[1])[None, :]
-    taken, out = [], []
+    out = []
     for _ in range(rank):
-        masked = values
-        if taken:
-            hit = functools.reduce(jnp.logical_or, [columns == j[:, None] for j in taken])
-            masked = jnp.where(hit, jnp.inf, values)
-        taken.append(jnp.argmin(masked, axis=1))
-        out.append(jnp.min(masked, axis=1))
+        out.append(jnp.min(values, axis=1))
+        values = jnp.where(columns == jnp.argmin(values, axis=1)[:, None], jnp.inf, values)
     return jnp.stack(out, axis=1)
 
 
