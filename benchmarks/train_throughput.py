@@ -1,15 +1,17 @@
 """SAC training throughput at ``paper`` sizes.
 
 Usage:
-  python benchmarks/train_throughput.py update [--seeds 5 1 10] [--precisions tf32 bf16] [--budget-s 100]
+  python benchmarks/train_throughput.py update [--seeds 5 1 10] [--precisions tf32 bf16] [--unrolls 1 10]
+      [--budget-s 100]
   python benchmarks/train_throughput.py hlo [--seeds 5] [--precisions tf32 bf16]
   python benchmarks/train_throughput.py runs RUN_DIR [RUN_DIR ...]
 
 ``update`` times the jitted, seed-vmapped SAC update alone (median of repeated scans
 of 20 updates after a warm-up; one ahead-of-time compile per row) and reports updates/s,
 achieved TFLOP/s against the card's bf16 matmul ceiling and the number of kernel launches in
-the compiled scan. ``hlo`` compiles one update from shapes only (no run, works on CPU) and
-reports its op counts and XLA's ``cost_analysis`` bytes. ``runs`` turns finished training runs (``python -m
+the compiled scan; ``--unrolls`` gives the updates per iteration of the scan's loop (10: a vector step's, as the
+trainer compiles them with ``train.unroll_updates``). ``hlo`` compiles one update from shapes only (no run, works on
+CPU) and reports its op counts and XLA's ``cost_analysis`` bytes. ``runs`` turns finished training runs (``python -m
 rebel_jax.train``) into rows of whole-round throughput: seed-env-steps/s over the
 rounds after the first (which includes compilation) and the projected wall time of
 500k steps. Both merge rows into ``benchmarks/results/train_throughput.json``.
@@ -18,6 +20,7 @@ rounds after the first (which includes compilation) and the projected wall time 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import pathlib
 import re
@@ -41,8 +44,9 @@ def _row(**kw) -> dict:
     return {**provenance(), **kw}
 
 
-def _update_scan(num_seeds: int, precision: str):
-    """(jitted ``(state, key) -> state`` doing UPDATES_PER_CALL seed-vmapped ``paper`` updates, state)."""
+def _update_scan(num_seeds: int, precision: str, unroll: int = 1):
+    """(jitted ``(state, key) -> state`` doing UPDATES_PER_CALL seed-vmapped ``paper`` updates, state); ``unroll``
+    updates per iteration of the compiled loop."""
     cfg = PRESETS["paper"]
     sac_cfg = cfg.sac.__class__(**{**vars(cfg.sac), "precision": precision})
     sac = SAC(sac_cfg, 24, 6)
@@ -58,17 +62,17 @@ def _update_scan(num_seeds: int, precision: str):
 
     def many(state, key):
         body = lambda s, k: (jax.vmap(sac.update)(s, batch, jax.random.split(k, num_seeds))[0], None)
-        return jax.lax.scan(body, state, jax.random.split(key, UPDATES_PER_CALL))[0]
+        return jax.lax.scan(body, state, jax.random.split(key, UPDATES_PER_CALL), unroll=unroll)[0]
 
     return jax.jit(many, donate_argnums=0), state
 
 
-def time_update(num_seeds: int, precision: str, repeats: int = 5) -> tuple[float, dict]:
+def time_update(num_seeds: int, precision: str, repeats: int = 5, unroll: int = 1) -> tuple[float, dict]:
     """(median seconds of one seed-vmapped SAC update at ``paper`` sizes, :func:`hlo_counts` of its scan).
 
     The scan is compiled once, ahead of time, and that executable is both timed and counted.
     """
-    run, state = _update_scan(num_seeds, precision)
+    run, state = _update_scan(num_seeds, precision, unroll)
     compiled = run.lower(state, jax.random.PRNGKey(1)).compile()
     return median_seconds(compiled, state, UPDATES_PER_CALL, repeats), hlo_counts(compiled)
 
@@ -171,35 +175,35 @@ def _over_budget(args, started: float, what: str) -> bool:
 def update_rows(args):
     flops = update_flops(PRESETS["paper"].sac, 24, 6)
     started = time.perf_counter()
-    for seeds in args.seeds:
-        for precision in args.precisions:
-            if _over_budget(args, started, f"update seeds {seeds} {precision}"):
-                continue
-            sec, counts = time_update(seeds, precision, args.repeats)
-            tflops = seeds * flops / sec / 1e12
-            ceiling = BF16_CEILING_TFLOPS.get(device_name())
-            row = _row(
-                what="update",
-                algo="sac",
-                preset="paper",
-                seeds=seeds,
-                precision=precision,
-                num_envs=None,
-                seed_env_steps_per_s=None,
-                updates_per_s=seeds / sec,
-                ms_per_update=sec * 1e3,
-                update_tflops=tflops,
-                fraction_of_bf16_ceiling=None if ceiling is None else tflops / ceiling,
-                wall_s_500k=None,
-                scan_launches=counts["launches"],
-                scan_dots=counts["dots"],
-            )
-            print(
-                f"update seeds {seeds:2d} {precision:7s}: {sec * 1e3:7.3f} ms  {tflops:7.1f} TFLOP/s  "
-                f"{counts['launches']} launches in the scan ({time.perf_counter() - started:.0f} s so far)",
-                flush=True,
-            )
-            yield row
+    for seeds, precision, unroll in itertools.product(args.seeds, args.precisions, args.unrolls):
+        if _over_budget(args, started, f"update seeds {seeds} {precision} unroll {unroll}"):
+            continue
+        sec, counts = time_update(seeds, precision, args.repeats, unroll)
+        tflops = seeds * flops / sec / 1e12
+        ceiling = BF16_CEILING_TFLOPS.get(device_name())
+        row = _row(
+            what="update",
+            algo="sac",
+            preset="paper",
+            seeds=seeds,
+            precision=precision,
+            unroll=unroll,
+            num_envs=None,
+            seed_env_steps_per_s=None,
+            updates_per_s=seeds / sec,
+            ms_per_update=sec * 1e3,
+            update_tflops=tflops,
+            fraction_of_bf16_ceiling=None if ceiling is None else tflops / ceiling,
+            wall_s_500k=None,
+            scan_launches=counts["launches"],
+            scan_dots=counts["dots"],
+        )
+        print(
+            f"update seeds {seeds:2d} {precision:7s} unroll {unroll:2d}: {sec * 1e3:7.3f} ms  {tflops:7.1f} TFLOP/s  "
+            f"{counts['launches']} launches in the scan ({time.perf_counter() - started:.0f} s so far)",
+            flush=True,
+        )
+        yield row
 
 
 def hlo_rows(args):
@@ -253,6 +257,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("run_dirs", nargs="*", type=pathlib.Path)
     p.add_argument("--seeds", nargs="+", type=int, default=[5, 1, 10])
     p.add_argument("--precisions", nargs="+", default=["tf32", "bf16"])
+    p.add_argument("--unrolls", nargs="+", type=int, default=[1], help="updates per iteration of the timed loop")
     p.add_argument("--repeats", type=int, default=5, help="timed calls of UPDATES_PER_CALL updates per row")
     p.add_argument("--budget-s", type=float, default=0.0, help="skip the rows left after this many seconds (0: none)")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
@@ -264,7 +269,19 @@ def main():
     args = parser().parse_args()
     use_xla_flags(args.xla_flags)
     rows = {"update": update_rows, "hlo": hlo_rows, "runs": run_rows}[args.mode]
-    fields = ("device", "commit", "what", "algo", "task", "seeds", "precision", "num_envs", "utd", "xla_flags")
+    fields = (
+        "device",
+        "commit",
+        "what",
+        "algo",
+        "task",
+        "seeds",
+        "precision",
+        "num_envs",
+        "utd",
+        "unroll",
+        "xla_flags",
+    )
     merge_rows(args.out, rows(args), fields)
 
 

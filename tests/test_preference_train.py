@@ -387,9 +387,18 @@ def _updates_one_by_one(trainer, ts, key, t, pretraining):
     return (state, stats), jax.tree.map(lambda *m: jnp.mean(jnp.stack(m)), *metrics)
 
 
-@pytest.mark.parametrize(("algo", "pretraining"), [("pebble", True), ("pebble", False), ("rune", False)])
-def test_a_vector_steps_updates_equal_drawing_rewarding_and_updating_one_minibatch_at_a_time(algo, pretraining):
-    cfg = dataclasses.replace(MICRO_PEBBLE, algo=algo, sac=dataclasses.replace(MICRO_PEBBLE.sac, utd=1.5))
+@pytest.mark.parametrize(
+    ("algo", "pretraining", "unroll"),
+    [("pebble", True, False), ("pebble", False, False), ("rune", False, False), ("pebble", False, True)],
+)
+def test_a_vector_steps_updates_equal_drawing_rewarding_and_updating_one_minibatch_at_a_time(algo, pretraining, unroll):
+    """Looped (``train.unroll_updates`` off) or unrolled, the same updates as the one-at-a-time reference."""
+    cfg = dataclasses.replace(
+        MICRO_PEBBLE,
+        algo=algo,
+        sac=dataclasses.replace(MICRO_PEBBLE.sac, utd=1.5),
+        train=dataclasses.replace(MICRO_PEBBLE.train, unroll_updates=unroll),
+    )
     trainer = Trainer(cfg)
     assert trainer.updates_per_step == 3 and trainer.pretrain_steps > 0  # several minibatches; a pre-training phase
     ts = trainer.init(jax.random.key(0))

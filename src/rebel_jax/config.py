@@ -175,6 +175,11 @@ class TrainConfig:
     speed and its learning curves are not measured. Refused on GPUs with JAX >= 0.11, where XLA aborted the
     second-stream program (JAX 0.11.2); ``benchmarks/overlap.py`` times the two side by side."""
 
+    unroll_updates: bool = True
+    """A vector step's agent updates compiled as straight-line code rather than a loop: the same updates (equal to
+    float32 rounding), 5-7% shorter rounds on a GPU (BENCHMARKS.md), a longer compile (the ``paper`` round's CPU
+    compile 41 s against 29); off in ``demo``, which compiles on a CPU."""
+
     def validate(self, num_envs: int) -> None:
         for name in ("total_steps", "steps_per_round", "eval_every", "eval_episodes"):
             _check(getattr(self, name) >= 1, f"train.{name}", getattr(self, name), ">= 1")
@@ -443,7 +448,12 @@ def _demo() -> Config:
         env=EnvConfig(task="cheetah_run", num_envs=8, episode_length=250),
         sac=SACConfig(hidden=64, batch_size=128, utd=0.5, actor_lr=1e-3, critic_lr=1e-3),
         train=TrainConfig(
-            total_steps=32_000, seed_steps=1_000, steps_per_round=2_000, eval_every=2_000, eval_episodes=8
+            total_steps=32_000,
+            seed_steps=1_000,
+            steps_per_round=2_000,
+            eval_every=2_000,
+            eval_episodes=8,
+            unroll_updates=False,
         ),
         feedback=FeedbackConfig(labels=400, per_session=40, interval=2_000),
         reward=RewardConfig(hidden=64),

@@ -284,7 +284,7 @@ class Trainer:
             batch, key = inputs
             return self.agent.update(state, batch, key, agent_step)
 
-        agent, metrics = jax.lax.scan(update, ts.agent, (batches, keys[:, 1]))
+        agent, metrics = jax.lax.scan(update, ts.agent, (batches, keys[:, 1]), unroll=self.cfg.train.unroll_updates)
         return (agent, stats), jax.tree.map(jnp.mean, metrics)
 
     def _env_step(self, env_state: State, action: jax.Array) -> State:
