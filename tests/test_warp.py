@@ -202,3 +202,21 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
     at_first_call = logged(tmp_path / "at_first_call")
     assert len(ahead) == 2
     assert ahead == at_first_call
+
+
+@pytest.mark.parametrize("impl", ["jax", pytest.param("warp", marks=needs_warp)])
+def test_a_control_step_with_its_substeps_unrolled_lands_where_the_loop_does(impl):
+    """``env.unroll_substeps`` (which the trainer passes on): the same 10 physics substeps compiled without their
+    loop give the looped control step's observation and reward to float32 rounding, from 4 random walker states."""
+    from rebel_jax.config import Config, EnvConfig
+    from rebel_jax.train import Trainer
+
+    cfg = Config(env=EnvConfig(task="walker_walk", num_envs=1, episode_length=20, impl=impl, unroll_substeps=True))
+    assert Trainer(cfg).env.unroll_substeps
+    envs = [make_env("walker_walk", episode_length=20, unroll_substeps=u, impl=impl, worlds=4) for u in (False, True)]
+    keys = jax.random.split(jax.random.PRNGKey(5), 4)
+    actions = jax.random.uniform(jax.random.PRNGKey(6), (4, envs[0].action_size), minval=-1.0, maxval=1.0)
+    looped, unrolled = (jax.jit(jax.vmap(lambda k, a, e=e: e.step(e.reset(k), a)))(keys, actions) for e in envs)
+    np.testing.assert_allclose(unrolled.obs, looped.obs, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(unrolled.reward, looped.reward, rtol=1e-4, atol=1e-4)
+    assert not np.allclose(looped.obs[0], looped.obs[1])  # four different states

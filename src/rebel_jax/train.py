@@ -125,6 +125,7 @@ class Trainer:
             cfg.env.task,
             cfg.env.solver,
             cfg.env.episode_length,
+            unroll_substeps=cfg.env.unroll_substeps,
             all_contacts=cfg.env.all_contacts,
             impl=cfg.env.impl,
             worlds=columns * self.num_all,  # environments in one vmapped step
