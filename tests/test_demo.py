@@ -133,6 +133,8 @@ def test_random_policy_evaluation_matches_a_step_loop_on_the_same_initial_states
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
     params = jax.vmap(trainer.agent.init)(keys).actor_params
     policy, random = np.asarray(evaluate(params, keys)), np.asarray(evaluate(params, keys, True))
+    both = np.asarray(evaluate(params, keys, (False, True)))  # one batch of episodes, as a finished run evaluates
+    np.testing.assert_allclose(both, np.stack([policy, random], axis=1), rtol=1e-5, atol=1e-5)
     for i in range(2):
         one = jax.tree.map(lambda x, i=i: x[i], params)
         np.testing.assert_allclose(policy[i], _loop_return(trainer, one, keys[i], False), rtol=1e-4, atol=1e-4)

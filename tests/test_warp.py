@@ -101,8 +101,8 @@ def test_a_batch_with_more_contacts_than_one_world_holds_keeps_them_all():
 
 @needs_warp
 def test_the_trainer_sizes_the_contact_buffer_for_every_environment_of_a_device():
-    """A device's vmapped step runs ``columns x (num_envs + eval_episodes)`` environments; the trainer's Warp data
-    holds one world's contact rows for each of them."""
+    """A device's vmapped step runs ``columns x (num_envs + eval_episodes)`` environments, the final evaluation
+    ``columns x 2 x eval_episodes``; the trainer's Warp data holds one world's contact rows for each of the more."""
     from rebel_jax.config import Config, EnvConfig, TrainConfig
     from rebel_jax.train import Trainer
 
@@ -112,7 +112,28 @@ def test_the_trainer_sizes_the_contact_buffer_for_every_environment_of_a_device(
     )
     one_world = make_env("walker_walk", impl="warp", worlds=1)._warp_data0._impl.naconmax
     for columns in (1, 4):
-        assert Trainer(cfg, columns=columns).env._warp_data0._impl.naconmax == columns * (2 + 3) * one_world
+        assert Trainer(cfg, columns=columns).env._warp_data0._impl.naconmax == columns * max(2 + 3, 2 * 3) * one_world
+
+
+@needs_warp
+def test_the_policy_and_random_actions_evaluated_in_one_batch_equal_each_evaluated_alone():
+    """A finished run evaluates both in one program, on twice the environments of one evaluation (here more than
+    a round's): with Warp's step the returns are those of the two evaluations apart, to float rounding."""
+    from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+    from rebel_jax.train import Trainer, compiled, seed_keys
+
+    cfg = Config(
+        env=EnvConfig(task="walker_walk", num_envs=1, episode_length=20, impl="warp"),
+        sac=SACConfig(hidden=16, batch_size=16),
+        train=TrainConfig(total_steps=20, seed_steps=20, steps_per_round=20, eval_every=20, eval_episodes=2),
+    )
+    trainer = Trainer(cfg, columns=2)
+    _, _, evaluate = compiled(trainer)
+    keys = seed_keys(0, 2)
+    params = jax.vmap(trainer.agent.init)(keys).actor_params
+    apart = np.stack([np.asarray(evaluate(params, keys, flag)) for flag in (False, True)], axis=1)
+    np.testing.assert_allclose(np.asarray(evaluate(params, keys, (False, True))), apart, rtol=1e-4, atol=1e-4)
+    assert not np.allclose(apart[:, 0], apart[:, 1])
 
 
 @pytest.mark.heavy

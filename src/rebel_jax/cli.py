@@ -10,7 +10,7 @@ protocols ``surf_pixels_walker`` and ``surf_pixels_cheetah``, the defaults on th
 other flag overrides one field of :class:`rebel_jax.config.Config` (``METHOD --help`` lists those that apply, with
 their docs; :mod:`rebel_jax.cli_args`).
 
-A finished run evaluates its final policy and uniform random actions on the same episodes
+A finished run evaluates its final policy and uniform random actions on the same episodes, in one batch
 (``final.json``), draws ``learning_curve.png`` (:mod:`rebel_jax.plots`) and ``eval.gif``, and
 prints a table per column: both returns, the labels used and the learned reward's correlation
 with the true one (:func:`summary_table`).
@@ -352,8 +352,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                     slow_save_noted = True
                     print(_slow_checkpoint_note(r, saving, seconds, args.checkpoint_every), file=sys.stderr)
         policy = trainer.policy_params(state)
-        final = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys))))
-        random = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys, True))))  # The same initial states.
+        # The policy and random actions on the same initial states, in one batch of episodes.
+        final, random = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys, (False, True))))).T
         result = _final_result(final, random, ever_diverged, names)
         files = []
         if primary:

@@ -128,7 +128,9 @@ class Trainer:
             unroll_substeps=cfg.env.unroll_substeps,
             all_contacts=cfg.env.all_contacts,
             impl=cfg.env.impl,
-            worlds=columns * self.num_all,  # environments in one vmapped step
+            # Environments in one vmapped step: the round's, or the final evaluation's of the policy and of random
+            # actions together (compiled's evaluate).
+            worlds=columns * max(self.num_all, 2 * cfg.train.eval_episodes),
         )
         self.episode_length = self.env.episode_length  # agent steps
         env, actions = self.env, self.env.action_size
@@ -525,7 +527,9 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     """Jitted, seed-vmapped ``init(keys)``, ``round(states, r)`` and ``evaluate(params, keys, random_actions)``.
 
     The round donates its input state so the replay buffer is updated in place. ``random_actions``
-    (unbatched, default False) evaluates uniform random actions on the same initial states instead.
+    (unbatched, default False) evaluates uniform random actions on the same initial states instead; a sequence
+    of flags, e.g. ``(False, True)``, evaluates each of them in one program, as one batch of episodes (an
+    episode's physics takes about as long at twice the batch), and returns one column per flag.
 
     Args:
       trainer: the run's trainer.
@@ -537,7 +541,7 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     """
     init = jax.vmap(trainer.init)
     round_fn = jax.vmap(trainer.round, in_axes=(0, None))
-    evaluate_seeds = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))
+    evaluate_seeds = jax.vmap(jax.vmap(trainer.evaluate, in_axes=(None, None, 0)), in_axes=(0, 0, None))
     if sharding is None:
         init, round_fn, evaluate_seeds = jax.jit(init), jax.jit(round_fn, donate_argnums=0), jax.jit(evaluate_seeds)
     else:
@@ -545,8 +549,10 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
         round_fn = sweep.per_device(round_fn, sharding, batched=(True, False), donate_argnums=(0,))
         evaluate_seeds = sweep.per_device(evaluate_seeds, sharding, batched=(True, True, False))
 
-    def evaluate(policy, keys: jax.Array, random_actions: bool = False) -> jax.Array:
-        return evaluate_seeds(policy, keys, jnp.asarray(random_actions))
+    def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> jax.Array:
+        flags = jnp.atleast_1d(jnp.asarray(random_actions, bool))  # (flags,)
+        returns = evaluate_seeds(policy, keys, flags)  # (seeds, flags)
+        return returns if jnp.ndim(random_actions) else returns[:, 0]
 
     return init, round_fn, evaluate
 
