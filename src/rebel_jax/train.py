@@ -541,18 +541,21 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     """
     init = jax.vmap(trainer.init)
     round_fn = jax.vmap(trainer.round, in_axes=(0, None))
-    evaluate_seeds = jax.vmap(jax.vmap(trainer.evaluate, in_axes=(None, None, 0)), in_axes=(0, 0, None))
+    evaluate_one = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))  # one flag: (seeds,)
+    evaluate_each = jax.vmap(jax.vmap(trainer.evaluate, in_axes=(None, None, 0)), in_axes=(0, 0, None))  # (seeds, n)
     if sharding is None:
-        init, round_fn, evaluate_seeds = jax.jit(init), jax.jit(round_fn, donate_argnums=0), jax.jit(evaluate_seeds)
+        init, round_fn = jax.jit(init), jax.jit(round_fn, donate_argnums=0)
+        evaluate_one, evaluate_each = jax.jit(evaluate_one), jax.jit(evaluate_each)
     else:
         init = sweep.per_device(init, sharding, batched=(True,))
         round_fn = sweep.per_device(round_fn, sharding, batched=(True, False), donate_argnums=(0,))
-        evaluate_seeds = sweep.per_device(evaluate_seeds, sharding, batched=(True, True, False))
+        evaluate_one, evaluate_each = (
+            sweep.per_device(f, sharding, batched=(True, True, False)) for f in (evaluate_one, evaluate_each)
+        )
 
     def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> jax.Array:
-        flags = jnp.atleast_1d(jnp.asarray(random_actions, bool))  # (flags,)
-        returns = evaluate_seeds(policy, keys, flags)  # (seeds, flags)
-        return returns if jnp.ndim(random_actions) else returns[:, 0]
+        flags = jnp.asarray(random_actions, bool)
+        return (evaluate_each if flags.ndim else evaluate_one)(policy, keys, flags)
 
     return init, round_fn, evaluate
 
