@@ -259,8 +259,8 @@ class Trainer:
 
     def _updates(self, ts: TrainState, buffer, key: jax.Array, t: jax.Array, pretraining: jax.Array | bool = False):
         """The agent's updates of one vector step: its minibatches drawn first (``Method.sample_batch`` on a
-        preference run), then rewarded (``Method.batch_reward``, or PEBBLE's intrinsic reward while ``pretraining``,
-        unbatched), then one update on each: one update program for every phase."""
+        preference run), then rewarded (``Method.batch_reward``, or PEBBLE's intrinsic reward while ``pretraining``: one
+        kNN search, then scaled minibatch by minibatch), then one update on each: one update program for every phase."""
         agent_step = t * self.num_train
         keys = jax.vmap(jax.random.split)(jax.random.split(key, self.updates_per_step))  # (updates, 2): sample, update
 
