@@ -21,7 +21,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from rebel_jax.cli import last_logged, parse, summary_table
+from rebel_jax.cli import _final_evaluation, last_logged, parse, summary_table
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
 from rebel_jax.train import Trainer, compiled
 
@@ -135,6 +135,9 @@ def test_random_policy_evaluation_matches_a_step_loop_on_the_same_initial_states
     policy, random = np.asarray(evaluate(params, keys)), np.asarray(evaluate(params, keys, True))
     both = np.asarray(evaluate(params, keys, (False, True)))  # one batch of episodes, as a finished run evaluates
     np.testing.assert_allclose(both, np.stack([policy, random], axis=1), rtol=1e-5, atol=1e-5)
+    # A run compiles that program from the shapes while its first round runs: the same numbers.
+    ahead = _final_evaluation(evaluate, trainer, jax.eval_shape(jax.vmap(trainer.init), keys), keys)
+    np.testing.assert_array_equal(np.asarray(ahead(params)), both)
     for i in range(2):
         one = jax.tree.map(lambda x, i=i: x[i], params)
         np.testing.assert_allclose(policy[i], _loop_return(trainer, one, keys[i], False), rtol=1e-4, atol=1e-4)

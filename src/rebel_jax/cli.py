@@ -32,6 +32,7 @@ human run's answers from its ``labels.jsonl`` (:mod:`rebel_jax.human`).
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import importlib.metadata
 import importlib.util
 import json
@@ -234,6 +235,20 @@ def _compiled_beside_kernels(trainer, round_fn: Callable, shapes, one_device: bo
     return round_fn, time.perf_counter() - started
 
 
+FINAL_FLAGS = (False, True)
+"""The final evaluation: the policy's and random actions' episodes on the same initial states, in one batch."""
+
+
+def _final_evaluation(evaluate: Callable, trainer, shapes, keys: jax.Array) -> Callable:
+    """The final evaluation as a function of the policy. On one device its program is compiled here: called while
+    the first round runs on an accelerator (dispatched, not yet waited for), the compile is hidden behind the
+    round instead of adding to the job's end (on a GPU, seconds). Several devices compile at the call."""
+    if not hasattr(evaluate, "compile_ahead"):
+        return lambda policy: evaluate(policy, keys, FINAL_FLAGS)
+    program = evaluate.compile_ahead(jax.eval_shape(trainer.policy_params, shapes), keys, FINAL_FLAGS)
+    return lambda policy: program(policy, keys)
+
+
 def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None = None) -> dict:
     """Trains ``args.config`` on ``args.seeds`` seeds in ``run_dir`` (see :func:`prepare_run_dir`).
 
@@ -297,6 +312,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
             f"{'' if ahead else ' (minutes for a large preset on a CPU)'}",
             flush=True,
         )
+    final_evaluation = functools.cache(lambda: _final_evaluation(evaluate, trainer, shapes, keys))
     started, slowest = time.perf_counter() - ahead, 0.0  # --time-limit counts the compile ahead too
     ever_diverged = np.zeros(args.columns, bool)
     slow_save_noted = False
@@ -315,6 +331,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                 state, session = host.before_round(state, r)
             t0 = time.perf_counter()
             state, metrics = round_fn(state, jnp.int32(r))
+            if r == start:
+                final_evaluation()  # compiled while the round runs
             metrics = {**real_columns(sweep.to_host(metrics)), **session}
             seconds = time.perf_counter() - t0 + (ahead if r == start else 0.0)  # the first round with its compile
             slowest = max(slowest, seconds) if r > start else 0.0
@@ -352,8 +370,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
                     slow_save_noted = True
                     print(_slow_checkpoint_note(r, saving, seconds, args.checkpoint_every), file=sys.stderr)
         policy = trainer.policy_params(state)
-        # The policy and random actions on the same initial states, in one batch of episodes.
-        final, random = real_columns(np.asarray(sweep.to_host(evaluate(policy, keys, (False, True))))).T
+        final, random = real_columns(np.asarray(sweep.to_host(final_evaluation()(policy)))).T
         result = _final_result(final, random, ever_diverged, names)
         files = []
         if primary:

@@ -529,7 +529,9 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     The round donates its input state so the replay buffer is updated in place. ``random_actions``
     (unbatched, default False) evaluates uniform random actions on the same initial states instead; a sequence
     of flags, e.g. ``(False, True)``, evaluates each of them in one program, as one batch of episodes (an
-    episode's physics takes about as long at twice the batch), and returns one column per flag.
+    episode's physics takes about as long at twice the batch), and returns one column per flag. On one device,
+    ``evaluate.compile_ahead(policy, keys, random_actions)`` compiles its program for those arguments' shapes (while
+    a round runs, say) and returns it as a function of ``(policy, keys)``.
 
     Args:
       trainer: the run's trainer.
@@ -553,10 +555,22 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
             sweep.per_device(f, sharding, batched=(True, True, False)) for f in (evaluate_one, evaluate_each)
         )
 
-    def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> jax.Array:
+    def program(random_actions: bool | Sequence[bool]) -> tuple[Callable, jax.Array]:
         flags = jnp.asarray(random_actions, bool)
-        return (evaluate_each if flags.ndim else evaluate_one)(policy, keys, flags)
+        return (evaluate_each if flags.ndim else evaluate_one), flags
 
+    def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> jax.Array:
+        run, flags = program(random_actions)
+        return run(policy, keys, flags)
+
+    def compile_ahead(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> Callable:
+        """``evaluate``'s program for these arguments (or their shapes) compiled now: ``f(policy, keys)``."""
+        run, flags = program(random_actions)
+        executable = run.lower(policy, keys, flags).compile()
+        return lambda policy, keys: executable(policy, keys, flags)
+
+    if sharding is None:  # per_device programs compile on each device at their first call
+        evaluate.compile_ahead = compile_ahead
     return init, round_fn, evaluate
 
 
