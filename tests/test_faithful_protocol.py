@@ -13,10 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import agent_preference, queries, reward_train, surf
+from rebel_jax import queries, reward_train
 from rebel_jax import reward_model as rm
-from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
+from rebel_jax.methods import rebel as agent_preference
+from rebel_jax.methods import surf
+from rebel_jax.methods.rebel import AgentPreferenceConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
@@ -130,7 +132,7 @@ def _labelled_state(cfg, count, stored, pool_capacity, seed=0):
     rng = np.random.default_rng(seed)
     state = rm.init(cfg, jax.random.key(seed), 3, 2, stored)
     if pool_capacity:
-        state = state.replace(pool=surf.init_pool(pool_capacity, stored, 3, 2))
+        state = state.replace(pool=rm.init_pool(pool_capacity, stored, 3, 2))
 
     def seg(n):
         return queries.Segments(
@@ -145,12 +147,16 @@ def _labelled_state(cfg, count, stored, pool_capacity, seed=0):
 
 @pytest.mark.parametrize("count", [10, 100, 300])
 def test_surf_session_runs_ceil_reward_update_times_labels_over_batch_steps(count):
-    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128, jnp.asarray(10))) == math.ceil(1000 * count / 128)
+    assert int(reward_train.steps_per_label(1000, jnp.asarray(count), 128, jnp.asarray(10))) == math.ceil(
+        1000 * count / 128
+    )
     # No new pair (the budget is spent): SURF holds no session, so no step runs.
-    assert int(surf.surf_iterations(1000, jnp.asarray(count), 128, jnp.asarray(0))) == 0
+    assert int(reward_train.steps_per_label(1000, jnp.asarray(count), 128, jnp.asarray(0))) == 0
     cfg = RewardConfig(hidden=8, depth=1, batch_size=128, label_capacity=400)
     state, _ = _labelled_state(cfg, count, 4, 0)
-    steps = surf.surf_iterations(7, state.data.count, cfg.batch_size, jnp.asarray(1))  # Few steps: a quick test.
+    steps = reward_train.steps_per_label(
+        7, state.data.count, cfg.batch_size, jnp.asarray(1)
+    )  # Few steps: a quick test.
     train = jax.jit(lambda state, key, steps: reward_train.train_iterations(cfg, state, key, (rm.bt_loss(cfg),), steps))
     trained, metrics = train(state, jax.random.key(1), steps)
     assert int(metrics["epochs"]) == math.ceil(7 * count / 128)

@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import agent_preference, surf
 from rebel_jax import reward_model as rm
 from rebel_jax import reward_train as rt
+from rebel_jax.methods import rebel as agent_preference
+from rebel_jax.methods import surf
 from rebel_jax.queries import Segments
 
 OBS, ACT, H = 3, 2, 6

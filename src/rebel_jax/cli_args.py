@@ -30,7 +30,7 @@ import tyro
 
 from rebel_jax import methods, rundir, sweep, teachers
 from rebel_jax.budget import session_due
-from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError
+from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError, method_sections
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HumanOptions, is_loopback
 from rebel_jax.pixel_feedback import check_config
@@ -61,8 +61,14 @@ BRIEF: dict[str, tuple[str, ...]] = {
 """The flags ``--help`` lists of each part (``run``: the run's own options); ``--help-all`` lists the others too. A
 part missing here (a new method's section) shows all its flags. Every flag is accepted either way."""
 HELP_ALL = "--help-all"
-PARTS = tuple(f.name for f in dataclasses.fields(Config) if f.name != "algo")
-"""The config's sections, each a group of flags."""
+CORE_PARTS = tuple(f.name for f in dataclasses.fields(Config) if f.name not in ("algo", "method_settings"))
+"""The config's own sections, each a group of flags."""
+
+
+def parts() -> tuple[str, ...]:
+    """Every section of the config, each a group of flags: its own, then each registered method's settings
+    (``--NAME.*``, from the method's config dataclass)."""
+    return (*CORE_PARTS, *method_sections())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -308,7 +314,7 @@ def collector_paused():
 def sections(cfg: Config) -> list[str]:
     """The config's parts that ``cfg``'s run reads, in :class:`Config`'s order (``--help`` lists their flags)."""
     unused = cfg.unused_parts()
-    return [name for name in PARTS if name not in unused]
+    return [name for name in parts() if name not in unused]
 
 
 def run_options(cfg: Config, host_teacher: str) -> list[str]:
@@ -355,7 +361,8 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
     applies = {*sections(cfg), *run_options(cfg, host_teacher)}
     hints = typing.get_type_hints(RunOptions, include_extras=True)
     fields, values = [], {}
-    for name, default in [*own.items(), *((n, getattr(cfg, n)) for n in PARTS)]:
+    given = [(n, cfg.section(n) if n in method_sections() else getattr(cfg, n)) for n in parts()]
+    for name, default in [*own.items(), *given]:
         hint = hints.get(name, type(default))
         if help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
             hint = tyro.conf.Suppress[hint]
@@ -430,6 +437,10 @@ def _one_line(framed: str) -> str:
 def parse(argv: list[str] | None = None) -> Args:
     """Reads METHOD (or ``--algo``), ``--preset``, ``--teacher``, ``--obs`` and ``--task`` first, then every other flag
     as an override of the preset."""
+    try:
+        methods.load_entry_points()  # the installed packages' own methods, before their names are read
+    except ValueError as err:
+        raise usage_error(ConfigError(str(err))) from err
     pre = _FirstFlags(prog=PROG, add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
     pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")

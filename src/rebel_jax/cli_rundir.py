@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 import os
@@ -18,7 +17,7 @@ import jax
 
 from rebel_jax import compile_cache, rundir, sweep
 from rebel_jax.cli_args import Args, swept_knob
-from rebel_jax.config import Config, ConfigError
+from rebel_jax.config import Config, ConfigError, to_dict
 from rebel_jax.human import redact_token
 from rebel_jax.logging import write_json
 
@@ -86,11 +85,11 @@ def resume_changes(run_dir: pathlib.Path, args: Args) -> list[str]:
         meta = json.loads((run_dir / "meta.json").read_text())
     except (OSError, ValueError) as err:
         raise ConfigError(f"--resume: cannot read the saved run's config.json / meta.json ({err})") from err
-    now = json.loads(json.dumps(dataclasses.asdict(args.config)))  # tuples as lists, like the saved file
+    now = json.loads(json.dumps(to_dict(args.config)))  # tuples as lists, like the saved file
     old, new = flatten(saved), flatten(now)
     for name, value in _run_fields(args).items():
         old[name], new[name] = meta.get(name), json.loads(json.dumps(value))
-    defaults = flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
+    defaults = flatten(json.loads(json.dumps(to_dict(Config()))))
     changes = []
     for name in sorted(old.keys() | new.keys()):
         before, after = old.get(name, "<absent>"), new.get(name, "<absent>")
@@ -171,7 +170,7 @@ def _writable_dir(run_dir: pathlib.Path) -> None:
 
 
 def _write_config(run_dir: pathlib.Path, args: Args) -> None:
-    write_json(run_dir / "config.json", dataclasses.asdict(args.config), strict_json=False)  # keeps beta = inf
+    write_json(run_dir / "config.json", to_dict(args.config), strict_json=False)  # keeps beta = inf
 
 
 def _write_meta(run_dir: pathlib.Path, args: Args, command: str, device_columns: int) -> None:

@@ -18,22 +18,19 @@ from typing import Annotated, Literal
 import tyro
 
 from rebel_jax import methods
-from rebel_jax.agent_preference import AgentPreferenceConfig
 from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.errors import check as _check
-from rebel_jax.methods.qpa import QPAConfig
-from rebel_jax.methods.rune import RUNEConfig
+from rebel_jax.methods.rebel import AgentPreferenceConfig
+from rebel_jax.methods.surf import SURFConfig
 from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
 from rebel_jax.reward_model import RewardConfig
-from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
 
 AGENTS = ("sac", "drqv2")
 """The agents alone, on the task's true reward: SAC on state tasks, DrQ-v2 on pixel tasks."""
-Algo = Literal[(*AGENTS[:1], *methods.REGISTRY, *AGENTS[1:])]  # the registry's methods at import time
 Precision = Literal["tf32", "highest", "bf16"]
 
 
@@ -270,11 +267,18 @@ def _check_round_multiple(value: int, field: str, steps_per_round: int) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """A whole run."""
+    """A whole run.
 
-    algo: Algo = "sac"
-    """sac (true reward), pebble, surf (PEBBLE+SURF), rebel, qpa, rune (docs/methods.md), or drqv2 (DrQ-v2 on a
-    pixel task, true reward); on a pixel task pebble, surf and rebel train DrQ-v2 on the learned reward."""
+    The preference methods' own settings are not fields: each method declares its config dataclass next to its code
+    (``Method.config``), and the run's config holds one instance per method under the method's name
+    (:attr:`method_settings`). ``cfg.section("rebel")``, or ``cfg.rebel``, reads one (the method's defaults where
+    none was given); ``Config(rebel=...)``, ``dataclasses.replace(cfg, rebel=...)`` and :func:`replace` set them.
+    """
+
+    algo: str = "sac"
+    """sac (true reward), drqv2 (DrQ-v2 on a pixel task, true reward), or a preference method of the registry:
+    pebble, surf (PEBBLE+SURF), rebel, qpa, rune, rime, mrn (docs/methods.md) or one of a package's own; on a pixel
+    task the preference methods train DrQ-v2 on the learned reward."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = EnvConfig()
     sac: Annotated[SACConfig, tyro.conf.OmitArgPrefixes] = SACConfig()
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes] = TrainConfig()
@@ -284,20 +288,35 @@ class Config:
     query: QueryConfig = QueryConfig()
     pretrain: PretrainConfig = PretrainConfig()
     """Unsupervised pre-training; used by the preference methods only (``--algo sac`` skips it)."""
-    surf: SURFConfig = SURFConfig()
-    """PEBBLE+SURF's semi-supervised terms; used by ``--algo surf`` only."""
-    rebel: AgentPreferenceConfig = AgentPreferenceConfig()
-    """REBEL's agent-preference term; used by ``--algo rebel`` only."""
-    qpa: QPAConfig = QPAConfig()
-    """QPA's policy-aligned queries, hybrid replay and crops; used by ``--algo qpa`` only."""
-    rune: RUNEConfig = RUNEConfig()
-    """RUNE's exploration bonus; used by ``--algo rune`` only."""
     drqv2: DrQV2Config = DrQV2Config()
     """DrQ-v2's settings; used on pixel tasks (``--algo drqv2``, and the agent of ``--algo pebble`` there). The
     defaults are DrQ-v2's cheetah_run ones; walker's are ``--drqv2.nstep 1 --drqv2.batch-size 512
     --drqv2.std-steps 100000`` (``drqv2.task_config``)."""
     pixel_reward: PixelRewardConfig = PixelRewardConfig()
     """SURF's pixel reward ensemble; used by ``--algo pebble`` on a pixel task (``reward`` is for state tasks)."""
+    method_settings: tuple = ()
+    """``((name, settings), ...)``, sorted by name: the methods' settings that differ from their defaults."""
+
+    def section(self, name: str):
+        """The settings of the method ``name`` (its ``Method.config``; the defaults unless this config sets them).
+
+        Raises:
+          KeyError: if no registered method of that name has settings.
+        """
+        for given, value in self.method_settings:
+            if given == name:
+                return value
+        method = methods.REGISTRY.get(name)
+        if method is None or method.config is None:
+            raise KeyError(f"no method {name!r} with settings; methods with settings: {', '.join(method_sections())}")
+        return method.config()
+
+    def __getattr__(self, name: str):
+        """``cfg.rebel``: :meth:`section` for a registered method's name."""
+        method = methods.REGISTRY.get(name) if not name.startswith("_") else None
+        if method is None or method.config is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return self.section(name)
 
     @property
     def preference(self) -> bool:
@@ -365,6 +384,8 @@ class Config:
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
+        for name in method_sections():  # every section a method declared: its own fields' values
+            _check_finite(self.section(name), name + ".")
         pixels = self.pixels
         if self.algo == "drqv2" or pixels:
             allowed = (
@@ -402,13 +423,62 @@ class Config:
         return self
 
 
+FIELDS = tuple(f.name for f in dataclasses.fields(Config))
+_generated_init = Config.__init__
+
+
+def method_sections() -> tuple[str, ...]:
+    """The registered methods with settings of their own: the config's sections beside its fields."""
+    return tuple(name for name, m in methods.REGISTRY.items() if m.config is not None)
+
+
+def _with_sections(settings: tuple, sections: dict) -> tuple:
+    """``settings`` with ``sections`` (name -> the method's config) set, sorted by name (raises TypeError for a name
+    that is no registered method with settings, or a value of another type than the method's config)."""
+    merged = dict(settings)
+    for name, value in sections.items():
+        method = methods.REGISTRY.get(name)
+        if method is None or method.config is None:
+            raise TypeError(f"Config got an unexpected keyword argument {name!r} (no registered method with settings)")
+        if not isinstance(value, method.config):
+            raise TypeError(f"Config's {name} must be a {method.config.__name__}, not {type(value).__name__}")
+        merged[name] = value
+    # A method's defaults are not kept: two configs of the same settings compare equal however they were made.
+    return tuple(sorted((k, v) for k, v in merged.items() if v != methods.REGISTRY[k].config()))
+
+
+def _init(self, *args, **kwargs):
+    """``Config``'s dataclass ``__init__``, also taking each method's settings by its name (``rebel=...``)."""
+    sections = {k: kwargs.pop(k) for k in list(kwargs) if k not in FIELDS}
+    _generated_init(self, *args, **kwargs)
+    if sections or self.method_settings:
+        object.__setattr__(self, "method_settings", _with_sections(tuple(self.method_settings), sections))
+
+
+Config.__init__ = _init
+
+
+def replace(cfg: Config, **changes) -> Config:
+    """``cfg`` with ``changes``: its fields, or methods' settings by the methods' names (``rebel=...``)."""
+    return dataclasses.replace(cfg, **changes)
+
+
+def to_dict(cfg: Config) -> dict:
+    """``cfg`` as ``config.json`` holds it: its fields, then every registered method's settings under the method's
+    name (the defaults where not set), as ``dataclasses.asdict`` makes them (the file's format before methods
+    declared their settings)."""
+    data = dataclasses.asdict(cfg)
+    del data["method_settings"]
+    return data | {name: dataclasses.asdict(cfg.section(name)) for name in method_sections()}
+
+
 def from_dict(cls, data: dict):
     """A (nested, frozen) config dataclass from ``dataclasses.asdict`` output read back from JSON (fields
     missing from ``data`` keep their defaults)."""
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for field in dataclasses.fields(cls):
-        if field.name not in data:
+        if field.name not in data or field.name == "method_settings":
             continue
         value, hint = data[field.name], hints[field.name]
         if dataclasses.is_dataclass(hint):
@@ -416,11 +486,17 @@ def from_dict(cls, data: dict):
         elif isinstance(value, list):
             value = tuple(value)
         kwargs[field.name] = value
+    if cls is Config:  # the registered methods' settings, under their names; a section no method reads is left
+        for name in method_sections():
+            if isinstance(data.get(name), dict):
+                kwargs[name] = from_dict(methods.REGISTRY[name].config, data[name])
     return cls(**kwargs)
 
 
 def read_config(path: str | os.PathLike) -> Config:
-    """The :class:`Config` a run wrote to its ``config.json``."""
+    """The :class:`Config` a run wrote to its ``config.json`` (the installed packages' methods registered first, so
+    that their settings are read too)."""
+    methods.load_entry_points()
     return from_dict(Config, json.loads(pathlib.Path(path).read_text()))
 
 

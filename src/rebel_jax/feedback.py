@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rebel_jax import pretrain, queries, replay, reward_model, surf, teachers
+from rebel_jax import pretrain, queries, replay, reward_model, teachers
 from rebel_jax.budget import within_budget
 from rebel_jax.queries import Segments
 
@@ -100,10 +100,24 @@ def reward_training_metrics(accuracy_new: jax.Array, train_metrics: dict, kept: 
     return metrics
 
 
+TRAINING_METRICS = ("epochs", "train_accuracy", "loss")
+"""The metrics every method's ``train_reward`` returns (logged as ``reward_epochs``, ``reward_accuracy_all`` and
+``reward_loss``); any other key is the method's own (:func:`method_metrics`)."""
+
+
+def method_metrics(name: str, metrics: dict, kept: jax.Array) -> dict[str, jax.Array]:
+    """A method's own metrics of a session, as logged: ``NAME/KEY`` for every key of ``metrics`` beyond
+    :data:`TRAINING_METRICS`, float32, NaN where no answer was kept (``kept`` 0)."""
+    own = {k: v for k, v in metrics.items() if k not in TRAINING_METRICS}
+    return {f"{name}/{k}": jnp.where(kept > 0, jnp.asarray(v, jnp.float32), jnp.nan) for k, v in own.items()}
+
+
 def summary(names: tuple[str, ...], ts: Any, metrics: dict) -> dict:
-    """``names``' values from ``metrics`` (NaN where missing) and ``labels_used`` from the label store."""
+    """``names``' values from ``metrics`` (NaN where missing), the method's own (keys ``NAME/KEY``) and
+    ``labels_used`` from the label store."""
     nan = jnp.full((), jnp.nan, jnp.float32)
     out = {k: jnp.asarray(metrics.get(k, nan), jnp.float32) for k in names}
+    out.update({k: v for k, v in metrics.items() if "/" in k})
     out["labels_used"] = ts.reward.data.count.astype(jnp.float32)
     return out
 
@@ -165,9 +179,10 @@ class StateFeedback(RewardFeedback):
         """The reward ensemble, its label store and (SURF) its unlabelled pool."""
         (obs_size,) = obs_shape
         stored = self.trainer.stored_length
-        reward = reward_model.init(self.reward_cfg, key, obs_size, action_size, stored)
+        optimizer = self.trainer.reward_optimizer
+        reward = reward_model.init(self.reward_cfg, key, obs_size, action_size, stored, optimizer)
         if pool_capacity:
-            reward = reward.replace(pool=surf.init_pool(pool_capacity, stored, obs_size, action_size))
+            reward = reward.replace(pool=reward_model.init_pool(pool_capacity, stored, obs_size, action_size))
         return reward
 
     def trajectory_fields(self, obs_shape: tuple[int, ...], action_size: int) -> dict:
@@ -237,7 +252,8 @@ class StateFeedback(RewardFeedback):
         kept = jnp.sum(mask)
         stored = reward_model.add_labels(ts.reward, seg_a, seg_b, labels, mask)
         keys = {"terms": key_terms, "train": key_train, "pool": key_pool}
-        trained, train_metrics = trainer.method.train_reward(trainer, ts, stored, keys, kept, None)
+        method = trainer.method
+        trained, method_state, train_metrics = method.train_reward(trainer, ts, stored, keys, kept, None, first)
         reward = jax.tree.map(lambda new, old: jnp.where(kept > 0, new, old), trained, ts.reward)
 
         def reward_fn(obs, action):
@@ -245,13 +261,14 @@ class StateFeedback(RewardFeedback):
 
         buffer = replay.relabel(ts.buffer, reward_fn, chunk_rows=max(1, 16_384 // trainer.num_train))
         agent_state = ts.agent
-        if self.cfg.pretrain.steps:
+        if self.cfg.pretrain.steps and method.resets_critic(self.cfg):
             agent_state = jax.lax.cond(
                 first, lambda: self._reset_critic(ts.agent, buffer, key_critic), lambda: ts.agent
             )
         fresh = self.sample_segments(buffer, key_fresh, 64, trainer.horizon)
         learned = reward_model.mean_reward(rcfg, reward.params, fresh.obs, fresh.action)
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
+        metrics.update(method_metrics(method.name, train_metrics, kept))
         metrics["reward_correlation"] = pearson(learned.reshape(-1), fresh.true_reward.reshape(-1))
         metrics["reward_correlation_return"] = pearson(learned.sum(-1), fresh.true_reward.sum(-1))
         metrics["reward_learned_mean"] = jnp.mean(learned)
@@ -259,7 +276,7 @@ class StateFeedback(RewardFeedback):
         queried = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), self._central(seg_a), self._central(seg_b))
         learned_queried = reward_model.mean_reward(rcfg, reward.params, queried.obs, queried.action)
         metrics["reward_correlation_queries"] = pearson(learned_queried.reshape(-1), queried.true_reward.reshape(-1))
-        return ts.replace(agent=agent_state, buffer=buffer, reward=reward), metrics
+        return ts.replace(agent=agent_state, buffer=buffer, reward=reward, method=method_state), metrics
 
     def _reset_critic(self, agent_state, buffer: replay.Buffer, key: jax.Array):
         """A fresh critic after pre-training, then ``pretrain.reset_updates`` SAC updates on the relabelled buffer.

@@ -60,7 +60,13 @@ from rebel_jax.budget import within_budget
 from rebel_jax.config import Config
 from rebel_jax.envs.pixels import agent_steps
 from rebel_jax.errors import check
-from rebel_jax.feedback import COMMON_SESSION_METRICS, RewardFeedback, reward_training_metrics, summary
+from rebel_jax.feedback import (
+    COMMON_SESSION_METRICS,
+    RewardFeedback,
+    method_metrics,
+    reward_training_metrics,
+    summary,
+)
 from rebel_jax.queries import Segments
 
 PIXEL_SESSION_METRICS = (*COMMON_SESSION_METRICS, "reward_correlation_replay")
@@ -134,7 +140,8 @@ class PixelFeedback(RewardFeedback):
     def init_reward(self, key: jax.Array, obs_shape: tuple[int, ...], action_size: int, pool_capacity: int):
         """The pixel reward ensemble, its label store (copies of the labelled frames) and (SURF) its pool."""
         stored, labels = self.trainer.stored_length, self.cfg.feedback.labels
-        reward = pixel_reward.init(self.reward_cfg, key, obs_shape, action_size, labels, stored)
+        optimizer = self.trainer.reward_optimizer
+        reward = pixel_reward.init(self.reward_cfg, key, obs_shape, action_size, labels, stored, optimizer)
         if pool_capacity:
             reward = reward.replace(pool=pixel_reward.empty_store(pool_capacity, stored, obs_shape, action_size))
         return reward
@@ -222,19 +229,23 @@ class PixelFeedback(RewardFeedback):
         kept = jnp.sum(mask)
         stored = pixel_reward.add_labels(ts.reward, ts.buffer, seg_a, seg_b, labels, mask)
         keys = {"train": key_train, "terms": key_value, "pool": key_value}
-        trained, train_metrics = trainer.method.train_reward(trainer, ts, stored, keys, kept, agent_step)
+        method = trainer.method
+        trained, method_state, train_metrics = method.train_reward(trainer, ts, stored, keys, kept, agent_step, first)
         # A session without a kept label trains no epoch (``epochs`` above; SURF and B-Pref hold no session
         # once the budget is spent), so its members and Adam state come back as they were: no select needed.
         reward = trained
         buffer = frame_replay.relabel(
             ts.buffer, lambda obs, action: self.mean_reward(reward.params, obs, action), rcfg.relabel_rows
         )
-        new = ts.replace(buffer=buffer, reward=reward)
-        agent = jax.lax.cond(first, lambda: self._reset_critic(new, key_critic, agent_step), lambda: ts.agent)
+        new = ts.replace(buffer=buffer, reward=reward, method=method_state)
+        agent = ts.agent
+        if method.resets_critic(self.cfg):
+            agent = jax.lax.cond(first, lambda: self._reset_critic(new, key_critic, agent_step), lambda: ts.agent)
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
+        metrics.update(method_metrics(method.name, train_metrics, kept))
         metrics["reward_correlation_replay"] = weighted_pearson(buffer.learned_reward, buffer.true_reward, written)
-        return ts.replace(agent=agent, buffer=buffer, reward=reward), metrics
+        return ts.replace(agent=agent, buffer=buffer, reward=reward, method=method_state), metrics
 
     def _reset_critic(self, ts, key: jax.Array, agent_step):
         """A fresh critic for ``ts.agent``, then ``pretrain.reset_updates`` DrQ-v2 updates on ``ts.buffer``

@@ -186,12 +186,14 @@ def init(
     action_size: int,
     capacity: int,
     length: int,
+    optimizer=None,
 ) -> reward_model.RewardState:
     """Fresh members (one key each) and an empty store of ``capacity`` labelled pairs of ``length``-step
-    segments (``obs_shape`` (H, W, 3 stack) sizes their frames)."""
+    segments (``obs_shape`` (H, W, 3 stack) sizes their frames); ``optimizer`` as ``reward_model.new_state``'s."""
     obs, action = jnp.zeros((1, *obs_shape), jnp.uint8), jnp.zeros((1, action_size))
     params = reward_model.init_params(cfg, key, obs, action)
-    return reward_model.new_state(cfg, params, empty_store(capacity, length, obs_shape, action_size))
+    store = empty_store(capacity, length, obs_shape, action_size)
+    return reward_model.new_state(cfg, params, store, optimizer=optimizer)
 
 
 def empty_store(

@@ -233,14 +233,19 @@ def member_adam_init(params: Any) -> MemberAdamState:
     return MemberAdamState(zeros, zeros, jnp.zeros(members, jnp.int32), jnp.zeros(members, bool))
 
 
-def new_state(cfg: Any, params: Any, data: PairStore, pool: PairStore | None = None) -> RewardState:
+def new_state(
+    cfg: Any, params: Any, data: PairStore, pool: PairStore | None = None, optimizer: Any = None
+) -> RewardState:
     """The ensemble with a fresh optimiser state (:class:`MemberAdamState` with ``cfg.per_member_adam``, else
-    Adam's)."""
-    opt_state = member_adam_init(params) if cfg.per_member_adam else optax.adam(cfg.lr).init(params)
+    that of ``optimizer``, an ``optax`` transformation: Adam at ``cfg.lr`` by default)."""
+    optimizer = optax.adam(cfg.lr) if optimizer is None else optimizer
+    opt_state = member_adam_init(params) if cfg.per_member_adam else optimizer.init(params)
     return RewardState(params=params, opt_state=opt_state, data=data, pool=pool)
 
 
-def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int) -> RewardState:
+def init(
+    cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segment_length: int, optimizer: Any = None
+) -> RewardState:
     """A fresh state ensemble with an empty label store of ``cfg.label_capacity`` pairs and no pool.
 
     Args:
@@ -249,13 +254,14 @@ def init(cfg: RewardConfig, key: jax.Array, obs_size: int, act_size: int, segmen
       obs_size: observation size.
       act_size: action size.
       segment_length: steps S of the stored segments.
+      optimizer: the members' optimiser (:func:`new_state`).
 
     Returns:
-      The ``RewardState`` (SURF adds its pool with ``surf.init_pool``).
+      The ``RewardState`` (SURF adds its pool with :func:`init_pool`).
     """
     params = init_params(cfg, key, jnp.zeros(obs_size), jnp.zeros(act_size))
     segment = Steps(obs=jnp.zeros((segment_length, obs_size)), action=jnp.zeros((segment_length, act_size)))
-    return new_state(cfg, params, empty_store(segment, cfg.label_capacity))
+    return new_state(cfg, params, empty_store(segment, cfg.label_capacity), optimizer=optimizer)
 
 
 def over_members(cfg: Any, fn: Callable, params: Any) -> jax.Array:
@@ -525,3 +531,14 @@ def add_labels(state: RewardState, seg_a: Any, seg_b: Any, labels: jax.Array, ma
     """
     new_a, new_b = Steps(seg_a.obs, seg_a.action), Steps(seg_b.obs, seg_b.action)
     return state.replace(data=write_pairs(state.data, new_a, new_b, labels, mask))
+
+
+def init_pool(capacity: int, segment_length: int, obs_size: int, act_size: int) -> PairStore:
+    """An empty pool of ``capacity`` unlabelled pairs of state segments of ``segment_length`` (L) steps (a method's
+    pool, ``Method.pool_size``: SURF's).
+
+    Returns:
+      The :class:`~rebel_jax.reward_model.PairStore` (``labels`` unused), to put in ``RewardState.pool``.
+    """
+    segment = Steps(obs=jnp.zeros((segment_length, obs_size)), action=jnp.zeros((segment_length, act_size)))
+    return empty_store(segment, capacity)

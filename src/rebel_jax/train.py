@@ -81,6 +81,8 @@ class TrainState:
         episodes (:func:`rebel_jax.episodes.record_trajectory`), ``current`` being written and ``last`` the last
         complete one: ``{"obs": (T, episodes, obs_size), "action": (T, episodes, act_size)}`` on state tasks,
         the newest frames ``{"frame": (T, episodes, H, W, 3) uint8, ...}`` on pixel tasks.
+      method: the preference method's own state (``Method.init_state``; None: none), last so that the leaves of a
+        state without one are those of a run saved before methods had state.
     """
 
     agent: Any
@@ -94,6 +96,26 @@ class TrainState:
     teacher: dict[str, jax.Array] | None = None
     eval_policy: Any = None
     eval_trajectory: dict | None = None
+    method: Any = None
+
+
+METHOD_KEY = 0x6D657468
+"""Folded into a seed's key to make its method's state (``Method.init_state``), and into a vector step's update key
+for the method's pre-training step: keys of their own, which leave every other draw of the run as it was."""
+
+
+def nan_like(shapes: dict) -> dict[str, jax.Array]:
+    """NaN arrays shaped and typed as ``shapes`` (``jax.eval_shape`` output): a metric where it has no value."""
+    return {k: jnp.full(v.shape, jnp.nan, v.dtype) for k, v in shapes.items()}
+
+
+def method_mean(values: jax.Array, weight: jax.Array) -> jax.Array:
+    """The ``weight``-weighted mean of a method's per-step metric over the steps where it is defined (not NaN);
+    NaN where it is nowhere."""
+    defined = ~jnp.isnan(values)
+    w = jnp.where(defined, weight, 0.0)
+    total = jnp.sum(w)
+    return jnp.where(total > 0, jnp.sum(jnp.where(defined, values, 0.0) * w) / jnp.maximum(total, 1e-30), jnp.nan)
 
 
 class Trainer:
@@ -158,12 +180,16 @@ class Trainer:
         self.stored_length = self.horizon + 2 * self.crop
         # PEBBLE's unsupervised phase, on state tasks (SURF's pixel PEBBLE has none: num_unsup_frames=0).
         self.pretrain_steps = cfg.feedback_start // cfg.env.num_envs if self.preference and not self.pixels else 0
+        self.pretrain_hook = bool(self.pretrain_steps) and self.method.has_pretrain_step()
+        self.agent_hook = self.preference and self.method.has_agent_step()
         sessions = -(-cfg.feedback.labels // cfg.feedback.queries)
         self.pool_capacity = self.method.pool_size(cfg) * sessions if self.preference else 0  # every session's
         # The evaluation episodes kept for the method's loss (REBEL's on-policy V): (episodes, steps), or None.
         self.trajectory_size = (
             self.method.trajectory_size(cfg, self.episode_length, self.pixels) if self.preference else None
         )
+        # The reward members' optimiser (None: Adam at the reward settings' lr), before the feedback makes them.
+        self.reward_optimizer = self.method.reward_optimizer(self) if self.preference else None
         self.feedback = (PixelFeedback if self.pixels else StateFeedback)(self) if self.preference else None
         self.trace_count = 0
 
@@ -199,6 +225,8 @@ class Trainer:
             entropy_stats=None if self.pixels else self.feedback.init_entropy_stats(),
             lam=self.method.knob(self.cfg),
             teacher=teachers.knobs(self.cfg.teacher),
+            # Its own key, folded from the run's without drawing from it: the other parts' draws stay as they were.
+            method=self.method.init_state(self, jax.random.fold_in(key, METHOD_KEY)),
         )
         if self.trajectory_size:
             fields = self.feedback.trajectory_fields(self.obs_shape, actions)
@@ -278,7 +306,30 @@ class Trainer:
             return self.feedback.intrinsic_batches(batches, stats, buffer)
 
         batches = jax.vmap(draw)(keys[:, 0])
-        if self.pretrain_steps:
+        extra, own = (), {}
+        if self.pretrain_hook:  # the method's step too: (reward, method state) and its metrics, NaN after the phase
+            name, key_method = self.method.name, jax.random.fold_in(key, METHOD_KEY)
+
+            def hooked(batches, stats, reward, state):
+                batches, stats = intrinsic(batches, stats)
+                inner = ts.replace(reward=reward, method=state, entropy_stats=stats)
+                batches, reward, state, metrics = self.method.pretrain_step(self, inner, batches, key_method)
+                return (
+                    batches,
+                    stats,
+                    reward,
+                    state,
+                    {f"{name}/{k}": jnp.asarray(v, jnp.float32) for k, v in metrics.items()},
+                )
+
+            def plain(batches, stats, reward, state):
+                shapes = jax.eval_shape(hooked, batches, stats, reward, state)[-1]
+                return (*stored(batches, stats), reward, state, nan_like(shapes))
+
+            batches, stats, *extra, own = jax.lax.cond(
+                pretraining, hooked, plain, batches, ts.entropy_stats, ts.reward, ts.method
+            )
+        elif self.pretrain_steps:
             batches, stats = jax.lax.cond(pretraining, intrinsic, stored, batches, ts.entropy_stats)
         else:
             batches, stats = stored(batches, ts.entropy_stats)
@@ -288,7 +339,7 @@ class Trainer:
             return self.agent.update(state, batch, key, agent_step)
 
         agent, metrics = jax.lax.scan(update, ts.agent, (batches, keys[:, 1]), unroll=self.cfg.train.unroll_updates)
-        return (agent, stats), jax.tree.map(jnp.mean, metrics)
+        return (agent, stats, *extra), {**jax.tree.map(jnp.mean, metrics), **own}
 
     def _env_step(self, env_state: State, action: jax.Array) -> State:
         """Every environment's step; with ``train.overlap`` on a GPU, annotated to run on a second stream, where
@@ -316,15 +367,25 @@ class Trainer:
         nxt = self._env_step(ts.env, action)
         buffer, episodes = self._record(ts, nxt, action, t)
         learning = self.schedule.learning(t, self.num_train, self.cfg.train.seed_steps)
-        zeros = {k: jnp.zeros(()) for k in self.agent.metric_names}
         sampled = ts.buffer if self.cfg.train.overlap else buffer  # train.overlap: the replay one step behind
+
+        def updates():
+            return self._updates(ts, sampled, key_update, t, pretraining=t < self.pretrain_steps)
+
+        zeros = {k: jnp.zeros(()) for k in self.agent.metric_names}
+        idle = (ts.agent, ts.entropy_stats)
+        if self.pretrain_hook:  # the method's metrics NaN where no update runs
+            zeros |= nan_like({k: v for k, v in jax.eval_shape(updates)[1].items() if k not in zeros})
+            idle = (*idle, ts.reward, ts.method)
         # No updates while seeding; pre-training's reward for the steps before pretrain_steps.
-        (agent, stats), metrics = jax.lax.cond(
-            learning,
-            lambda: self._updates(ts, sampled, key_update, t, pretraining=t < self.pretrain_steps),
-            lambda: ((ts.agent, ts.entropy_stats), zeros),
-        )
+        parts, metrics = jax.lax.cond(learning, updates, lambda: (idle, zeros))
+        agent, stats = parts[:2]
+        if self.pretrain_hook:
+            ts = ts.replace(reward=parts[2], method=parts[3])
         ts = ts.replace(agent=agent, entropy_stats=stats, buffer=buffer, env=nxt, episodes=episodes)
+        if self.agent_hook:  # the method's own step after the updates (its metrics NaN where it does nothing)
+            ts, own = self.method.agent_step(self, ts, t, jax.random.fold_in(key_update, METHOD_KEY))
+            metrics = {**metrics, **{f"{self.method.name}/{k}": jnp.asarray(v, jnp.float32) for k, v in own.items()}}
         if self.trajectory_size:  # The evaluation environments' step: what was acted on, the action.
             first, end = self.num_train, self.num_train + self.trajectory_size[0]
             step = self.feedback.trajectory_step(env_state.obs[first:end], action[first:end])
@@ -403,18 +464,22 @@ class Trainer:
         elif self.preference:
             due, first = self.session_due(round_index)
             index, agent_step = self.session_index(round_index), round_index * self.cfg.train.steps_per_round
-            ts, session = jax.lax.cond(
-                due,
-                lambda ts: self.feedback_session(ts, first, index, agent_step),
-                lambda ts: (ts, summary(self.feedback.session_metrics, ts, {})),
-                ts,
-            )
+
+            def session_fn(ts):
+                return self.feedback_session(ts, first, index, agent_step)
+
+            def no_session(ts):  # the session's metrics NaN (the method's own too), labels_used as it is
+                shapes = jax.eval_shape(session_fn, ts)[1]
+                return ts, {**nan_like(shapes), **summary(self.feedback.session_metrics, ts, {})}
+
+            ts, session = jax.lax.cond(due, session_fn, no_session, ts)
         before = ts.episodes
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
         learning = metrics.pop("learning")
         weight = learning / jnp.maximum(learning.sum(), 1.0)
-        out = {k: jnp.sum(v * weight) for k, v in metrics.items()}
+        # The method's own metrics (NAME/KEY) over the steps where they are defined; the agent's over the learning ones.
+        out = {k: method_mean(v, learning) if "/" in k else jnp.sum(v * weight) for k, v in metrics.items()}
         out["train_return"] = ts.episodes.train_return
         out["eval_return"] = ts.episodes.eval_return
         if self.preference:

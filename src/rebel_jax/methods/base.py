@@ -5,24 +5,35 @@ calls at fixed places of a run. Every hook receives the trainer, so it can read 
 (``trainer.cfg``), sizes and helpers; it returns values and never mutates anything. A method overrides
 only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e):
 
-- **its config**: ``config_field`` names the section of :class:`rebel_jax.config.Config` it reads (``surf``,
-  ``rebel``), checked by :meth:`validate`;
-- **its state**: :meth:`knob` (a traced per-column value a sweep can vmap over, e.g. REBEL's lambda),
-  :meth:`crop` (extra steps stored on each side of a segment), :meth:`pool_size` (unlabelled pairs kept per
-  session) and :meth:`trajectory_size` (the evaluation episodes' trajectories kept for the reward loss);
+- **its settings**: :attr:`Method.config`, a frozen dataclass declared next to the method's code. The run's config
+  holds one instance of it under the method's name (``cfg.section(name)``, or ``self.settings(cfg)``); the command
+  line makes its ``--NAME.*`` flags from its fields and docstrings, ``config.json`` records it and ``--resume``
+  checks it. :meth:`validate` checks it with the rest of the config;
+- **its state**: :meth:`init_state`, any pytree made from a key, carried per seed in ``TrainState.method``
+  (vmapped over seeds and settings, sharded over devices, checkpointed and resumed exactly). The hooks that may
+  change it get it and return it: :meth:`pretrain_step` and :meth:`train_reward`; the others read it
+  (``ts.method``). Sizes and traced knobs: :meth:`knob` (a per-column value a sweep vmaps over, e.g. REBEL's
+  lambda), :meth:`crop`, :meth:`pool_size`, :meth:`trajectory_size`;
+- **its metrics**: every key a hook or a loss term returns beyond the trainer's own reaches ``metrics.jsonl``,
+  TensorBoard and the run's summary as ``NAME/KEY``, per seed and as the mean over seeds (NaN in rounds
+  without a feedback session, or outside pre-training for :meth:`pretrain_step`'s);
 - **its loss terms** over the label store, one list for state and pixel tasks: :meth:`reward_terms`, each term
   ``(params, batch, key) -> (loss, metrics)`` over a :class:`rebel_jax.reward_model.PrefBatch` (the pairs and
   the members' per-step rewards on them);
-- **its schedule of reward steps** in a session: :meth:`train_reward` (PEBBLE's early-stopped epochs by
-  default; SURF's fixed iterations), through :mod:`rebel_jax.reward_train`;
+- **its reward training** in a session: :meth:`train_reward` (PEBBLE's early-stopped epochs by default; SURF's
+  fixed iterations), through :mod:`rebel_jax.reward_train`, whose loops take the method's optimiser
+  (:meth:`reward_optimizer`, any ``optax`` transformation) and a weight per labelled pair (``pair_weight``);
+- **the unsupervised phase**: :meth:`pretrain_step` may update the reward ensemble and the method's state from
+  each vector step's minibatches and their intrinsic reward (none by default);
 - **hooks with no effect by default**, one each for state and pixel tasks: :meth:`query_segments` (which
   segments the queries come from), :meth:`sample_batch` (the agent's minibatch from the replay) and
   :meth:`batch_reward` (an intrinsic reward added to the learned one in that minibatch). Their defaults make the
   trainer's own calls (the same functions, arguments and keys); the trainer's ``sample_segments``,
   ``sample_pairs``, ``sample`` and ``reward_members`` serve both kinds of task.
 
-A new method is one file with a subclass, registered in :data:`rebel_jax.methods.REGISTRY` (or at run time
-with :func:`rebel_jax.methods.register`); ``docs/adding_a_method.md`` walks through one.
+A new method is one file with a subclass. Register it in :data:`rebel_jax.methods.REGISTRY` with
+:func:`rebel_jax.methods.register`, or, from a package of your own, through a ``rebel_jax.methods`` entry point
+(``python -m rebel_jax.train NAME`` finds it); ``docs/adding_a_method.md`` walks through two.
 """
 
 from __future__ import annotations
@@ -31,6 +42,7 @@ from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
+import optax
 
 from rebel_jax import reward_model, reward_train
 
@@ -39,13 +51,28 @@ class Method:
     """PEBBLE: the Bradley-Terry loss on the labelled pairs, trained in early-stopped epochs each session."""
 
     name: ClassVar[str] = "pebble"
-    config_field: ClassVar[str | tuple[str, ...] | None] = None
-    """The section of the run's config this method reads (None: none of its own; a tuple: several)."""
+    config: ClassVar[type | None] = None
+    """The method's settings: a frozen dataclass whose defaults are the method's published ones (None: none of its
+    own). Its section of the run's config is named as the method."""
 
     def sections(self) -> tuple[str, ...]:
-        """The config sections of :attr:`config_field`, as a tuple."""
-        field = self.config_field
-        return () if field is None else (field,) if isinstance(field, str) else tuple(field)
+        """The config sections this method reads beside the preference methods' common ones: its own, if any."""
+        return () if self.config is None else (self.name,)
+
+    def settings(self, cfg: Any) -> Any:
+        """This method's settings in the run's config ``cfg`` (an instance of :attr:`config`)."""
+        return cfg.section(self.name)
+
+    def init_state(self, trainer: Any, key: jax.Array) -> Any:
+        """The method's own state of one seed, a pytree (None: none). Made once per seed at the run's start."""
+        del trainer, key  # Unused.
+        return None
+
+    def reward_optimizer(self, trainer: Any) -> optax.GradientTransformation | None:
+        """The reward members' optimiser, an ``optax`` transformation (None: Adam at the reward settings' ``lr``).
+        Ignored with ``per_member_adam`` (SURF's pixel ensemble steps each member with torch's Adam)."""
+        del trainer  # Unused.
+        return None
 
     # -- config and sizes ------------------------------------------------------------------
     def validate(self, cfg: Any) -> None:
@@ -104,26 +131,71 @@ class Method:
         keys: dict[str, jax.Array],
         kept: jax.Array,
         agent_step: jax.Array | None,
-    ) -> tuple[reward_model.RewardState, dict]:
+        first: jax.Array,
+    ) -> tuple[reward_model.RewardState, Any, dict]:
         """One session's reward training: up to ``max_epochs`` epochs of the reward settings, stopped early at
         their ``stop_accuracy``; none without a kept answer (the members and their optimiser state come back
         unchanged).
 
         Args:
-          trainer: the trainer.
-          ts: the state before the session.
+          trainer: the trainer (``trainer.reward_optimizer`` the method's optimiser).
+          ts: the state before the session (``ts.method`` the method's state).
           stored: the reward state with this session's labels.
           keys: ``terms``, ``train`` and ``pool`` keys of the session.
           kept: () the number of answers kept this session.
           agent_step: as :meth:`reward_terms`.
+          first: () whether this is the run's first feedback session.
 
         Returns:
-          The trained reward state and ``reward_train.train``'s metrics (``epochs``, ``train_accuracy``, ``loss``).
+          The trained reward state, the method's state after the session, and the metrics: ``reward_train.train``'s
+          (``epochs``, ``train_accuracy``, ``loss``) and any of the method's own (logged as ``NAME/KEY``).
         """
+        del first  # Unused.
         rcfg = trainer.reward_cfg
         terms = self.reward_terms(trainer, ts.replace(reward=stored), keys["terms"], agent_step)
         epochs = jnp.where(kept > 0, rcfg.max_epochs, 0)
-        return reward_train.train(rcfg, stored, keys["train"], terms, max_epochs=epochs)
+        reward, metrics = reward_train.train(
+            rcfg, stored, keys["train"], terms, max_epochs=epochs, optimizer=trainer.reward_optimizer
+        )
+        return reward, ts.method, metrics
+
+    def pretrain_step(self, trainer: Any, ts: Any, batches: Any, key: jax.Array) -> tuple[Any, Any, Any, dict] | None:
+        """A step of the unsupervised phase (state tasks), after each vector step's minibatches have been drawn and
+        given PEBBLE's intrinsic reward, before the agent's updates on them: ``batches`` those minibatches (stacked,
+        ``reward`` the intrinsic one), ``ts.entropy_stats`` the kNN distances' running statistics after them.
+
+        Returns:
+          The minibatches the agent then trains on (a method may change their reward), the reward state, the
+          method's state and metrics after the step; None (the default): no step, and the trainer's program is as
+          if the hook did not exist.
+        """
+        del trainer, ts, batches, key  # Unused.
+        return None
+
+    def resets_critic(self, cfg: Any) -> bool:
+        """Whether the first feedback session re-initialises the critic and runs ``pretrain.reset_updates`` updates on
+        the learned reward (B-Pref's ``reset_critic`` after the unsupervised phase; RIME keeps the critic)."""
+        del cfg  # Unused.
+        return True
+
+    def agent_step(self, trainer: Any, ts: Any, t: jax.Array, key: jax.Array) -> tuple[Any, dict] | None:
+        """A step of the method's own after each vector step's updates of the feedback phase (MRN's bilevel reward
+        update, say): ``ts`` the seed's state after the step, ``t`` the vector step's index (unbatched).
+
+        Returns:
+          The new state and the step's metrics (NaN where it did nothing, e.g. under its own ``lax.cond``); None
+          (the default): no step, and the trainer's program is as if the hook did not exist.
+        """
+        del trainer, ts, t, key  # Unused.
+        return None
+
+    def has_agent_step(self) -> bool:
+        """Whether :meth:`agent_step` is overridden (the trainer calls it only then)."""
+        return type(self).agent_step is not Method.agent_step
+
+    def has_pretrain_step(self) -> bool:
+        """Whether :meth:`pretrain_step` is overridden (the trainer calls it only then)."""
+        return type(self).pretrain_step is not Method.pretrain_step
 
     # -- hooks with no effect by default ----------------------------------------------------
     def query_segments(self, trainer: Any, ts: Any, key: jax.Array, first: jax.Array) -> tuple:

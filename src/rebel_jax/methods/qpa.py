@@ -23,7 +23,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import frame_replay, replay, reward_model, reward_train, surf
+from rebel_jax import frame_replay, replay, reward_model, reward_train
 from rebel_jax.errors import check
 from rebel_jax.methods.base import Method
 
@@ -59,7 +59,7 @@ class QPAConfig:
 
 class QPA(Method):
     name = "qpa"
-    config_field = "qpa"
+    config = QPAConfig
 
     def validate(self, cfg):
         cfg.qpa.validate(cfg.query.segment_length)
@@ -100,15 +100,15 @@ class QPA(Method):
             return [reward_model.bt_loss(rcfg, qpa.crop, crop_accuracy=True)]
         return [reward_model.bt_loss(rcfg, qpa.crop, copies=qpa.data_aug_ratio)]
 
-    def train_reward(self, trainer, ts, stored, keys, kept, agent_step):
+    def train_reward(self, trainer, ts, stored, keys, kept, agent_step, first):
         """One reward step at a time (:func:`reward_train.train_iterations`) while the steps' mean accuracy on
         whole segments (QPA's: on the crops) is below ``stop_accuracy``, at most ``reward_update`` per label. On
         pixels PEBBLE's session (``pixel_reward.max_epochs``, stopped early)."""
         if trainer.cfg.pixels:
-            return super().train_reward(trainer, ts, stored, keys, kept, agent_step)
+            return super().train_reward(trainer, ts, stored, keys, kept, agent_step, first)
         rcfg, qpa = trainer.reward_cfg, trainer.cfg.qpa
         terms = self.reward_terms(trainer, ts.replace(reward=stored), keys["terms"], agent_step)
-        most = surf.surf_iterations(qpa.reward_update, stored.data.count, rcfg.batch_size, kept)
+        most = reward_train.steps_per_label(qpa.reward_update, stored.data.count, rcfg.batch_size, kept)
 
         def running(carry):
             _, step, accuracy, _ = carry
@@ -117,10 +117,11 @@ class QPA(Method):
         def one_step(carry):
             state, step, accuracy, loss = carry
             key = jax.random.fold_in(keys["train"], step)
-            state, metrics = reward_train.train_iterations(rcfg, state, key, terms, jnp.ones((), jnp.int32))
+            one = jnp.ones((), jnp.int32)
+            state, metrics = reward_train.train_iterations(rcfg, state, key, terms, one, trainer.reward_optimizer)
             return state, step + 1, accuracy + metrics["train_accuracy"], loss + metrics["loss"]
 
         start = (stored, jnp.zeros((), jnp.int32), jnp.zeros(()), jnp.zeros(()))
         state, steps, accuracy, loss = jax.lax.while_loop(running, one_step, start)
         ran = jnp.maximum(steps, 1)
-        return state, {"epochs": steps, "train_accuracy": accuracy / ran, "loss": loss / ran}
+        return state, ts.method, {"epochs": steps, "train_accuracy": accuracy / ran, "loss": loss / ran}

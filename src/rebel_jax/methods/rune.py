@@ -62,7 +62,7 @@ def disagreement(cfg, params, obs: jax.Array, action: jax.Array) -> jax.Array:
 
 class RUNE(Method):
     name = "rune"
-    config_field = "rune"
+    config = RUNEConfig
 
     def validate(self, cfg):
         cfg.rune.validate()
