@@ -22,7 +22,8 @@ from rebel_jax.methods.rebel import REBEL
 
 class REBELOnQPA(QPA, REBEL):
     name = "rebel_qpa"
-    config_field = ("qpa", "rebel")
+    config = None  # no settings of its own: it reads QPA's and REBEL's
+    uses = ("qpa", "rebel")
 
     def validate(self, cfg):
         QPA.validate(self, cfg)

@@ -58,7 +58,7 @@ def _field_flags(cls) -> set[str]:
 
 def _check_prefixes(groups: dict[str, list[str]]) -> None:
     """Every section's flags carry its prefix; the run's own options, the task and the schedule carry none."""
-    sections = {name.replace("_", "-"): type(getattr(Config(), name)) for name in cli_args.PARTS}
+    sections = {name.replace("_", "-"): type(getattr(Config(), name)) for name in cli_args.parts()}
     sections["human"] = HumanOptions
     for group, flags in groups.items():
         if group in ("description", "options"):

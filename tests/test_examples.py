@@ -76,6 +76,18 @@ def test_the_example_trains_on_a_state_task_and_shrinks_the_reward(strong_l2):
     assert l2 < pebble / 2
 
 
+def test_the_example_s_penalty_reaches_the_run_s_metrics(strong_l2, tmp_path):
+    """A loss term's own metric is logged under the method's name, per seed and as their mean, at each session."""
+    run_dir = tmp_path / "run"
+    cli.main([strong_l2.name, *QPA_MICRO, "--run-dir", str(run_dir)])
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    sessions = [r for r in rows if r["session_mean"] == 1.0]
+    assert sessions and all(r["l2_reward/l2_penalty_mean"] > 0 for r in sessions)
+    for r in sessions:  # the mean over seeds of the per-seed values
+        assert r["l2_reward/l2_penalty_mean"] == pytest.approx(np.mean(r["l2_reward/l2_penalty"]), rel=1e-6)
+    assert all(r["l2_reward/l2_penalty"] == [None, None] for r in rows if r["session_mean"] is None)
+
+
 @pytest.mark.heavy  # make test-heavy: the pixel agent's compile is about a minute on 2 cores
 def test_the_example_trains_on_a_pixel_task_and_shrinks_the_reward(strong_l2):
     rounds = 3

@@ -123,6 +123,8 @@ def test_a_packaged_method_runs_resumes_and_logs_its_state(site, tmp_path):
         assert r["counting/sessions_mean"] == sessions
         assert r["counting/first"] == [float(first_session)] * 2
     assert sessions > 2
+    final = json.loads((run_dir / "final.json").read_text())  # the run's summary: their last values
+    assert final["method_metrics"]["counting/sessions"] == {"last": [sessions, sessions], "mean": sessions}
     # Pre-training: the hook ran once per vector step of the phase with updates, by the trainer's schedule.
     trainer = api.make_trainer(cfg)
     expected = sum(

@@ -204,6 +204,7 @@ def test_qpa_crops_are_qpa_s_35_to_45_of_50_steps_one_length_per_pair():
 @flax.struct.dataclass
 class _State:
     reward: Any
+    method: Any = None
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
@@ -226,10 +227,12 @@ def test_qpa_session_runs_one_step_at_a_time_until_the_running_accuracy_reaches_
     qpa = QPAConfig(reward_update=20, stop_accuracy=stop, data_aug_ratio=2, crop=1)
     cfg = dataclasses.replace(_qpa_config(), qpa=qpa)
     stored = _labelled_state(rcfg, 12, 8)
-    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg, reward_optimizer=None)
     keys = {"terms": jax.random.key(8), "train": jax.random.key(9)}
-    session = jax.jit(lambda s: REGISTRY["qpa"].train_reward(trainer, _State(None), s, keys, jnp.int32(kept), None))
-    state, metrics = session(stored)
+    qpa = REGISTRY["qpa"]
+    session = jax.jit(lambda s: qpa.train_reward(trainer, _State(None), s, keys, jnp.int32(kept), None, True))
+    state, method_state, metrics = session(stored)
+    assert method_state is None  # QPA has no state of its own
     # Reference: QPA's loop (train_QPA.py:143, reward_model.py:707-762) with this project's one-step training.
     most = math.ceil(20 * 12 / 8) if kept else 0
     terms = _qpa_terms(rcfg, qpa)

@@ -69,6 +69,7 @@ from rebel_jax.cli_outputs import (  # noqa: F401 - re-exported
     _final_result,
     _learning_curve,
     last_logged,
+    method_metrics,
     summary_table,
 )
 from rebel_jax.cli_rundir import (  # noqa: F401 - re-exported
@@ -374,6 +375,9 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         result = _final_result(final, random, ever_diverged, names)
         files = []
         if primary:
+            own = method_metrics(run_dir, args.columns)
+            if own:  # the method's own metrics, their last logged values
+                result["method_metrics"] = own
             write_json(run_dir / "final.json", result)
             if host is not None:
                 host.finish(result)  # The labelling page says the run has finished, and where its files are.

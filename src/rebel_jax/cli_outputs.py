@@ -44,6 +44,24 @@ def last_logged(run_dir: pathlib.Path, columns: int) -> dict[str, np.ndarray]:
     return last
 
 
+def method_metrics(run_dir: pathlib.Path, columns: int) -> dict[str, dict]:
+    """The method's own metrics (``NAME/KEY``) for ``final.json``: per column the last finite value in
+    ``metrics.jsonl`` (None if none) and their mean over the columns that have one."""
+    last: dict[str, np.ndarray] = {}
+    for record in plots.records(run_dir):
+        for name, value in record.items():
+            if "/" in name and not name.endswith("_mean"):
+                values = np.asarray(plots.per_seed(value), float)
+                last[name] = np.where(np.isfinite(values), values, last.get(name, np.full(columns, np.nan)))
+    return {
+        name: {
+            "last": [None if np.isnan(v) else float(v) for v in values],
+            "mean": float(np.nanmean(values)) if np.isfinite(values).any() else None,
+        }
+        for name, values in sorted(last.items())
+    }
+
+
 def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logged: dict[str, np.ndarray]) -> str:
     """The table printed at the end of a run: one row per column and their mean.
 

@@ -55,9 +55,13 @@ class Method:
     """The method's settings: a frozen dataclass whose defaults are the method's published ones (None: none of its
     own). Its section of the run's config is named as the method."""
 
+    uses: ClassVar[tuple[str, ...]] = ()
+    """Other methods' settings this method reads (a method built on two others, say)."""
+
     def sections(self) -> tuple[str, ...]:
-        """The config sections this method reads beside the preference methods' common ones: its own, if any."""
-        return () if self.config is None else (self.name,)
+        """The config sections this method reads beside the preference methods' common ones: its own, if any, and
+        those of :attr:`uses`."""
+        return (() if self.config is None else (self.name,)) + tuple(self.uses)
 
     def settings(self, cfg: Any) -> Any:
         """This method's settings in the run's config ``cfg`` (an instance of :attr:`config`)."""
