@@ -66,7 +66,8 @@ def test_selection_matches_the_original(x, var, update_step):
     assert flipped.any() and trusted.any()  # the data exercise both rules
     # The epoch's training set: the original's train_idx (duplicates included), each with its flipped label.
     flipped_labels = jnp.where(got_flipped, 1.0 - labels, labels)
-    store = PairStore(a=jnp.arange(capacity), b=jnp.arange(capacity), labels=jnp.asarray(labels), ptr=jnp.int32(0), count=jnp.int32(count))
+    slots, labels_in = jnp.arange(capacity), jnp.asarray(labels)
+    store = PairStore(a=slots, b=slots, labels=labels_in, ptr=jnp.int32(0), count=jnp.int32(count))
     packed = training_store(store, flipped_labels, got_trusted, got_flipped)
     if clear.all():
         assert int(packed.count) == len(train_idx)

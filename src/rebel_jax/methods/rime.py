@@ -50,7 +50,7 @@ class RIMEConfig:
     stop_accuracy: float = 0.98
     """...once the members' mean accuracy on the epoch's training pairs exceeds this (train_RIME.py:183)."""
     warmup_epochs: int = 50
-    """The reward lr rises linearly from 0 over this many epochs from the first session: ``num_warmup_steps =
+    """The reward lr rises linearly from 0 over this many epochs from the first feedback on: ``num_warmup_steps =
     int(labels / per_session * least_reward_update / 3 + 0.5)``, 50 at 1,000 labels in 100s (train_RIME.py:77)."""
     warm_steps: int = 5
     """Warm-start reward steps per environment step of pre-training (train_RIME.py:321; 0: no warm start)."""
@@ -185,7 +185,7 @@ class RIME(Method):
         """Up to ``reward.max_epochs`` epochs, each selecting, flipping and training (see the module docstring),
         stopped once the accuracy exceeds ``stop_accuracy`` after more than ``least_epochs`` (train_RIME.py:174-184).
         Metrics of the last epoch: ``trusted`` and ``flipped`` (shares of the labels), ``tau_lower``, ``lr``."""
-        del agent_step, first  # Unused: the warm-up counts epochs from the first session on.
+        del agent_step, first  # Unused: the warm-up counts the run's epochs.
         rcfg, rime = trainer.reward_cfg, self.settings(trainer.cfg)
         most = jnp.where(kept > 0, rcfg.max_epochs, 0)
         data = stored.data
