@@ -607,10 +607,24 @@ _QPA = dataclasses.replace(
 (``ensemble_size=1``) and uniform queries (``explore=false``; ``--algo qpa`` draws them uniformly anyway); its
 other settings are the ``qpa`` section's defaults. cheetah_run: ``--task cheetah_run --total-steps 1000000``."""
 
+_RIME = dataclasses.replace(
+    _PAPER,
+    algo="rime",
+    train=TrainConfig(total_steps=1_000_000),
+    feedback=dataclasses.replace(_PAPER.feedback, labels=1_000, per_session=100, interval=20_000),
+    teacher=TeacherConfig(eps_mistake=0.3),
+)
+"""RIME's walker_walk protocol (CJReinforce/RIME_ICML2024@4ad03f4:run_parallel.sh:5,25-27,103): the ``paper`` preset
+(disagreement queries, B-Pref's running std, the ``asked`` budget) with 1M steps, 1,000 labels, 100 per session
+every 20k steps, and the ``mistake`` teacher at eps 0.3; SAC at 5e-4 and 50 reward epochs are ``paper``'s. The
+command line sets the teacher from ``--teacher``: ``--preset rime --teacher mistake --teacher.eps-mistake 0.3``.
+cheetah_run: ``--task cheetah_run --pretrain.steps 2000`` (run_parallel.sh:15)."""
+
 PRESETS: dict[str, Config] = {
     "paper": _PAPER,
     "paper_quadruped": _paper_quadruped(),
     "qpa": _QPA,
+    "rime": _RIME,
     "tiny": _tiny(),
     "demo": _demo(),
     "surf_pixels_walker": _surf_pixels("walker_walk"),
@@ -620,6 +634,6 @@ PRESETS: dict[str, Config] = {
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
 ``paper_quadruped``: B-Pref's quadruped_walk settings (``_paper_quadruped``), the default on a quadruped task.
-``qpa``: QPA's protocol (``_QPA``). ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small
-preference-learning run that learns on a CPU (``_demo``). ``surf_pixels_walker`` and ``surf_pixels_cheetah``:
-SURF's pixel runs (``_surf_pixels``)."""
+``qpa``: QPA's protocol (``_QPA``). ``rime``: RIME's walker_walk protocol (``_RIME``). ``tiny``: CPU tests of the
+CLI. ``demo``: ``make train``, a small preference-learning run that learns on a CPU (``_demo``).
+``surf_pixels_walker`` and ``surf_pixels_cheetah``: SURF's pixel runs (``_surf_pixels``)."""

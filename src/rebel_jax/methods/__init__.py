@@ -18,10 +18,11 @@ from rebel_jax.methods.base import Method
 from rebel_jax.methods.pebble import PEBBLE
 from rebel_jax.methods.qpa import QPA
 from rebel_jax.methods.rebel import REBEL
+from rebel_jax.methods.rime import RIME
 from rebel_jax.methods.rune import RUNE
 from rebel_jax.methods.surf import SURF
 
-REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE())}
+REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE(), RIME())}
 """The methods a run can name (``python -m rebel_jax.train NAME``): ``pebble``, ``surf``, ``rebel``, ``qpa``, ``rune``,
 ``rime``, ``mrn``, and those registered since."""
 
