@@ -416,8 +416,8 @@ def _description(cfg: Config, preset: str, help_all: bool) -> str:
         f"  --preset NAME  the defaults: {', '.join(sorted(PRESETS))} (now {preset}; default paper, on a pixel task "
         "its SURF protocol, on a quadruped task paper_quadruped)\n"
         "  --obs {state,pixels}  pixels: the task's pixel version (<task>_pixels)\n"
-        f"  --teacher NAME  {', '.join(teachers.PRESETS)} (default oracle; --teacher.* override it), human (a person"
-        " on a web page, --human.*) or replay (--human.labels FILE: a human run's answers)\n"
+        f"  --teacher NAME  {', '.join(teachers.PRESETS)} (default: the preset's; --teacher.* override it), human"
+        " (a person on a web page, --human.*) or replay (--human.labels FILE: a human run's answers)\n"
         f"  {HELP_ALL}  "
         + ("every flag of this method, as below" if help_all else "every flag of this method (below: the common ones)")
     )
@@ -443,7 +443,7 @@ def parse(argv: list[str] | None = None) -> Args:
         raise usage_error(ConfigError(str(err))) from err
     pre = _FirstFlags(prog=PROG, add_help=False, allow_abbrev=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default=None)
-    pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default="oracle")
+    pre.add_argument("--teacher", choices=[*teachers.PRESETS, *HOST_TEACHERS], default=None)
     pre.add_argument("--obs", choices=OBS, default=None)
     pre.add_argument("--task", default=None)
     pre.add_argument("--algo", choices=[*AGENTS, *methods.REGISTRY], default=None)
@@ -459,13 +459,15 @@ def parse(argv: list[str] | None = None) -> Args:
         raise usage_error(err) from err
     preset = known.preset or default_preset(task)
     host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
-    scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
     base = PRESETS[preset]
     config = dataclasses.replace(
         base,
         algo=method or known.algo or base.algo,
         env=dataclasses.replace(base.env, task=task),
-        teacher=teachers.PRESETS[scripted],
+        # The preset's teacher unless --teacher names one; a human's answers are compared with the oracle's.
+        teacher=base.teacher
+        if known.teacher is None
+        else teachers.PRESETS["oracle" if host_teacher else known.teacher],
     )
     helping = known.help_all or any(flag in ("-h", "--help") for flag in rest)
     mode = ("all" if known.help_all else "brief") if helping else None

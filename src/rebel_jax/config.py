@@ -616,9 +616,9 @@ _RIME = dataclasses.replace(
 )
 """RIME's walker_walk protocol (CJReinforce/RIME_ICML2024@4ad03f4:run_parallel.sh:5,25-27,103): the ``paper`` preset
 (disagreement queries, B-Pref's running std, the ``asked`` budget) with 1M steps, 1,000 labels, 100 per session
-every 20k steps, and the ``mistake`` teacher at eps 0.3; SAC at 5e-4 and 50 reward epochs are ``paper``'s. The
-command line sets the teacher from ``--teacher``: ``--preset rime --teacher mistake --teacher.eps-mistake 0.3``.
-cheetah_run: ``--task cheetah_run --pretrain.steps 2000`` (run_parallel.sh:15)."""
+every 20k steps, and the ``mistake`` teacher at eps 0.3 (the preset's teacher unless ``--teacher`` names another);
+SAC at 5e-4 and 50 reward epochs are ``paper``'s. cheetah_run: ``--task cheetah_run --pretrain.steps 2000``
+(run_parallel.sh:15)."""
 
 PRESETS: dict[str, Config] = {
     "paper": _PAPER,

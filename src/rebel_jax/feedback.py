@@ -261,7 +261,7 @@ class StateFeedback(RewardFeedback):
 
         buffer = replay.relabel(ts.buffer, reward_fn, chunk_rows=max(1, 16_384 // trainer.num_train))
         agent_state = ts.agent
-        if self.cfg.pretrain.steps and method.resets_critic(self.cfg):
+        if self.cfg.pretrain.steps:
             agent_state = jax.lax.cond(
                 first, lambda: self._reset_critic(ts.agent, buffer, key_critic), lambda: ts.agent
             )
@@ -279,7 +279,8 @@ class StateFeedback(RewardFeedback):
         return ts.replace(agent=agent_state, buffer=buffer, reward=reward, method=method_state), metrics
 
     def _reset_critic(self, agent_state, buffer: replay.Buffer, key: jax.Array):
-        """A fresh critic after pre-training, then ``pretrain.reset_updates`` SAC updates on the relabelled buffer.
+        """A fresh critic after pre-training (unless the method keeps it, ``Method.resets_critic``), then
+        ``pretrain.reset_updates`` SAC updates on the relabelled buffer.
 
         B-Pref's ``agent.reset_critic()`` then ``agent.update_after_reset(gradient_update=reset_update)``
         (``train_PEBBLE.py``; ``agent/sac.py``): critic, actor and temperature steps on the learned
@@ -288,7 +289,8 @@ class StateFeedback(RewardFeedback):
         """
         agent = self.trainer.agent
         key_reset, key_updates = jax.random.split(key)
-        agent_state = agent.reset_critic(agent_state, key_reset)
+        if self.trainer.method.resets_critic(self.cfg):
+            agent_state = agent.reset_critic(agent_state, key_reset)
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)

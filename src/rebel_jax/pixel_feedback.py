@@ -238,9 +238,7 @@ class PixelFeedback(RewardFeedback):
             ts.buffer, lambda obs, action: self.mean_reward(reward.params, obs, action), rcfg.relabel_rows
         )
         new = ts.replace(buffer=buffer, reward=reward, method=method_state)
-        agent = ts.agent
-        if method.resets_critic(self.cfg):
-            agent = jax.lax.cond(first, lambda: self._reset_critic(new, key_critic, agent_step), lambda: ts.agent)
+        agent = jax.lax.cond(first, lambda: self._reset_critic(new, key_critic, agent_step), lambda: ts.agent)
         written = (jnp.arange(buffer.rows) < buffer.size)[:, None] * jnp.ones((1, buffer.num_envs))
         metrics = reward_training_metrics(accuracy_new, train_metrics, kept)
         metrics.update(method_metrics(method.name, train_metrics, kept))
@@ -255,7 +253,9 @@ class PixelFeedback(RewardFeedback):
         trainer, buffer = self.trainer, ts.buffer
         agent = trainer.agent
         key_reset, key_updates = jax.random.split(key)
-        agent_state = agent.reset_critic(ts.agent, key_reset)
+        agent_state = ts.agent
+        if trainer.method.resets_critic(self.cfg):
+            agent_state = agent.reset_critic(agent_state, key_reset)
 
         def one(state, key):
             key_sample, key_update = jax.random.split(key)

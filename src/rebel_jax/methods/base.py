@@ -177,8 +177,9 @@ class Method:
         return None
 
     def resets_critic(self, cfg: Any) -> bool:
-        """Whether the first feedback session re-initialises the critic and runs ``pretrain.reset_updates`` updates on
-        the learned reward (B-Pref's ``reset_critic`` after the unsupervised phase; RIME keeps the critic)."""
+        """Whether the first feedback session re-initialises the critic (B-Pref's ``reset_critic`` after the
+        unsupervised phase; RIME keeps it) before its ``pretrain.reset_updates`` agent updates on the learned reward,
+        which run either way (B-Pref's and RIME's ``update_after_reset``)."""
         del cfg  # Unused.
         return True
 
