@@ -270,6 +270,7 @@ def test_qpa_rows_leave_the_threshold_to_the_baselines_and_pair_with_pebble_by_k
     assert out["positive"] == 0 and out["pairs"] == 2
     end = qpa_rune.end_of_run([tmp_path / "qpa"], [[0, 1, 2]])
     assert end["mean"] == pytest.approx(qpa[-1].mean(), abs=0.01) and end["seeds"] == 3
+    assert end["std"] == pytest.approx(qpa[-1].std(ddof=1), abs=0.01)  # the sample std, as every table gives it
 
 
 def test_a_method_composed_with_rebels_term_names_its_lambdas_by_its_own_name(tmp_path):
