@@ -45,7 +45,7 @@ against the sigmoid one (programs of the same ``--seed``: seed i has the same ke
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
-output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
+output). Only runs of B-Pref's protocol (RESULTS.md, question 1) belong in ``RUNS``.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Segments are stored ``surf.crop`` steps longer on each side; the labelled pairs train on random crops
 (:func:`rebel_jax.reward_model.bt_loss` with ``crop``) and the pool's confident pairs on their pseudo-labels
 (:func:`rebel_jax.surf.pseudo_label_term`). A session grows the pool by ``surf.pool_size`` pairs, then runs a
-fixed number of steps with no early stop (alinlab/SURF@866630a:train_PEBBLE_semi_dataaug.py:162; on pixels
+fixed number of steps with no early stop (alinlab/SURF@2088ee8:train_PEBBLE_semi_dataaug.py:162; on pixels
 ``surf.reward_update`` passes, alinlab/SURF@214bc1d:pixel_train_PEBBLE_semi.py:275-281).
 """
 
