@@ -1,6 +1,7 @@
 # The two commands of the README:
 #   make train   set up .venv and run the demo: PEBBLE learns cheetah_run from an oracle's labels,
-#                3 seeds, about 6.5 minutes on 2 CPU cores, the venv included (the `demo` preset of config.py; tests/test_demo.py)
+#                3 seeds, about 3 minutes on 2 CPU cores, the venv included (174 s, docs/training.md;
+#                the `demo` preset of config.py; tests/test_demo.py)
 #   make test    set up .venv with the test extras and run ruff + the test suite
 #                (first installing Debian's chromium, chromium-driver and Mesa's EGL where they
 #                are missing and apt-get can run as root: the labelling page's browser test and

@@ -1,7 +1,7 @@
 """Does one program, run twice from the same seed keys, give the same state bit for bit? And what do XLA's
 deterministic GPU ops cost?
 
-Why (RESULTS.md, "Under B-Pref's imperfect teachers"): three H100 teacher programs with one round program and the
+Why (RESULTS.md, question 4): three H100 teacher programs with one round program and the
 same seed keys already differed in their PEBBLE columns' round-0 returns, before any label. If a repeat of one
 program differs too, the GPU runs are not reproducible, and seed-paired comparisons pair initial states only.
 

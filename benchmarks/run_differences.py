@@ -6,7 +6,7 @@ Usage:
 For each round both runs logged and each key, prints the largest relative difference over the seeds,
 ``max_i |a_i - b_i| / max(|b_i|, 1e-6)``, as a markdown table. Two launches of one program (one process
 against several, say) compare with two repeats of the same launch this way: on a GPU without
-``--xla_gpu_deterministic_ops=true`` even the repeats differ (BENCHMARKS.md, "Reproducibility").
+``--xla_gpu_deterministic_ops=true`` even the repeats differ (BENCHMARKS.md, "Is a GPU run reproducible?").
 """
 
 from __future__ import annotations

@@ -57,6 +57,13 @@ Interval = tuple[float, float]
 
 
 # -- statistics over runs ------------------------------------------------------------------
+def sample_std(values: ArrayLike) -> float:
+    """The sample standard deviation (``ddof=1``, as the papers' tables give it) of ``values``; NaN for fewer than
+    two values. Every results table states a std over seeds this way."""
+    x = np.asarray(values, dtype=float)
+    return float(x.std(ddof=1)) if x.size > 1 else math.nan
+
+
 @contextlib.contextmanager
 def _global_seed(seed: int) -> Iterator[None]:
     """NumPy's global generator seeded with ``seed`` inside, its previous state restored after."""
@@ -507,7 +514,7 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
         "utd": cfg.get("sac", {}).get("utd"),
         "final_returns": [_json_float(x) for x in final],
         "mean": _json_float(scores.mean()) if scores.size else None,
-        "std": _json_float(scores.std()) if scores.size else None,
+        "std": _json_float(sample_std(scores)) if scores.size else None,
         "iqm": _json_float(iqm(scores)) if scores.size else None,
         "iqm_ci": [_json_float(low), _json_float(high)],
         "curve": {

@@ -16,7 +16,7 @@ import math
 import pathlib
 
 import numpy as np
-from analysis import _per_seed, _records, bootstrap_ci, iqm
+from analysis import _per_seed, _records, bootstrap_ci, iqm, sample_std
 
 from rebel_jax.plots import load_runs, plot_curves
 
@@ -161,7 +161,7 @@ def row(log: str, select: str | None, published: float | None, rung: str) -> dic
         "returns_source": source,
         "final_returns": [round(v, 2) for v in returns],
         "mean": round(float(x.mean()), 2),
-        "std": round(float(x.std()), 2),
+        "std": round(sample_std(x), 2),
         "iqm": round(float(iqm(x)), 2),
         "iqm_ci": [round(v, 2) if math.isfinite(v) else None for v in ci],
         "returns_at": {str(s): round(float(np.mean(v)), 1) for s, v in _at_steps(run, columns).items()},
@@ -214,7 +214,7 @@ def pooled(rung: str, parts: list[dict]) -> dict:
         "seeds": len(x),
         "final_returns": [round(v, 2) for v in x],
         "mean": round(float(x.mean()), 2),
-        "std": round(float(x.std()), 2),
+        "std": round(sample_std(x), 2),
         "iqm": round(float(iqm(x)), 2),
         "iqm_ci": [round(v, 2) if math.isfinite(v) else None for v in ci],
         "returns_at": {  # seed-weighted mean of the parts' means

@@ -50,6 +50,7 @@ from analysis import (  # noqa: E402
     plot_iqm,
     preset_name,
     sample_efficiency_ratio,
+    sample_std,
 )
 
 from rebel_jax import teachers  # noqa: E402
@@ -219,7 +220,7 @@ def compare(
             "env_steps": int(steps[-1]),
             "final_returns": scores.tolist(),
             "mean": float(scores.mean()),
-            "std": float(scores.std()),
+            "std": sample_std(scores),
             "iqm": float(iqm(scores)),
             "iqm_ci": list(bootstrap_ci(scores, iqm)),
             "steps_ratio_vs_reference": ratio,

@@ -117,6 +117,11 @@ REFERENCE = {"cheetah_run_pixels": "drqv2", "walker_walk_pixels": "drqv2 (float3
 at 500k frames (the float32 critic output on walker, the arm that met the target of 700)."""
 
 
+def _std(std: float | None) -> str:
+    """A table's std cell: one decimal, "-" where one seed has none."""
+    return "-" if std is None else f"{std:.1f}"
+
+
 def action_repeat(task: str) -> int:
     """Frames per agent step of a pixel task."""
     return make_env(task).action_repeat
@@ -322,7 +327,7 @@ def _statistics(label: str, m: dict, info: dict, repeat: int, scores: str = "fin
         "frames": m["env_steps"] * repeat,
         scores: [round(v, 2) for v in m["final_returns"]],
         "mean": round(m["mean"], 2),
-        "std": round(m["std"], 2),
+        "std": round(m["std"], 2) if math.isfinite(m["std"]) else None,  # one seed: no sample std
         "iqm": round(m["iqm"], 2),
         # One seed has no interval: null, not NaN, which strict JSON readers refuse.
         "iqm_ci": [round(v, 2) if np.isfinite(v) else None for v in m["iqm_ci"]],
@@ -508,7 +513,7 @@ def main() -> None:
     for r in table:
         low, high = r["iqm_ci"]
         print(
-            f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {r['mean']:.1f} +- {r['std']:.1f} "
+            f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {r['mean']:.1f} +- {_std(r['std'])} "
             f"| {r['iqm']:.1f} [{low}, {high}] |"
         )
     for r in early:
@@ -528,7 +533,7 @@ def main() -> None:
         last = ", ".join("-" if v is None else f"{v:.1f}" for v in r["last_evaluation"])
         print(
             f"| {r['task']} | {r['method']} | {r['seeds']} | {r['frames']:,} | {scores} | {r['mean']:.1f} +- "
-            f"{r['std']:.1f} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
+            f"{_std(r['std'])} | {r['iqm']:.1f} [{low}, {high}] | {last} |"
         )
     _quality_table(table + same)
     _paired_table(pairs)

@@ -24,7 +24,7 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure, final_returns
+from analysis import curve_figure, final_returns, sample_std
 from compare import gather, methods
 from rebel import PEBBLE, RESULTS, rows, sign_counted
 
@@ -77,7 +77,7 @@ def end_of_run_returns(run_dirs: list[pathlib.Path], columns: list[list[int]]) -
 def end_of_run(run_dirs: list[pathlib.Path], columns: list[list[int]]) -> dict:
     """Mean and std over the pooled seeds of the end-of-run evaluation (:func:`end_of_run_returns`)."""
     values = end_of_run_returns(run_dirs, columns)
-    return {"mean": round(float(np.mean(values)), 2), "std": round(float(np.std(values)), 2), "seeds": len(values)}
+    return {"mean": round(float(np.mean(values)), 2), "std": round(sample_std(values), 2), "seeds": len(values)}
 
 
 def keyed_returns(run_dirs: list[pathlib.Path], label: str) -> dict[tuple[int, int], float]:

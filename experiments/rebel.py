@@ -45,7 +45,7 @@ against the sigmoid one (programs of the same ``--seed``: seed i has the same ke
 ``chosen_lambda`` applies the rule of RESULTS.md that picks the lambda carried to cheetah_run (walker_walk
 only). ``estimator`` and ``variant`` are read from the run's ``config.json``: where REBEL's V comes from
 (``rebel.source``) and which form of the term it is (``rebel.form``, normalised or not, the reward's
-output). Only runs of B-Pref's protocol (RESULTS.md, "Faithful baselines") belong in ``RUNS``.
+output). Only runs of B-Pref's protocol (RESULTS.md, question 1) belong in ``RUNS``.
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ PEBBLE = ("pebble", "pebble (rebel lam=0)")
 """Method labels of ``compare.methods`` that are PEBBLE (the reference of ``efficiency_vs_pebble``)."""
 BASELINES = ("sac", "pebble", "surf")
 """The algorithms whose final means set the threshold (``common_threshold``): a row of any other method (REBEL,
-QPA, RUNE) never moves it."""
+QPA, RUNE) never moves it; of PEBBLE+SURF only the run ``SURF`` names."""
 SURF = {"walker_walk": "surf", "cheetah_run": "surf (reward_update 100)"}
 """Per task the method label of the PEBBLE+SURF run that met its published figure, the reference of
 ``efficiency_vs_surf`` (the paper's claim names both baselines): on cheetah_run ``reward_update`` 100."""
@@ -156,7 +156,14 @@ def rows(task: str, run_dirs: list[pathlib.Path], figure_path: pathlib.Path | No
     surf = surf if surf in curves else None
     if reference is None:
         raise ValueError(f"{task}: no PEBBLE run among {[str(d) for d in run_dirs]}")
-    baselines = [label for label in curves if infos[label]["algo"] in BASELINES or label in PEBBLE]
+
+    # PEBBLE+SURF counts by the run that met its published figure (``SURF``), so each task has one threshold
+    # whichever SURF runs sit beside it (on cheetah_run the ``reward_update`` 1000 run is a row, not a baseline).
+    def is_baseline(label: str) -> bool:
+        algo = infos[label]["algo"]
+        return label in PEBBLE or (algo in BASELINES and (algo != "surf" or surf in (None, label)))
+
+    baselines = [label for label in curves if is_baseline(label)]
     threshold = common_threshold(np.nanmean(final_returns(curves[label][1])) for label in baselines)
     stats = compare(curves, reference, threshold)
 

@@ -5,7 +5,7 @@ DrQ-v2's own published curves, judged alike.
 Usage:
   python experiments/takeoff.py
 
-Two of our three walker seeds never learned (RESULTS.md, "Pixels"), against 2 of 10 in DrQ-v2's own curves. A
+Two of our three walker seeds never learned (RESULTS.md, question 1), against 2 of 10 in DrQ-v2's own curves. A
 failed seed stays at a lying policy's return (16-40, DrQ-v2's and ours) for the whole run; most seeds that learn
 have left it by 120k frames (ours: 165-675 at 80k-120k frames; DrQ-v2's seed 1 passes 100 only after 160k, so the
 criterion counts it as not taken off). The criterion is fixed before the runs:

@@ -274,7 +274,7 @@ def test_summary_schema_and_numbers(tmp_path):
     assert (s["labels"], s["lam"]) == (100, 0.1)
     assert s["final_returns"] == pytest.approx([4.5, 9.0, 13.5])
     assert s["mean"] == pytest.approx(9.0)
-    assert s["std"] == pytest.approx(np.std([4.5, 9.0, 13.5]))
+    assert s["std"] == pytest.approx(np.std([4.5, 9.0, 13.5], ddof=1))  # the sample std
     assert s["iqm"] == pytest.approx(9.0)  # the middle of 3
     assert s["iqm_ci"][0] <= s["iqm"] <= s["iqm_ci"][1]
     assert s["curve"]["env_steps"] == [20, 30, 40, 50]
@@ -431,7 +431,7 @@ def test_baselines_pool_only_runs_that_differ_in_precision_and_seed(tmp_path, mo
     row = baselines.pooled("pooled", [a, b])
     x = np.asarray([100.0, 300.0, 500.0, 700.0, 900.0])
     assert row["seeds"] == 5 and row["final_returns"] == x.tolist()
-    assert row["mean"] == pytest.approx(x.mean(), abs=0.01) and row["std"] == pytest.approx(x.std(), abs=0.01)
+    assert row["mean"] == pytest.approx(x.mean(), abs=0.01) and row["std"] == pytest.approx(x.std(ddof=1), abs=0.01)
     assert row["returns_at"]["500000"] == pytest.approx(x.mean())  # seed-weighted, not the mean of means
     assert row["precision"] == ["bf16", "tf32"] and row["seed"] == [0, 1]
     c = _fake_run(tmp_path, "c", [1.0, 2.0], {("feedback", "labels"): 1000})
@@ -1113,3 +1113,9 @@ def test_takeoff_counts_seeds_above_the_plateau_per_arm_named_by_config(tmp_path
     (sac / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="DrQ-v2 on walker_walk"):
         takeoff.arm_curves([sac])
+
+
+def test_sample_std_is_numpys_with_one_degree_of_freedom_and_undefined_for_one_value():
+    x = np.random.default_rng(3).normal(size=5)
+    assert analysis.sample_std(x) == pytest.approx(np.sqrt(np.sum((x - x.mean()) ** 2) / (x.size - 1)))
+    assert math.isnan(analysis.sample_std([1.0]))

@@ -270,6 +270,7 @@ def test_qpa_rows_leave_the_threshold_to_the_baselines_and_pair_with_pebble_by_k
     assert out["positive"] == 0 and out["pairs"] == 2
     end = qpa_rune.end_of_run([tmp_path / "qpa"], [[0, 1, 2]])
     assert end["mean"] == pytest.approx(qpa[-1].mean(), abs=0.01) and end["seeds"] == 3
+    assert end["std"] == pytest.approx(qpa[-1].std(ddof=1), abs=0.01)  # the sample std, as every table gives it
 
 
 def test_a_method_composed_with_rebels_term_names_its_lambdas_by_its_own_name(tmp_path):
@@ -278,3 +279,24 @@ def test_a_method_composed_with_rebels_term_names_its_lambdas_by_its_own_name(tm
     _edit(tmp_path / "run", "meta.json", lams=[lam for lam, _ in GRID])
     labels = sorted(compare.methods(tmp_path / "run"))
     assert labels == sorted(f"rebel_qpa lam={lam:g}, {t}" for lam in (0.0, -0.1) for t in ("noisy", "skip"))
+
+
+def test_rebel_rows_count_only_the_named_surf_run_in_the_threshold(tmp_path, monkeypatch):
+    import rebel
+
+    rng = np.random.default_rng(1)
+    pebble, sac = rng.uniform(100, 200, (4, 2)), rng.uniform(300, 400, (4, 2))
+    low, high = rng.uniform(10, 20, (4, 2)), rng.uniform(120, 180, (4, 2))
+    _write_run(tmp_path / "pebble", "pebble", pebble)
+    _write_run(tmp_path / "sac", "sac", sac)
+    _write_run(tmp_path / "surf_low", "surf", low)
+    _write_run(tmp_path / "surf_high", "surf", high)
+    _edit(tmp_path / "surf_high", "config.json", **{"surf.reward_update": 7})
+    dirs = [tmp_path / name for name in ("pebble", "sac", "surf_low", "surf_high")]
+    labels = sorted(compare.methods(tmp_path / "surf_high"))
+    assert len(labels) == 1 and labels[0] != "surf", labels  # the second SURF run has a label of its own
+    task = json.loads((tmp_path / "pebble" / "config.json").read_text())["env"]["task"]
+    monkeypatch.setattr(rebel, "SURF", {task: labels[0]})
+    rows = {r["method"]: r for r in rebel.rows(task, dirs)}
+    named = [x.mean() for x in (pebble, sac, high)]  # 4 evaluations per seed: the final return is their mean
+    assert rows["surf"]["threshold"] == pytest.approx(0.8 * min(named), abs=0.01)  # the low SURF run is a row only

@@ -75,7 +75,7 @@ def test_seed_loop_rounds_equal_the_batched_rounds(run):
 def test_a_column_is_the_one_seed_run_of_its_key(run):
     """Seeds are independent columns: column 1 of the 2-seed program is the 1-seed program run from that
     column's key (its envs, frames, updates and evaluations use nothing of column 0). One of two walker
-    seeds learned nothing in a GPU run (RESULTS.md, "Pixels"); this rules out a mix-up of columns."""
+    seeds learned nothing in a GPU run (RESULTS.md, question 1); this rules out a mix-up of columns."""
     trainer, state, metrics, _ = run
     alone = Trainer(MICRO)
     init, round_fn, _ = compiled(alone)

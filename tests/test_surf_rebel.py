@@ -555,7 +555,7 @@ def test_rebel_form_validates():
 
 @pytest.mark.parametrize("estimator", ["discounted", "mean"])
 def test_a_constant_shift_of_the_reward_moves_the_lower_bound_and_not_the_penalty(estimator):
-    """The BT loss cannot see a constant shift c of the reward (RESULTS.md, REBEL's first runs).
+    """The BT loss cannot see a constant shift c of the reward (RESULTS.md, question 2).
 
     The lower bound ``lambda sum_m V_m`` moves by ``lambda M c sum_{t<T} gamma^t`` (``discounted``) or
     ``lambda M c / (1 - gamma)`` (``mean``), so its gradient pushes the reward along c; the penalty

@@ -82,8 +82,8 @@ class EnvConfig:
     to float rounding (tests/test_warp.py), which chaos then amplifies over an episode."""
     unroll_substeps: bool = False
     """A control step's physics substeps compiled one after another, not as a loop. With ``impl='warp'`` the loop
-    carries all of Warp's data, and unrolled rounds were about 2% shorter on a GPU (BENCHMARKS.md, "Unrolled
-    substeps"); with the JAX step the physics alone was not faster, so it is off by default."""
+    carries all of Warp's data, and unrolled rounds were about 2% shorter on a GPU (BENCHMARKS.md section
+    3); with the JAX step the physics alone was not faster, so it is off by default."""
 
     def validate(self) -> None:
         from rebel_jax.envs import IMPLS, PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version

@@ -93,7 +93,8 @@ class DrQV2Config:
     """How the encoder's kernel gradients are computed: XLA's backward-filter convolutions, or one matrix
     product of the input patches with the output gradient each (:func:`rebel_jax.networks.conv_patch_kernel_grad`).
     The same gradients up to float rounding; a speed setting, not a DrQ-v2 one. On one H100 (bf16, 5 seeds
-    looped, 2026-11-25) ``patches`` was 28% slower (BENCHMARKS.md), so ``xla`` stays the default."""
+    looped, 2026-11-25) ``patches`` was 28% slower (``benchmarks/results/drqv2_update.json``), so ``xla`` stays
+    the default."""
     first_channels: int = 0
     """The encoder's first convolution sees its 9 input channels (3 stacked RGB frames) zero-padded to this many
     (:func:`rebel_jax.networks.channel_padded`; 0: as they are). The same function and parameters up to float
@@ -113,8 +114,8 @@ class DrQV2Config:
     batched update: the same numbers up to float rounding. Batched, each of the encoder's
     convolutions and their gradients becomes one grouped convolution (``feature_group_count`` = seeds);
     looped, each is a plain one (not a DrQ-v2 setting). On one H100 the looped update of 5 seeds at
-    84x84 (batch 512) takes 30.2 ms against the batched 206.2 ms in tf32 (BENCHMARKS.md, "Pixel programs
-    on one H100"), hence on by default."""
+    84x84 (batch 512) takes 30.2 ms against the batched 206.2 ms in tf32
+    (``benchmarks/results/drqv2_update.json``), hence on by default."""
 
     def validate(self) -> None:
         for name in ("feature_dim", "hidden", "depth", "update_every", "batch_size", "nstep", "std_steps"):

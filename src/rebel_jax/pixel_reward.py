@@ -84,7 +84,7 @@ class PixelRewardConfig:
     """Replay rows relabelled at once (each row holds one transition per env), after every session: bounds the
     frame stacks in memory (SURF relabels 100 steps at a time, replay_buffer_drqv2.py:80-117). 256 rows took
     0.43 s for a cheetah replay of 25,000 rows x 4 envs, against 1.48 s at 8 rows (one H200, tf32,
-    BENCHMARKS.md, "a pixel preference session by parts")."""
+    BENCHMARKS.md, "A pixel session by parts")."""
     precision: str = "tf32"
     """Matmul and convolution precision: ``tf32``, ``highest`` or ``bf16``."""
     per_member_adam: bool = False
@@ -99,7 +99,7 @@ class PixelRewardConfig:
     """Compute the members' losses and gradients one member at a time (``lax.map``) instead of all at once
     (``vmap``): the same minibatches, crops and numbers up to float rounding, with about one member's
     working memory in a reward-training step instead of ``ensemble_size`` members' (not a SURF setting;
-    BENCHMARKS.md, "Pixel runs before any GPU time"). The Adam step of all members stays one. The members'
+    ``benchmarks/pixel_memory.py``, CPU estimates). The Adam step of all members stays one. The members'
     forward passes outside training (``reward_model.predict``: relabelling, scoring, a session's accuracy) go
     one member at a time too (``reward_model.over_members``), so that none of their convolutions is grouped over the
     members (since 2026-11-26; not timed on a GPU)."""

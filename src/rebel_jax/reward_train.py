@@ -384,6 +384,6 @@ def steps_per_label(reward_update: int, count: jax.Array, batch_size: int, kept:
     holds no session once the budget is spent (``run``: ``if self.total_feedback < self.cfg.max_feedback``);
     here a session whose seed kept no new pair (``kept`` 0) runs no step. The trainer discards such a
     session's training anyway, so this only spares its cost: about 10 s per session on cheetah_run,
-    40 of the 50 sessions of a 1M run (RESULTS.md, "Faithful baselines").
+    40 of the 50 sessions of a 1M run (RESULTS.md, question 1).
     """
     return jnp.where(kept > 0, (reward_update * count + batch_size - 1) // batch_size, 0)

@@ -5,7 +5,7 @@ Segments are stored at length ``L = H + 2 * surf.crop`` and a crop is a 0/1 step
 Bradley-Terry term on random crops (``reward_model.bt_loss(cfg, crop)``); the unlabelled pairs of SURF's pool get
 the ensemble's own confident labels (:func:`pseudo_label_term`). A session grows the pool by ``surf.pool_size``
 pairs, then runs a fixed number of steps with no early stop: on states ``ceil(reward_update * labels / batch)``
-minibatch steps (:func:`rebel_jax.reward_train.steps_per_label`, alinlab/SURF@866630a:train_PEBBLE_semi_dataaug.py:162),
+minibatch steps (:func:`rebel_jax.reward_train.steps_per_label`, alinlab/SURF@2088ee8:train_PEBBLE_semi_dataaug.py:162),
 on pixels ``surf.reward_update`` passes (alinlab/SURF@214bc1d:pixel_train_PEBBLE_semi.py:275-281).
 
 References:
