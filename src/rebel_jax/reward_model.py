@@ -21,8 +21,8 @@ The training loss is a sum of *terms*, each a pure ``(params, batch, key) -> (lo
 the members in ``params`` (leading axis) and a :class:`PrefBatch` of labelled pairs whose per-step
 rewards under ``params`` the training step has already computed (``batch.rewards_a``, ``rewards_b``).
 :func:`bt_loss` is the Bradley-Terry term; the methods' further terms (SURF's pseudo-labels,
-:mod:`rebel_jax.surf`; REBEL's agent preference, :mod:`rebel_jax.agent_preference`) live in their
-own modules, which import this one (never the other way round).
+:mod:`rebel_jax.methods.surf`; REBEL's agent preference, :mod:`rebel_jax.methods.rebel`) live in their
+methods' files, which import this one (never the other way round).
 """
 
 from __future__ import annotations
