@@ -474,8 +474,8 @@ class REBEL(Method):
 
     def reward_terms(self, trainer, ts, key, agent_step):
         """The BT loss and ``lambda * V`` (``rebel.form`` lower_bound) or ``lambda * (V* - V)`` (penalty), through
-        :func:`agent_value_term` and :func:`value_gap_term`. ``rebel.normalize`` divides by the spread of the per-step rewards of the
-        minibatch's labelled pairs (no extra encoder pass on pixels)."""
+        :func:`agent_value_term` and :func:`value_gap_term`. ``rebel.normalize`` divides by the spread of the
+        per-step rewards of the minibatch's labelled pairs (no extra encoder pass on pixels)."""
         rcfg, rebel = trainer.reward_cfg, trainer.cfg.rebel
         obs, actions, predict_fn = self.value_trajectories(trainer, ts, key, agent_step)
         common = dict(estimator=rebel.estimator, normalize=rebel.normalize, predict_fn=predict_fn)
