@@ -15,13 +15,14 @@ from __future__ import annotations
 from importlib import metadata
 
 from rebel_jax.methods.base import Method
+from rebel_jax.methods.mrn import MRN
 from rebel_jax.methods.pebble import PEBBLE
 from rebel_jax.methods.qpa import QPA
 from rebel_jax.methods.rebel import REBEL
 from rebel_jax.methods.rune import RUNE
 from rebel_jax.methods.surf import SURF
 
-REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE())}
+REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE(), MRN())}
 """The methods a run can name (``python -m rebel_jax.train NAME``): ``pebble``, ``surf``, ``rebel``, ``qpa``, ``rune``,
 ``rime``, ``mrn``, and those registered since."""
 

@@ -1,0 +1,176 @@
+"""MRN: its hypergradient against the closed form of one SGD step's, its schedule against the original's loop, and
+a tiny run on the probe task."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_preference_train import MICRO_PEBBLE
+
+from rebel_jax import reward_model
+from rebel_jax.config import PRESETS, ConfigError, FeedbackConfig, SACConfig, TrainConfig
+from rebel_jax.methods import mrn
+from rebel_jax.replay import Transition
+from rebel_jax.sac import SAC
+from rebel_jax.train import Trainer, compiled, seed_keys
+
+OBS, ACT, B, LR, WEIGHT = 3, 2, 6, 0.1, 0.1
+
+
+def _problem():
+    """A tiny critic and reward ensemble, a minibatch, and a label store of 5 slots holding 3 pairs."""
+    sac = SAC(SACConfig(hidden=8, depth=1, precision="highest"), OBS, ACT)
+    rcfg = reward_model.RewardConfig(ensemble_size=2, hidden=8, depth=1, label_capacity=5)
+    keys = jax.random.split(jax.random.PRNGKey(3), 8)
+    state = sac.init(keys[0])
+    state = state.replace(target_critic_params=sac.init(keys[1]).critic_params)
+    reward = reward_model.init(rcfg, keys[2], OBS, ACT, 4)
+    obs, next_obs = jax.random.normal(keys[3], (2, B, OBS))
+    batch = Transition(
+        obs, jax.random.uniform(keys[4], (B, ACT), minval=-1), jnp.zeros(B), next_obs, jnp.array([1.0] * 5 + [0.0])
+    )
+    seg = reward_model.Steps(jax.random.normal(keys[5], (4, 4, OBS)), jax.random.uniform(keys[6], (4, 4, ACT)))
+    seg_b = jax.tree.map(lambda x: x[::-1] * 0.5, seg)
+    labels, mask = jnp.array([1.0, 0.0, 1.0, 1.0]), jnp.array([1.0, 1.0, 0.0, 1.0])
+    reward = reward_model.add_labels(reward, seg, seg_b, labels, mask)
+    value = mrn.soft_value(sac, state, batch.next_obs, keys[7])
+    kept = np.flatnonzero(np.asarray(mask))
+    return sac, rcfg, state, reward, batch, value, (seg, seg_b, labels, kept)
+
+
+def test_hypergradient_against_closed_form():
+    sac, rcfg, state, reward, batch, value, (seg, seg_b, labels, kept) = _problem()
+    pairs = mrn.last_pairs(reward.data, 4)  # 3 stored: the first of the 4 slots is padding
+    np.testing.assert_array_equal(pairs[3], [0, 1, 1, 1])
+    np.testing.assert_array_equal(pairs[0].obs[1:], seg.obs[kept, 0])
+    np.testing.assert_array_equal(pairs[1].action[1:], seg_b.action[kept, 0])
+    theta, phi = state.critic_params, reward.params
+
+    def r(phi, i):  # the ensemble-mean reward of sample i, member by member
+        members = [
+            rcfg.network().apply(jax.tree.map(lambda x, m=m: x[m], phi), batch.obs[i], batch.action[i]) for m in (0, 1)
+        ]
+        return sum(members) / 2
+
+    def inner(theta):  # the critic's loss sample by sample
+        total = 0.0
+        for i in range(B):
+            y = r(phi, i) + batch.discount[i] * sac.cfg.gamma * value[i]
+            q1, q2 = sac.critic.apply(theta, batch.obs[i], batch.action[i])
+            total += ((q1 - y) ** 2 + (q2 - y) ** 2) / B
+        return total
+
+    def outer(theta):  # torch's CrossEntropyLoss over [Q(first sa of seg 1), Q(first sa of seg 2)], pair by pair
+        total = 0.0
+        for k in kept:
+            qa = sac.critic.apply(theta, seg.obs[k, 0], seg.action[k, 0])
+            qb = sac.critic.apply(theta, seg_b.obs[k, 0], seg_b.action[k, 0])
+            for j in (0, 1):
+                logits = jnp.stack([qa[j], qb[j]])
+                total += jax.nn.logsumexp(logits) - logits[int(labels[k])]
+        return WEIGHT * total / len(kept)
+
+    theta_new = jax.tree.map(lambda p, g: p - LR * g, theta, jax.grad(inner)(theta))
+    args = (theta, batch, value, pairs, LR, WEIGHT)
+    loss, grad = jax.value_and_grad(mrn.outer_loss, argnums=2)(sac, rcfg, phi, *args)
+    np.testing.assert_allclose(loss, outer(theta_new), rtol=1e-5)
+    # dL/dphi = (2 lr / B) sum_i <grad_theta (Q1 + Q2)(s_i, a_i), grad L_out(theta')> grad_phi r(s_i, a_i): the
+    # mixed derivative of the inner loss, which is quadratic in the reward.
+    g_out = jax.grad(outer)(theta_new)
+    expected = jax.tree.map(jnp.zeros_like, phi)
+    for i in range(B):
+        q_sum = lambda th, i=i: sum(sac.critic.apply(th, batch.obs[i], batch.action[i]))  # noqa: E731
+        c = jax.jvp(q_sum, (theta,), (g_out,))[1]
+        expected = jax.tree.map(lambda e, g, c=c: e + 2 * LR / B * c * g, expected, jax.grad(r)(phi, i))
+    assert max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(grad)) > 1e-6  # not trivially zero
+    for got, want in zip(jax.tree.leaves(grad), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-7)
+
+
+def original_meta_steps(cfg, total: int) -> tuple[list[int], np.ndarray]:
+    """The env steps of MRN's bilevel steps, by the original's loop (RyanLiu112/MRN@ef67eaf:train_MRN.py:349-417),
+    and the labels asked by each step's update (B-Pref's ``total_feedback``, the corner case included)."""
+    f, start = cfg.feedback, cfg.feedback_start
+    total_feedback, interact, steps, asked = 0, 0, [], np.zeros(total, np.int64)
+    for step in range(total):
+        if step == start:
+            total_feedback, interact = min(f.queries, f.labels), 0
+        elif step > start:
+            if total_feedback < f.labels and interact == f.interval:
+                total_feedback, interact = total_feedback + min(f.queries, f.labels - total_feedback), 0
+            if step % cfg.mrn.meta_period == 0 and total_feedback < f.labels:
+                steps.append(step)
+        asked[step] = total_feedback
+        interact += 1
+    return steps, asked
+
+
+def _micro(feedback: FeedbackConfig):
+    train = dataclasses.replace(MICRO_PEBBLE.train, total_steps=280)
+    return dataclasses.replace(MICRO_PEBBLE, algo="mrn", feedback=feedback, train=train, mrn=mrn.MRNConfig(10))
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        dataclasses.replace(PRESETS["paper"], algo="mrn", train=TrainConfig(total_steps=1_000_000)),
+        _micro(FeedbackConfig(labels=50, per_session=16, interval=40)),  # the last session asks 2 pairs
+        _micro(FeedbackConfig(labels=50, per_session=16, interval=40, budget="asked")),
+    ],
+)
+def test_schedule_against_original_loop(cfg):
+    total, n = cfg.train.total_steps, cfg.env.num_envs
+    expected, asked = original_meta_steps(cfg, total)
+    t = np.arange(total // n)
+    stored = asked[t * n]  # the oracle skips nothing: the labels stored are those asked
+    due = np.asarray(mrn.meta_due(cfg.validate(), n, jnp.asarray(t), jnp.asarray(stored)))
+    assert list(t[due] * n) == expected and expected
+    assert max(expected) < np.argmax(asked >= cfg.feedback.labels)  # none once the budget is spent
+    if cfg.feedback.budget == "asked":  # the unbatched condition alone decides
+        np.testing.assert_array_equal(np.asarray(mrn.scheduled(cfg, n, jnp.asarray(t))), due)
+
+
+def test_config_checks():
+    with pytest.raises(ConfigError, match="mrn.meta_period=15 is invalid"):
+        dataclasses.replace(MICRO_PEBBLE, algo="mrn", mrn=mrn.MRNConfig(meta_period=15)).validate()
+    with pytest.raises(ConfigError, match="mrn.outer_weight"):
+        mrn.MRNConfig(outer_weight=-1.0).validate(2)
+
+
+def test_run_meta_steps_on_the_probe_task():
+    cfg = dataclasses.replace(MICRO_PEBBLE, algo="mrn", mrn=mrn.MRNConfig(meta_period=10))
+    trainer = Trainer(cfg)
+    init, round_fn, _ = compiled(trainer)
+    state, n, rounds = init(seed_keys(0, 2)), cfg.env.num_envs, cfg.train.num_rounds
+    expected, _ = original_meta_steps(cfg, cfg.train.total_steps)
+    per_round = cfg.train.steps_per_round
+    for r in range(rounds):
+        if r == rounds - 1:
+            before = state
+            step = jax.jit(jax.vmap(lambda ts, t, k: trainer.method.agent_step(trainer, ts, t, k), (0, None, 0)))
+            keys = jax.random.split(jax.random.PRNGKey(1), 2)
+            due_t, off_t = expected[-1] // n, expected[-1] // n + 1  # on the schedule (labels left), and not
+            after, metrics = step(before, jnp.int32(due_t), keys)
+            np.testing.assert_array_equal(metrics["meta_step"], [1.0, 1.0])
+            assert np.all(np.isfinite(metrics["outer_loss"]))
+            for old, new in zip(
+                jax.tree.leaves(before.reward.params), jax.tree.leaves(after.reward.params), strict=True
+            ):
+                assert np.all(np.any(np.asarray(old != new).reshape(2, -1), axis=1))  # every seed's reward moved
+            relabelled = jax.vmap(lambda p, o, a: reward_model.mean_reward(trainer.reward_cfg, p, o, a))(
+                after.reward.params, after.buffer.obs, after.buffer.action
+            )
+            np.testing.assert_allclose(after.buffer.learned_reward, relabelled, rtol=1e-5, atol=1e-6)
+            same, metrics = step(before, jnp.int32(off_t), keys)
+            assert np.all(np.isnan(metrics["meta_step"]))
+            chex_equal = jax.tree.map(lambda x, y: bool(np.array_equal(x, y)), same.reward.params, before.reward.params)
+            assert all(jax.tree.leaves(chex_equal))
+        state, m = round_fn(state, jnp.int32(r))
+        ran = any(r * per_round <= s < (r + 1) * per_round for s in expected)
+        np.testing.assert_array_equal(m["mrn/meta_step"], [1.0, 1.0] if ran else [np.nan, np.nan])
+        assert np.all(np.isfinite(m["mrn/outer_loss"])) == ran
+        assert np.all(m["diverged"] == 0.0)
