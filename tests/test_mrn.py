@@ -14,6 +14,7 @@ from test_preference_train import MICRO_PEBBLE
 from rebel_jax import reward_model
 from rebel_jax.config import PRESETS, ConfigError, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.methods import mrn
+from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.replay import Transition
 from rebel_jax.sac import SAC
 from rebel_jax.train import Trainer, compiled, seed_keys
@@ -21,71 +22,67 @@ from rebel_jax.train import Trainer, compiled, seed_keys
 OBS, ACT, B, LR, WEIGHT = 3, 2, 6, 0.1, 0.1
 
 
-def _problem():
-    """A tiny critic and reward ensemble, a minibatch, and a label store of 5 slots holding 3 pairs."""
-    sac = SAC(SACConfig(hidden=8, depth=1, precision="highest"), OBS, ACT)
-    rcfg = reward_model.RewardConfig(ensemble_size=2, hidden=8, depth=1, label_capacity=5)
-    keys = jax.random.split(jax.random.PRNGKey(3), 8)
-    state = sac.init(keys[0])
-    state = state.replace(target_critic_params=sac.init(keys[1]).critic_params)
-    reward = reward_model.init(rcfg, keys[2], OBS, ACT, 4)
+SAC_NET = SAC(SACConfig(hidden=8, depth=1, precision="highest"), OBS, ACT)
+REWARD = reward_model.RewardConfig(ensemble_size=2, hidden=8, depth=1, label_capacity=5)
+LABELS, MASK = np.array([1.0, 0.0, 1.0, 1.0]), np.array([1.0, 1.0, 0.0, 1.0])
+
+
+@jax.jit
+def _problem(key):
+    """A tiny critic and reward ensemble, a minibatch, and a label store of 5 slots holding 3 pairs (of 4 asked)."""
+    keys = jax.random.split(key, 8)
+    state = SAC_NET.init(keys[0])
+    state = state.replace(target_critic_params=jax.tree.map(lambda x: 0.9 * x, state.critic_params))
+    reward = reward_model.init(REWARD, keys[2], OBS, ACT, 4)
     obs, next_obs = jax.random.normal(keys[3], (2, B, OBS))
-    batch = Transition(
-        obs, jax.random.uniform(keys[4], (B, ACT), minval=-1), jnp.zeros(B), next_obs, jnp.array([1.0] * 5 + [0.0])
-    )
+    action = jax.random.uniform(keys[4], (B, ACT), minval=-1)
+    batch = Transition(obs, action, jnp.zeros(B), next_obs, jnp.array([1.0] * 5 + [0.0]))
     seg = reward_model.Steps(jax.random.normal(keys[5], (4, 4, OBS)), jax.random.uniform(keys[6], (4, 4, ACT)))
     seg_b = jax.tree.map(lambda x: x[::-1] * 0.5, seg)
-    labels, mask = jnp.array([1.0, 0.0, 1.0, 1.0]), jnp.array([1.0, 1.0, 0.0, 1.0])
-    reward = reward_model.add_labels(reward, seg, seg_b, labels, mask)
-    value = mrn.soft_value(sac, state, batch.next_obs, keys[7])
-    kept = np.flatnonzero(np.asarray(mask))
-    return sac, rcfg, state, reward, batch, value, (seg, seg_b, labels, kept)
+    reward = reward_model.add_labels(reward, seg, seg_b, jnp.asarray(LABELS), jnp.asarray(MASK))
+    return state, reward, batch, mrn.soft_value(SAC_NET, state, batch.next_obs, keys[7]), seg, seg_b
 
 
 def test_hypergradient_against_closed_form():
-    sac, rcfg, state, reward, batch, value, (seg, seg_b, labels, kept) = _problem()
+    sac, rcfg, labels, kept = SAC_NET, REWARD, LABELS, np.flatnonzero(MASK)
+    state, reward, batch, value, seg, seg_b = _problem(jax.random.PRNGKey(3))
     pairs = mrn.last_pairs(reward.data, 4)  # 3 stored: the first of the 4 slots is padding
     np.testing.assert_array_equal(pairs[3], [0, 1, 1, 1])
     np.testing.assert_array_equal(pairs[0].obs[1:], seg.obs[kept, 0])
     np.testing.assert_array_equal(pairs[1].action[1:], seg_b.action[kept, 0])
     theta, phi = state.critic_params, reward.params
 
-    def r(phi, i):  # the ensemble-mean reward of sample i, member by member
-        members = [
-            rcfg.network().apply(jax.tree.map(lambda x, m=m: x[m], phi), batch.obs[i], batch.action[i]) for m in (0, 1)
-        ]
-        return sum(members) / 2
+    def r(phi, obs, action):  # one sample's ensemble-mean reward, member by member
+        return sum(rcfg.network().apply(jax.tree.map(lambda x, m=m: x[m], phi), obs, action) for m in (0, 1)) / 2
 
-    def inner(theta):  # the critic's loss sample by sample
-        total = 0.0
-        for i in range(B):
-            y = r(phi, i) + batch.discount[i] * sac.cfg.gamma * value[i]
-            q1, q2 = sac.critic.apply(theta, batch.obs[i], batch.action[i])
-            total += ((q1 - y) ** 2 + (q2 - y) ** 2) / B
-        return total
+    def inner(theta):  # the critic's loss, sample by sample
+        def one(obs, action, discount, v):
+            y = r(phi, obs, action) + discount * sac.cfg.gamma * v
+            q1, q2 = sac.critic.apply(theta, obs, action)
+            return (q1 - y) ** 2 + (q2 - y) ** 2
 
-    def outer(theta):  # torch's CrossEntropyLoss over [Q(first sa of seg 1), Q(first sa of seg 2)], pair by pair
-        total = 0.0
-        for k in kept:
-            qa = sac.critic.apply(theta, seg.obs[k, 0], seg.action[k, 0])
-            qb = sac.critic.apply(theta, seg_b.obs[k, 0], seg_b.action[k, 0])
-            for j in (0, 1):
-                logits = jnp.stack([qa[j], qb[j]])
-                total += jax.nn.logsumexp(logits) - logits[int(np.asarray(labels)[k])]
-        return WEIGHT * total / len(kept)
+        return jnp.mean(jax.vmap(one)(batch.obs, batch.action, batch.discount, value))
+
+    def outer(theta):  # torch's CrossEntropyLoss, integer labels, over [Q_j(first sa of seg 1), Q_j(... seg 2)]
+        q_a = jnp.stack(sac.critic.apply(theta, seg.obs[kept, 0], seg.action[kept, 0]))  # (2 heads, K)
+        q_b = jnp.stack(sac.critic.apply(theta, seg_b.obs[kept, 0], seg_b.action[kept, 0]))
+        logits = jnp.stack([q_a, q_b], axis=-1)
+        chosen = jnp.take_along_axis(logits, np.asarray(labels, int)[kept][None, :, None], axis=-1)[..., 0]
+        return WEIGHT * jnp.sum(jnp.mean(jax.nn.logsumexp(logits, axis=-1) - chosen, axis=1))
 
     @jax.jit
     def reference(theta, phi):
         theta_new = jax.tree.map(lambda p, g: p - LR * g, theta, jax.grad(inner)(theta))
         # dL/dphi = (2 lr / B) sum_i <grad_theta (Q1 + Q2)(s_i, a_i), grad L_out(theta')> grad_phi r(s_i, a_i): the
-        # mixed derivative of the inner loss, which is quadratic in the reward.
+        # mixed derivative of the inner loss (quadratic in the reward) at theta, through theta'.
         g_out = jax.grad(outer)(theta_new)
-        expected = jax.tree.map(jnp.zeros_like, phi)
-        for i in range(B):
-            q_sum = lambda th, i=i: sum(sac.critic.apply(th, batch.obs[i], batch.action[i]))  # noqa: E731
-            c = jax.jvp(q_sum, (theta,), (g_out,))[1]
-            expected = jax.tree.map(lambda e, g, c=c: e + 2 * LR / B * c * g, expected, jax.grad(r)(phi, i))
-        return outer(theta_new), expected
+
+        def c(obs, action):
+            return jax.jvp(lambda th: sum(sac.critic.apply(th, obs, action)), (theta,), (g_out,))[1]
+
+        weights = jax.vmap(c)(batch.obs, batch.action)  # (B,)
+        grads = jax.vmap(jax.grad(r), in_axes=(None, 0, 0))(phi, batch.obs, batch.action)  # leaves (B, ...)
+        return outer(theta_new), jax.tree.map(lambda g: 2 * LR / B * jnp.tensordot(weights, g, 1), grads)
 
     loss_fn = jax.jit(jax.value_and_grad(mrn.outer_loss, argnums=2), static_argnums=(0, 1))
     loss, grad = loss_fn(sac, rcfg, phi, theta, batch, value, pairs, LR, WEIGHT)
@@ -148,9 +145,15 @@ def test_config_checks():
 
 def test_run_meta_steps_on_the_probe_task():
     # Sessions at env steps 80 and 160 (16 labels each): bilevel steps in rounds 2 (after its session) and 3 (none
-    # there), none after the budget is spent at 160.
-    feedback = FeedbackConfig(labels=32, per_session=16, interval=80)
-    cfg = dataclasses.replace(MICRO_PEBBLE, algo="mrn", feedback=feedback, mrn=mrn.MRNConfig(meta_period=10))
+    # there), none after the budget is spent at 160. No pre-training (80 random steps instead): a smaller program.
+    cfg = dataclasses.replace(
+        MICRO_PEBBLE,
+        algo="mrn",
+        train=dataclasses.replace(MICRO_PEBBLE.train, seed_steps=80),
+        pretrain=PretrainConfig(steps=0),
+        feedback=FeedbackConfig(labels=32, per_session=16, interval=80),
+        mrn=mrn.MRNConfig(meta_period=10),
+    )
     trainer = Trainer(cfg)
     init, round_fn, _ = compiled(trainer)
     state, per_round = init(seed_keys(0, 2)), cfg.train.steps_per_round
