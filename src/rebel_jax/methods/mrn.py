@@ -65,10 +65,10 @@ def scheduled(cfg, num_envs: int, t: jax.Array) -> jax.Array:
 
 
 def remaining(cfg, stored, step: jax.Array) -> jax.Array:
-    """Labels left after the sessions held by env step ``step`` (``budget.remaining_budget``), ``stored`` held."""
-    from rebel_jax import budget  # not at import: budget imports the config, which imports the methods
-
-    return budget.remaining_budget(cfg.feedback, stored, sessions_held(cfg, step))
+    """Labels left after the sessions held by env step ``step``, ``stored`` held: ``budget.remaining_budget``'s
+    count (asked: ``labels - sessions * queries``; answered: ``labels - stored``)."""
+    feedback = cfg.feedback
+    return feedback.labels - (sessions_held(cfg, step) * feedback.queries if feedback.budget == "asked" else stored)
 
 
 def sessions_held(cfg, step: jax.Array) -> jax.Array:
@@ -78,7 +78,7 @@ def sessions_held(cfg, step: jax.Array) -> jax.Array:
 
 def meta_due(cfg, num_envs: int, t: jax.Array, stored: jax.Array) -> jax.Array:
     """Whether vector step ``t`` runs a bilevel step for a seed with ``stored`` labels: :func:`scheduled` and labels
-    left (``budget.remaining_budget`` after the sessions held: the original's ``total_feedback < max_feedback``)."""
+    left (:func:`remaining` after the sessions held: the original's ``total_feedback < max_feedback``)."""
     return scheduled(cfg, num_envs, t) & (remaining(cfg, stored, t * num_envs) > 0)
 
 
