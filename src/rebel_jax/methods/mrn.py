@@ -166,7 +166,10 @@ class MRN(Method):
         mrn, n = cfg.mrn, trainer.num_train
         nan = jnp.full((), jnp.nan, jnp.float32)
 
-        def meta(reward, buffer):
+        reward, buffer = ts.reward, ts.buffer
+        old = (reward.params, reward.opt_state, buffer.learned_reward)
+
+        def meta():  # what it changes comes out of the cond; the replay's other fields are only read
             key_batch, key_next = jax.random.split(key)
             batch = trainer.sample(buffer, key_batch, True)
             value = soft_value(sac, ts.agent, batch.next_obs, key_next)
@@ -180,19 +183,14 @@ class MRN(Method):
             def reward_fn(obs, action):
                 return reward_model.mean_reward(rcfg, params, obs, action)
 
-            relabelled = replay.relabel(buffer, reward_fn, chunk_rows=max(1, 16_384 // n))
+            learned = replay.relabel(buffer, reward_fn, chunk_rows=max(1, 16_384 // n)).learned_reward
             run = meta_due(cfg, n, t, reward.data.count)  # per seed: its labels left (answered budget)
+            new = jax.tree.map(lambda x, y: jnp.where(run, x, y), (params, opt_state, learned), old)
+            return new, {"outer_loss": jnp.where(run, loss, nan), "meta_step": jnp.where(run, 1.0, nan)}
 
-            def keep(new, old):
-                return jax.tree.map(lambda x, y: jnp.where(run, x, y), new, old)
+        def skip():
+            return old, {"outer_loss": nan, "meta_step": nan}
 
-            reward = reward.replace(params=keep(params, reward.params), opt_state=keep(opt_state, reward.opt_state))
-            buffer = buffer.replace(learned_reward=keep(relabelled.learned_reward, buffer.learned_reward))
-            metrics = {"outer_loss": jnp.where(run, loss, nan), "meta_step": jnp.where(run, 1.0, nan)}
-            return reward, buffer, metrics
-
-        def skip(reward, buffer):
-            return reward, buffer, {"outer_loss": nan, "meta_step": nan}
-
-        reward, buffer, metrics = jax.lax.cond(scheduled(cfg, n, t), meta, skip, ts.reward, ts.buffer)
-        return ts.replace(reward=reward, buffer=buffer), metrics
+        (params, opt_state, learned), metrics = jax.lax.cond(scheduled(cfg, n, t), meta, skip)
+        reward = reward.replace(params=params, opt_state=opt_state)
+        return ts.replace(reward=reward, buffer=buffer.replace(learned_reward=learned)), metrics
