@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from test_preference_train import MICRO_PEBBLE
 
-from rebel_jax import reward_model
+from rebel_jax import budget, reward_model
 from rebel_jax.config import PRESETS, ConfigError, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.methods import mrn
 from rebel_jax.pretrain import PretrainConfig
@@ -134,6 +134,10 @@ def test_schedule_against_original_loop(cfg):
     assert max(expected) < np.argmax(asked >= cfg.feedback.labels)  # none once the budget is spent
     if cfg.feedback.budget == "asked":  # the unbatched condition alone decides
         np.testing.assert_array_equal(np.asarray(mrn.scheduled(cfg, n, jnp.asarray(t))), due)
+    for step in range(cfg.feedback_start, total, cfg.feedback.interval // 2):  # the budget's own count
+        held = (step - cfg.feedback_start) // cfg.feedback.interval + 1
+        want = budget.remaining_budget(cfg.feedback, asked[step], held)
+        assert mrn.remaining(cfg, asked[step], step) == want
 
 
 def test_config_checks():
