@@ -15,6 +15,7 @@ from __future__ import annotations
 from importlib import metadata
 
 from rebel_jax.methods.base import Method
+from rebel_jax.methods.mrn import MRN
 from rebel_jax.methods.pebble import PEBBLE
 from rebel_jax.methods.qpa import QPA
 from rebel_jax.methods.rebel import REBEL
@@ -22,7 +23,7 @@ from rebel_jax.methods.rime import RIME
 from rebel_jax.methods.rune import RUNE
 from rebel_jax.methods.surf import SURF
 
-REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE(), RIME())}
+REGISTRY: dict[str, Method] = {m.name: m for m in (PEBBLE(), SURF(), REBEL(), QPA(), RUNE(), RIME(), MRN())}
 """The methods a run can name (``python -m rebel_jax.train NAME``): ``pebble``, ``surf``, ``rebel``, ``qpa``, ``rune``,
 ``rime``, ``mrn``, and those registered since."""
 
