@@ -57,6 +57,8 @@ BRIEF: dict[str, tuple[str, ...]] = {
     "pixel_reward": ("ensemble_size", "hidden", "lr"),
     "pretrain": ("steps",),
     "rebel": ("lam", "estimator", "source", "episodes", "num_segments", "segment_length"),
+    "rime": ("alpha", "beta_init", "beta_min", "decay_epochs", "flip_tau", "warmup_epochs"),
+    "mrn": ("meta_period", "outer_weight"),
 }
 """The flags ``--help`` lists of each part (``run``: the run's own options); ``--help-all`` lists the others too. A
 part missing here (a new method's section) shows all its flags. Every flag is accepted either way."""
