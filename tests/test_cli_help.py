@@ -22,6 +22,7 @@ KINDS = [
     for method in (*AGENTS, *methods.REGISTRY)
     for obs in ("state", "pixels")
     if (method, obs) not in (("sac", "pixels"), ("drqv2", "state"))
+    and (obs == "state" or method not in methods.REGISTRY or methods.REGISTRY[method].pixels)
 ]
 BOX = re.compile(r"^(?:╭─ | )(?:(\S+) )?options(?: ─|\s*$)")  # a terminal's box, or plain text
 OPTION = re.compile(r"^(?:│ |  )(?:-h, )?(--[a-z][a-z0-9.-]*)")

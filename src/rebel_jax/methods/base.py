@@ -55,6 +55,8 @@ class Method:
     """The method's settings: a frozen dataclass whose defaults are the method's published ones (None: none of its
     own). Its section of the run's config is named as the method."""
 
+    pixels: ClassVar[bool] = True
+    """Whether the method runs on pixel tasks too (RIME and MRN: state tasks only)."""
     uses: ClassVar[tuple[str, ...]] = ()
     """Other methods' settings this method reads (a method built on two others, say)."""
 

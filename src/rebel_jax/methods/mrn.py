@@ -149,6 +149,7 @@ class MRN(Method):
 
     name = "mrn"
     config = MRNConfig
+    pixels = False
 
     def validate(self, cfg):
         cfg.mrn.validate(cfg.env.num_envs)

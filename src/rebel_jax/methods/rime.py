@@ -163,6 +163,7 @@ def entropy_target(ent: jax.Array, mean, std, ent_min, ent_max) -> jax.Array:
 class RIME(Method):
     name = "rime"
     config = RIMEConfig
+    pixels = False
 
     def validate(self, cfg):
         cfg.rime.validate()
