@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import importlib.metadata
 import json
 import os
 import pathlib
@@ -36,14 +37,27 @@ RUN_FILES = (
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
 
 
-def _git_commit() -> str | None:
-    """The checkout's commit; ``REBEL_JAX_GIT_COMMIT`` names it where the tree was copied without its history."""
+PACKAGE_DIR = pathlib.Path(__file__).resolve().parent
+"""The package's own source directory: its repository (if any) is the code that runs, whatever the caller's."""
+
+
+def _git_commit(package_dir: pathlib.Path = PACKAGE_DIR) -> str | None:
+    """The commit of the code that runs: ``REBEL_JAX_GIT_COMMIT`` where set (a tree copied without its history),
+    else the commit of the repository that tracks the package's own source (``git -C <package dir>``, never the
+    caller's working directory), else the installed distribution's version (``installed 0.1.0``), else None."""
     if os.environ.get("REBEL_JAX_GIT_COMMIT"):
         return os.environ["REBEL_JAX_GIT_COMMIT"]
+    git = ["git", "-C", str(package_dir)]
+    try:  # the package's __init__.py tracked there: a venv's site-packages inside another repository is not it
+        tracked = subprocess.run([*git, "ls-files", "--error-unmatch", "__init__.py"], capture_output=True, timeout=5)
+        out = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        if tracked.returncode == 0 and out.returncode == 0:
+            return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() if out.returncode == 0 else None
-    except OSError:
+        return f"installed {importlib.metadata.version('rebel_jax')}"
+    except importlib.metadata.PackageNotFoundError:
         return None
 
 
