@@ -136,6 +136,17 @@ def prepare_run_dir(args: Args, lock: rundir.RunLock | None = None) -> pathlib.P
         )
     else:
         run_dir = pathlib.Path(args.run_dir)
+    try:  # a name the file system refuses (too long, a NUL byte): before anything is created
+        run_dir.exists()
+    except (OSError, ValueError) as err:
+        cause = getattr(err, "strerror", None) or str(err)
+        raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: the file system refuses the name ({cause})") from None
+    too_long = [part for part in run_dir.absolute().parts if len(os.fsencode(part)) > 255]
+    if too_long:
+        raise ConfigError(
+            f"run_dir={str(run_dir)!r} is invalid: allowed names of at most 255 bytes per directory "
+            f"({len(os.fsencode(too_long[0]))} bytes: {too_long[0][:40]}...)"
+        )
     if args.resume and args.overwrite:
         raise ConfigError("overwrite=True is invalid with --resume: allowed one of --resume (continue) or --overwrite")
     if run_dir.exists() and not run_dir.is_dir():
@@ -202,6 +213,7 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str, device_columns:
         "columns": args.columns,
         "device_columns": device_columns,  # the columns computed, padding included
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
+        rundir.CHECKSUMS_FIELD: True,  # every checkpoint has checksums.json: one without it is damaged
     }
     write_json(run_dir / "meta.json", meta)
     _write_config(run_dir, args)  # last: a run counts as saved (for --resume) once config.json exists
