@@ -227,7 +227,7 @@ def _type_names(kinds: tuple[type, ...]) -> str:
     return " or ".join(names[k] for k in kinds)
 
 
-def check_meta(path: pathlib.Path) -> dict:
+def check_meta(path: pathlib.Path, what: str = "--resume") -> dict:
     """``meta.json`` read against :data:`META_TYPES`: each field it has of its type, the counts >= 1.
 
     Raises:
@@ -247,14 +247,13 @@ def check_meta(path: pathlib.Path) -> dict:
             allowed = "a list of objects" if name == "resumed" else _type_names(kinds)
             allowed += " >= 1" if name in ("seeds", "columns", "device_columns") else ""
             raise ConfigError(
-                f"--resume: {path}: {name}={value!r} is invalid: allowed {allowed}; restore meta.json, or replace "
-                "the run with --overwrite"
+                f"{what}: {path}: {name}={value!r} is invalid: allowed {allowed}; restore meta.json"
+                + (", or replace the run with --overwrite" if what == "--resume" else "")
             )
     if meta.get("device_columns", 1) < meta.get("columns", 1):
         raise ConfigError(
-            f"--resume: {path}: device_columns={meta['device_columns']!r} is invalid: allowed >= columns="
-            f"{meta['columns']} (the run's columns and their padding); restore meta.json, or replace the run with "
-            "--overwrite"
+            f"{what}: {path}: device_columns={meta['device_columns']!r} is invalid: allowed >= columns="
+            f"{meta['columns']} (the run's columns and their padding); restore meta.json"
         )
     return meta
 
