@@ -173,7 +173,6 @@ def load_policy(run_dir: pathlib.Path, column: int = 0, before_restore: Callable
     from rebel_jax import api, rundir
     from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
     from rebel_jax.config import Config, from_dict
-    from rebel_jax.envs import PROBES
     from rebel_jax.train import seed_keys
 
     data, meta = check_run_dir(run_dir)
@@ -181,8 +180,6 @@ def load_policy(run_dir: pathlib.Path, column: int = 0, before_restore: Callable
         cfg = from_dict(Config, data).validate()
     except (TypeError, ValueError) as err:  # ConfigError is a ValueError
         raise ConfigError(f"{run_dir / 'config.json'}: {err}") from None
-    if cfg.env.task.removesuffix("_pixels") in PROBES:
-        raise ConfigError(f"the run's task {cfg.env.task!r} has no MuJoCo model to render (a probe task)")
     columns = int(meta.get("columns", 1))
     if not 0 <= column < columns:
         raise ConfigError(f"column={column} is invalid: allowed 0 to {columns - 1} (the run's columns)")
@@ -281,9 +278,9 @@ def _main(argv: list[str] | None) -> pathlib.Path:
     )
     parser.add_argument("--no-compile-cache", action="store_true", help="no persistent compilation cache")
     args = parser.parse_args(argv)
+    compile_cache.configure(args.compile_cache, args.no_compile_cache)
     check_run_dir(args.run_dir)
     out = check_options(args)
-    compile_cache.configure(args.compile_cache, args.no_compile_cache)
     chosen = {}
 
     def check_model(trainer) -> None:  # before the checkpoint is read
