@@ -441,11 +441,17 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
     """
     own = _values(RunOptions())
     applies = {*sections(cfg), *run_options(cfg, host_teacher)}
+    conditions = {**cfg.unused_parts(), **OPTION_CONDITIONS}
     hints = typing.get_type_hints(RunOptions, include_extras=True)
     fields, values = [], {}
     for name, default in [*own.items(), *((n, getattr(cfg, n)) for n in PARTS)]:
         hint = hints.get(name, type(default))
-        if help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
+        if help_mode == "all" and name not in applies:  # listed in its own group, naming when it applies
+            where = f"Only with {conditions.get(name, 'another method')}: {cfg.algo} on {cfg.env.task} ignores"
+            hint = Annotated[
+                hint, tyro.conf.arg(help=f"{where} {'these flags' if name in PARTS or name == 'human' else 'it'}.")
+            ]
+        elif help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
             hint = tyro.conf.Suppress[hint]
         elif help_mode is not None and dataclasses.is_dataclass(default):
             hint = _hiding(hint, {g for g in _values(default) if not _shown(name, g, help_mode)})
@@ -457,6 +463,41 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
         values[name] = default
     target = dataclasses.make_dataclass("Flags", fields, bases=(RunOptions,), frozen=True)
     return target, target(**values)
+
+
+METHOD_LINES = {
+    "sac": "SAC alone, on the task's true reward (state tasks)",
+    "drqv2": "DrQ-v2 alone, on the task's true reward (pixel tasks)",
+    "pebble": "PEBBLE: SAC on a reward model learnt from preferences, after unsupervised pre-training",
+    "surf": "PEBBLE with SURF's pseudo-labelled pairs and temporal crops",
+    "rebel": "PEBBLE with REBEL's agent-preference term, weighted by --rebel.lam",
+    "qpa": "QPA: queries from the policy's recent episodes, hybrid replay batches and crops",
+    "rune": "PEBBLE with RUNE's exploration bonus from the reward ensemble's disagreement",
+}
+"""``--help`` without a method: one line per method (a method registered elsewhere: its ``summary`` attribute, else
+its class's first docstring line)."""
+
+
+def method_list() -> str:
+    """What ``--help`` without a method prints: the usage and one line per method."""
+    import inspect
+
+    lines = [f"usage: {PROG} METHOD [--preset P] [--obs state|pixels] [--teacher T] [FLAGS]", "", "METHOD:"]
+    for name in (*AGENTS, *methods.REGISTRY):
+        method = methods.REGISTRY.get(name)
+        doc = (inspect.getdoc(type(method)) or "").splitlines() if method is not None else []
+        line = METHOD_LINES.get(name) or getattr(method, "summary", "") or (doc[0] if doc else "")
+        lines.append(f"  {name:<8} {line}")
+    lines += ["", f"{PROG} METHOD --help lists a method's common flags, METHOD {HELP_ALL} all of them."]
+    return "\n".join(lines)
+
+
+OPTION_CONDITIONS = {
+    "lam_grid": "a method with a knob to sweep (rebel), and a scripted teacher",
+    "teacher_grid": "a preference method and a scripted teacher",
+    "human": "--teacher human or --teacher replay",
+}
+"""When the run's own options that apply to some runs only apply (``--help-all`` names it)."""
 
 
 RENAMED = {
@@ -536,6 +577,9 @@ def parse(argv: list[str] | None = None) -> Args:
         _check_spellings(rest)
     except ConfigError as err:
         raise usage_error(err) from err
+    if method is None and known.algo is None and not known.help_all and any(f in ("-h", "--help") for f in rest):
+        print(method_list())
+        raise SystemExit(0)
     preset = known.preset or default_preset(task)
     host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
     scripted = "oracle" if host_teacher else known.teacher  # The human's answers are compared with the oracle's.
