@@ -27,7 +27,7 @@ from rebel_jax.methods.rune import RUNEConfig
 from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
-from rebel_jax.ranges import check_ranges
+from rebel_jax.ranges import ANY_INTEGER, check_ranges
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.surf import SURFConfig
 from rebel_jax.teachers import TeacherConfig
@@ -157,7 +157,7 @@ class TrainConfig:
     buffer_capacity: int = 0
     """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref), on pixel tasks
     ``pixel_feedback.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
-    seed: int = 0
+    seed: Annotated[int, ANY_INTEGER] = 0
     """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
     overlap: bool = False
     """The agent's updates at a vector step sample the replay as it was before that step's transitions (one vector

@@ -54,7 +54,9 @@ class Range:
     def describe(self, kind: type) -> str:
         """The range in words: ``integers 1 to 2147483647``, ``finite numbers in (0, 1]``."""
         lo, hi = self.bounds(kind)
-        if kind is int:
+        if kind is int and math.isinf(lo) and math.isinf(hi):
+            text = "any integer"
+        elif kind is int:
             text = f"integers {int(lo) + self.lo_open} to {int(hi) - self.hi_open}"
         else:
             text = f"numbers in {'(' if self.lo_open else '['}{lo:g}, {hi:g}{')' if self.hi_open else ']'}"
@@ -78,6 +80,8 @@ class Range:
 
 
 DEFAULT = Range()
+ANY_INTEGER = Range(-math.inf, math.inf)
+"""Every integer (a seed: ``train.seed_keys`` spells the whole integer into its keys)."""
 POSITIVE = Range(0, lo_open=True)
 """Greater than 0 (a size, a count, a learning rate)."""
 NON_NEGATIVE = Range(0)
