@@ -422,7 +422,15 @@ def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     avoid_cpu_deadlock()
     args = parse(argv)
-    rundir.terminate_as_interrupt()
+    previous = rundir.terminate_as_interrupt()
+    try:
+        return _checked_main(argv, args)
+    finally:
+        rundir.restore_sigterm(previous)
+
+
+def _checked_main(argv: list[str], args) -> dict:
+    """:func:`main` once the flags are parsed: the compilation cache, the run directory, the run."""
     try:
         compile_cache.configure(args.compile_cache, args.no_compile_cache)
     except ConfigError as err:

@@ -398,16 +398,26 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread as Ctrl-C's ``KeyboardInterrupt`` is (:func:`terminate_as_interrupt`)."""
 
 
-def terminate_as_interrupt() -> None:
-    """Makes SIGTERM end the run as Ctrl-C does (the checkpoints closed, one line, exit status 143)."""
+def terminate_as_interrupt():
+    """Makes SIGTERM end the run as Ctrl-C does (the checkpoints closed, one line, exit status 143); returns the
+    handler it replaces (None outside the main thread, where none is set), for :func:`restore_sigterm`."""
     import signal
     import threading
 
     def raise_terminated(signum, frame):
         raise Terminated
 
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, raise_terminated)
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, raise_terminated)
+
+
+def restore_sigterm(previous) -> None:
+    """Puts back the SIGTERM handler :func:`terminate_as_interrupt` replaced (nothing if it set none)."""
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def check_listen_address(host: str, port: int, flags: str = "--human.host, --human.port") -> None:
