@@ -108,6 +108,8 @@ VIDEO_BAD = {
     "format": (_run_dir, ["--out", "clip.avi"], "allowed a file ending in .gif or .mp4"),
     "out-parent-missing": (_run_dir, ["--out", "nowhere/deeper/clip.gif"], "does not exist (create it first)"),
     "camera": (_run_dir, ["--camera", "nonesuch"], "camera='nonesuch' is invalid"),
+    # A checkpoint without its checksums is damaged: refused, and left where it is (the run is not changed).
+    "damaged-checkpoint": (lambda t: _run_dir(t, checkpoint_checksums=True), [], "no readable checkpoint"),
     "not-a-number": (_run_dir, ["--column", "x"], "argument --column: invalid int value"),
 }
 
@@ -123,5 +125,7 @@ def test_a_bad_video_input_is_one_line_with_exit_status_2_and_writes_nothing(
         video.main([str(run_dir), *flags, "--no-compile-cache"])
     assert end.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: ") and expected in err[0], err
+    *warnings, line = err  # a damaged checkpoint's warning, as the trainer prints it, before the error
+    assert line.startswith("error: ") and expected in line, err
+    assert all(w.startswith("warning: checkpoint ") and "left it in place" in w for w in warnings), err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # no directory made, no file

@@ -207,15 +207,20 @@ def _restore_target(x) -> jax.ShapeDtypeStruct:
 class Checkpointer:
     """Saves and restores a pytree under ``directory/<round>``, keeping the latest few."""
 
-    def __init__(self, directory: pathlib.Path, max_to_keep: int = 2, require_checksums: bool = True):
+    def __init__(
+        self, directory: pathlib.Path, max_to_keep: int = 2, require_checksums: bool = True, set_aside: bool = True
+    ):
         """Args:
         directory: where the steps are.
         max_to_keep: the newest steps kept.
         require_checksums: a step without ``checksums.json`` is damaged (False only for a run written before
           checksums existed, which its ``meta.json`` says).
+        set_aside: move an unreadable step to ``<directory>_damaged/`` (False: leave it, for a reader that must not
+          change the run, such as ``python -m rebel_jax.video``).
         """
         self.directory = pathlib.Path(directory).absolute()
         self.require_checksums = require_checksums
+        self.set_aside = set_aside
         _quiet_orbax_failures()
         synchronous_dirs = ocp.AsyncOptions(create_directories_asynchronously=False)
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, async_options=synchronous_dirs)
@@ -341,11 +346,11 @@ class Checkpointer:
                 raise
             except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
                 reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
-                moved = self._set_aside(candidate)
+                done = f"moved it to {self._set_aside(candidate)}" if self.set_aside else "left it in place"
                 if jax.process_index() == 0:
                     print(
                         f"warning: checkpoint {candidate} in {self.directory} is unreadable "
-                        f"({type(err).__name__}: {reason}); moved it to {moved} and trying the previous one",
+                        f"({type(err).__name__}: {reason}); {done} and trying the previous one",
                         file=sys.stderr,
                     )
         raise FileNotFoundError(f"no readable checkpoint in {self.directory}")

@@ -188,7 +188,8 @@ def load_policy(run_dir: pathlib.Path, column: int = 0, before_restore: Callable
         before_restore(trainer)
     keys = seed_keys(cfg.train.seed, columns)
     like = jax.eval_shape(jax.vmap(trainer.init), keys)
-    ckpt = Checkpointer(run_dir / "checkpoints", require_checksums=bool(meta.get(rundir.CHECKSUMS_FIELD)))
+    checksums = bool(meta.get(rundir.CHECKSUMS_FIELD))
+    ckpt = Checkpointer(run_dir / "checkpoints", require_checksums=checksums, set_aside=False)  # the run unchanged
     try:
         step, params = ckpt.restore_leaves(like, trainer.policy_params)
     except (FileNotFoundError, CheckpointMismatch) as err:
