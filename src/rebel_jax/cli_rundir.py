@@ -249,10 +249,12 @@ def keep_rounds_before(metrics: pathlib.Path, rounds: int) -> None:
     """Keeps the first ``rounds`` rounds of a resumed run's log: later ones are run (and logged) again.
 
     A last line cut mid-write (the process was killed while writing it) is dropped with a notice;
-    an unreadable line before the last is an error, as the log would otherwise lose a round.
+    an unreadable line before the last is an error, as the log would otherwise lose a round, and so is a log
+    without each of the first ``rounds`` rounds once, in order (raises ConfigError).
     """
     if not metrics.exists():
         return
+    rundir.check_log_order(metrics, rounds)  # each round before the checkpoint once, in order (raises ConfigError)
     records, cut = rundir.log_records(metrics)
     if cut is not None:
         print(f"note: {metrics}: dropped its last line, cut mid-write ({len(cut)} chars)", file=sys.stderr)

@@ -258,15 +258,18 @@ def check_meta(path: pathlib.Path, what: str = "--resume") -> dict:
     return meta
 
 
-def check_log_order(metrics: pathlib.Path, rounds: int) -> None:
+def check_log_order(metrics: pathlib.Path, rounds: int, complete: bool = True) -> None:
     """Refuses a ``metrics.jsonl`` whose records of the rounds before ``rounds`` are not rounds 0, 1, ... once each
-    and in order (a round lost, repeated or moved); later records are run and logged again on resume.
+    and in order (a round lost, repeated or moved); later records are run and logged again on resume. Without
+    ``complete``, a log that ends early passes (the newest checkpoint may be damaged, and the resume start earlier:
+    :func:`rebel_jax.cli_rundir.keep_rounds_before` checks the log up to the checkpoint it resumes from).
 
     Raises:
       ConfigError: naming the first round out of place.
     """
     records = [record["round"] for _, record in log_records(metrics)[0] if record["round"] < rounds]
-    for expected, found in enumerate([*records, *([None] if len(records) < rounds else [])]):
+    end = [None] if complete and len(records) < rounds else []  # with ``complete``, the log must reach ``rounds``
+    for expected, found in enumerate([*records, *end]):
         if found is None:
             found = rounds  # the log ends before the checkpoint's rounds do
         if found == expected:
@@ -328,7 +331,7 @@ def check_resumable(run_dir: pathlib.Path) -> None:
             "log, or replace the run with --overwrite"
         )
     if steps and metrics.exists():
-        check_log_order(metrics, steps[-1])
+        check_log_order(metrics, steps[-1], complete=False)
 
 
 # -- failures during the run ----------------------------------------------------------------------------------------
