@@ -62,7 +62,7 @@ def test_a_pixel_run_s_policy_restores_as_in_a_full_restore_and_alone(tmp_path):
 # test are ignored here; its coroutine's, which can surface during a later test, in pyproject.toml.
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_the_other_leaves_are_not_read(tmp_path):
-    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt = Checkpointer(tmp_path / "checkpoints", require_checksums=False)  # a run from before checksums
     state = _state()
     ckpt.save(1, state)
     (tmp_path / "checkpoints" / "1" / CHECKSUMS).unlink()  # unchecked (as older code wrote it): orbax reads alone
@@ -122,11 +122,19 @@ def test_a_flipped_bit_that_orbax_would_read_silently_is_caught_and_the_step_bef
     unchecked = tmp_path / "unchecked"
     shutil.copytree(tmp_path / "checkpoints", unchecked)
     (unchecked / "2" / CHECKSUMS).unlink()
-    plain = Checkpointer(unchecked)
+    plain = Checkpointer(unchecked, require_checksums=False)  # a run written before checksums existed
     _, silent = plain.restore(state, step=2)
     plain.close()
     assert int(np.sum(np.asarray(silent["frames"]) != np.asarray(frames))) == 1
     np.testing.assert_array_equal(silent["buffer"], later["buffer"])
+    # A run that has checksums: the step whose checksums.json was deleted is damaged, set aside like the others.
+    strict = Checkpointer(unchecked)
+    with pytest.raises(CheckpointDamaged, match=f"{CHECKSUMS} is missing"):
+        strict.restore(state, step=2)
+    step, _ = strict.restore(state)
+    strict.close()
+    assert step == 1 and [p.name.split("-")[0] for p in (tmp_path / "unchecked_damaged").iterdir()] == ["2"]
+    assert f"CheckpointDamaged: {CHECKSUMS} is missing" in capsys.readouterr().err
 
     step, restored = ckpt.restore(state)
     assert step == 1 and ckpt.steps() == [1]
@@ -138,7 +146,7 @@ def test_a_flipped_bit_that_orbax_would_read_silently_is_caught_and_the_step_bef
     ckpt.close()
 
 
-def test_checksums_name_missing_cut_and_added_files_and_a_step_without_them_reads(tmp_path):
+def test_checksums_name_missing_cut_and_added_files_and_a_step_without_them_is_damaged_unless_older(tmp_path):
     ckpt = Checkpointer(tmp_path / "checkpoints")
     ckpt.save(1, _state())
     ckpt.close()
@@ -163,9 +171,13 @@ def test_checksums_name_missing_cut_and_added_files_and_a_step_without_them_read
     assert unreadable.startswith(f"{CHECKSUMS}: unreadable (") and "char" in unreadable, unreadable
     largest.unlink()
     (step_dir / CHECKSUMS).unlink()
-    _, policy = ckpt.restore_leaves(_state(), _policy, step=1)  # unchecked, as older code wrote it
-    np.testing.assert_array_equal(policy["w"], _state()["policy"]["w"])
+    with pytest.raises(CheckpointDamaged, match=f"{CHECKSUMS} is missing"):
+        ckpt.restore_leaves(_state(), _policy, step=1)
     ckpt.close()
+    older = Checkpointer(tmp_path / "checkpoints", require_checksums=False)  # a run from before checksums
+    _, policy = older.restore_leaves(_state(), _policy, step=1)  # unchecked, as older code wrote it
+    np.testing.assert_array_equal(policy["w"], _state()["policy"]["w"])
+    older.close()
 
 
 def test_restore_leaves_refuses_other_states_and_computed_leaves(tmp_path):

@@ -7,6 +7,7 @@ Everything here parses flags and prints help, nothing is compiled, so it runs ``
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import re
 
 import pytest
@@ -83,21 +84,83 @@ def test_a_method_s_help_lists_at_most_40_flags_each_with_its_section_s_prefix(m
 
 
 @pytest.mark.parametrize("method,obs", KINDS)
-def test_help_all_lists_every_flag_of_the_parts_the_method_reads_and_no_other(method, obs, capsys, monkeypatch):
-    groups = _flags(_help([method, "--obs", obs, "--help-all"], capsys, monkeypatch))
+def test_help_all_lists_every_flag_the_conditional_ones_in_groups_naming_their_condition(
+    method, obs, capsys, monkeypatch
+):
+    text = _help([method, "--obs", obs, "--help-all"], capsys, monkeypatch)
+    groups = _flags(text)
     _check_prefixes(groups)
     cfg = cli.parse([method, "--obs", obs]).config
     capsys.readouterr()
-    expected = {name.replace("_", "-") for name in cli_args.sections(cfg)}
+    expected = {name.replace("_", "-") for name in cli_args.PARTS} | {"human"}
     listed = {group for group in groups if group not in ("description", "options")}
     assert listed == expected
-    for name in cli_args.sections(cfg):
+    for name in cli_args.PARTS:
         group = name.replace("_", "-")
         prefix = "--" if name in cli_args.UNPREFIXED else f"--{group}."
         assert {flag.removeprefix(prefix) for flag in groups[group]} == _field_flags(type(getattr(cfg, name)))
+    unused = {
+        **{k.replace("_", "-"): v for k, v in cfg.unused_parts().items()},
+        "human": "--teacher human or --teacher replay",
+    }
+    for name, where in unused.items():  # each such group's first line names when its flags apply
+        lines = text.splitlines()
+        [title] = [i for i, line in enumerate(lines) if (box := BOX.match(line)) and box.group(1) == name]
+        first = next(t for line in lines[title + 1 :] if (t := line.strip("│ ")) and set(t) - set("─-"))
+        assert first.startswith(f"Only with {where.split(' (')[0]}"), (name, first)
     own = {flag[2:] for flag in groups["options"]} - {"help"}
-    grids = {"lam-grid": cli.swept_knob(cfg), "teacher-grid": cfg.preference}
-    assert own == {name for name in _field_flags(cli_args.RunOptions) - {"human"} if grids.get(name, True)}
+    assert own == _field_flags(cli_args.RunOptions) - {"human"}
+
+
+def test_help_without_a_method_lists_the_methods_one_line_each(capsys):
+    with pytest.raises(SystemExit) as end:
+        cli.parse(["--help"])
+    assert end.value.code == 0
+    lines = capsys.readouterr().out.splitlines()
+    for name in (*AGENTS, *methods.REGISTRY):
+        [line] = [line for line in lines if line.split()[:1] == [name]]
+        assert len(line.split()) > 3, line
+
+
+@pytest.mark.parametrize(
+    "typed,meant",
+    [
+        ("--feedback.label", "--feedback.labels"),
+        ("--total-step", "--total-steps"),
+        ("--sac.precison", "--sac.precision"),
+    ],
+)
+def test_a_mistyped_flag_gets_the_nearest_of_the_method_s_flags(typed, meant, capsys):
+    with pytest.raises(SystemExit) as end:
+        cli.parse(["pebble", *TINY, typed, "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert end.value.code == 2 and len(err) == 1, err
+    assert f"unrecognized flag {typed}; did you mean {meant}?" in err[0], err
+    # The nearest is found among every flag this method reads (difflib), not among a fixed list.
+    nearest = difflib.get_close_matches(typed, list(cli_args.flag_names(cli.parse(["pebble", *TINY]).config, "")), 1)
+    assert nearest == [meant]
+
+
+UNUSED_AT_DEFAULT = [
+    (["sac", *TINY], "--feedback.labels", "feedback"),  # the preset's own value: still refused
+    (["sac", *TINY], "--reward.lr", "reward"),
+    (["pebble", *TINY], "--rebel.lam", "rebel"),
+    (["pebble", *TINY], "--drqv2.nstep", "drqv2"),
+    (["drqv2", "--task", "probe_point_pixels"], "--sac.hidden", "sac"),
+    (["pebble", *TINY], "--human.port", "human"),
+]
+
+
+@pytest.mark.parametrize("argv,flag,part", UNUSED_AT_DEFAULT, ids=[f for _, f, _ in UNUSED_AT_DEFAULT])
+def test_a_flag_the_method_does_not_use_is_refused_even_at_its_default_value(argv, flag, part, capsys):
+    args = cli.parse(argv)
+    capsys.readouterr()
+    section = args if part == "human" else args.config
+    default = getattr(getattr(section, part), flag.split(".", 1)[1].replace("-", "_"))
+    with pytest.raises(SystemExit) as end:
+        cli.parse([*argv, flag, str(default)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert end.value.code == 2 and len(err) == 1 and flag in err[0] and "ignore" in err[0], err
 
 
 def test_the_human_teacher_s_flags_are_listed_with_it_only(capsys, monkeypatch):

@@ -53,6 +53,7 @@ BAD = {
     ),
     "total-steps": (["--total-steps", "3000"], ["train.total_steps=3000", "multiple of train.steps_per_round=2000"]),
     "run-dir-empty": (["--run-dir", ""], ["run_dir=''", "allowed a directory path"]),
+    "run-dir-name-too-long": (["--run-dir", "r" * 300], ["run_dir='rrr", "the file system refuses the name"]),
     "run-dir-proc": (["--run-dir", "/proc/rebel_jax_test/run"], ["run_dir='/proc/rebel_jax_test/run'", "writable"]),
     "resume-and-overwrite": (["--run-dir", "r", "--resume", "--overwrite"], ["overwrite", "--resume"]),
     "distributed-without-run-dir": (["--distributed"], ["run_dir=None", "--distributed", "share"]),

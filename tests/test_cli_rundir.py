@@ -98,6 +98,15 @@ def _config_a_fifo(d: pathlib.Path) -> None:
     os.mkfifo(d / "config.json")
 
 
+def _lines(d: pathlib.Path) -> list[str]:
+    return (d / "metrics.jsonl").read_text().splitlines(keepends=True)
+
+
+def _set_meta(d: pathlib.Path, **fields) -> None:
+    meta = json.loads((d / "meta.json").read_text())
+    (d / "meta.json").write_text(json.dumps({**meta, **fields}))
+
+
 DAMAGE = {
     "config-missing": (lambda d: (d / "config.json").unlink(), ["config.json is missing", "restore", "--overwrite"]),
     "meta-missing": (lambda d: (d / "meta.json").unlink(), ["meta.json is missing", "--overwrite"]),
@@ -111,6 +120,22 @@ DAMAGE = {
     ),
     "metrics-line-without-round": (_line_2_without_round, ["metrics.jsonl: line 2 is not a round's record"]),
     "metrics-garbage-line": (_cut_line_2, ["metrics.jsonl: line 2 is not JSON", "repair or remove that line"]),
+    # A round logged between the checkpoints lost, or logged twice: refused naming it.
+    "metrics-gap": (
+        lambda d: (d / "metrics.jsonl").write_text("".join(_lines(d)[: ROUNDS - 1] + _lines(d)[ROUNDS:])),
+        [f"metrics.jsonl lacks round {ROUNDS - 1}", "once each, in order", "--overwrite"],
+    ),
+    "metrics-duplicate": (
+        lambda d: (d / "metrics.jsonl").write_text("".join([*_lines(d)[:2], _lines(d)[0], *_lines(d)[2:]])),
+        ["metrics.jsonl holds round 0 twice (line 3)"],
+    ),
+    "meta-device-columns-a-string": (lambda d: _set_meta(d, device_columns="x"), ["meta.json: device_columns='x'"]),
+    "meta-resumed-an-int": (lambda d: _set_meta(d, resumed=5), ["meta.json: resumed=5", "a list of objects"]),
+    "meta-seeds-zero": (lambda d: _set_meta(d, seeds=0), ["meta.json: seeds=0", "an integer >= 1"]),
+    "finished-without-checkpoints": (
+        lambda d: shutil.rmtree(d / "checkpoints"),
+        ["holds a finished run (final.json) and no checkpoint", "--overwrite"],
+    ),
     "metrics-missing": (
         lambda d: (d / "metrics.jsonl").unlink(),
         [f"metrics.jsonl is missing, but checkpoint {ROUNDS - 1} holds rounds 0-{ROUNDS - 2}", "--overwrite"],
@@ -282,10 +307,35 @@ def test_ctrl_c_prints_one_line_and_resume_finishes_the_same_run(finished, tmp_p
     assert _metrics(run_dir) == _metrics(finished)
 
 
+TERMINATED = INTERRUPTED.replace("raise KeyboardInterrupt", "signal.raise_signal(signal.SIGTERM)").replace(
+    "import runpy, sys", "import runpy, signal, sys"
+)
+"""The CLI sent SIGTERM (the signal itself, through the handler the CLI installs) right after logging round 1."""
+
+
+def test_sigterm_prints_one_line_like_ctrl_c_s(tmp_path):
+    out = _cli(tmp_path / "run", script=TERMINATED)
+    assert out.returncode == rundir.EXIT_TERMINATED, out.stderr[-3000:]
+    assert out.stderr.strip().splitlines()[-1] == "terminated after round 0; continue with --resume"
+    assert "Traceback" not in out.stderr
+
+
+def test_a_stopped_run_says_which_checkpoint_is_saved_or_that_none_was(tmp_path):
+    """The line of an I/O failure names the newest checkpoint with its checksums, not "kept" when there is none."""
+    error = OSError(28, "No space left on device", str(tmp_path / "x"))
+    assert "(no checkpoint was written)" in rundir.io_error_line(error, tmp_path)
+    assert "then run it again" in rundir.io_error_line(error, None)
+    for step in (1, 2):
+        (tmp_path / "checkpoints" / str(step)).mkdir(parents=True)
+    (tmp_path / "checkpoints" / "1" / "checksums.json").write_text("{}")
+    line = rundir.io_error_line(error, tmp_path)  # step 2 has no checksums: not saved
+    assert "(checkpoint 1 is saved)" in line and line.endswith("then --resume"), line
+
+
 @pytest.mark.parametrize(
     "flags,expected",
     [
-        (["--video-steps", "-5"], "video_steps=-5 is invalid: allowed >= 0"),
+        (["--video-steps", "-5"], "video_steps=-5 is invalid: allowed integers 0 to"),
         (["--total-steps", "100000000000000000000"], "train.total_steps=100000000000000000000 is invalid"),
         (["--buffer-capacity", "10000000000"], "train.buffer_capacity=10000000000 is invalid"),
         (["--buffer-capacity", "2000000000"], "lower --buffer-capacity"),
@@ -375,7 +425,7 @@ def test_io_errors_name_the_first_failure():
             raise OSError(28, "No space left on device")  # closing a file after the failure fails again
     line = rundir.io_error_line(info.value)
     assert line.startswith("error: /runs/a/checkpoints/3: No space left on device;"), line
-    assert "free space" in line and "--resume" in line
+    assert "free space" in line and "(no checkpoint was written)" in line and "run it again" in line
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
+import pathlib
 
 import imageio.v3 as iio
 import jax
@@ -70,3 +72,60 @@ def test_a_pixel_policy_s_clip_is_its_episode_seen_by_the_clip_camera():
     assert np.mean(np.abs(np.asarray(frames, int) - expected) <= 1) > 0.99  # the same pixels, up to rounding
     assert not np.array_equal(expected[0], expected[-1])  # the walker moved
     np.testing.assert_allclose(total, sum(rewards), rtol=1e-5)
+
+
+# -- python -m rebel_jax.video's inputs: one line, exit status 2, nothing written --------------------------------
+def _run_dir(tmp_path, task: str = "cheetah_run", **meta) -> pathlib.Path:
+    """A run directory as the trainer leaves it, but for its checkpoint's content (the checks come first)."""
+    run_dir = tmp_path / "run"
+    (run_dir / "checkpoints" / "1").mkdir(parents=True)
+    cfg = dataclasses.replace(PRESETS["tiny"], env=dataclasses.replace(PRESETS["tiny"].env, task=task))
+    (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    (run_dir / "meta.json").write_text(json.dumps({"columns": 2, "device_columns": 2, **meta}))
+    return run_dir
+
+
+def _fifo_config(tmp_path) -> pathlib.Path:
+    run_dir = _run_dir(tmp_path)
+    (run_dir / "config.json").unlink()
+    os.mkfifo(run_dir / "config.json")
+    return run_dir
+
+
+VIDEO_BAD = {
+    "missing-run-dir": (lambda t: t / "none", [], "it does not exist"),
+    "empty-run-dir": (lambda t: t, [], "has no config.json"),
+    "fifo-config": (_fifo_config, [], "config.json is invalid: allowed a regular file"),
+    "no-checkpoint": (lambda t: _run_dir(t).joinpath("checkpoints", "1").rmdir() or t / "run", [], "no checkpoint"),
+    "probe-task": (lambda t: _run_dir(t, "probe_point"), [], "no MuJoCo model to render"),
+    "meta-types": (lambda t: _run_dir(t, columns="x"), [], "columns='x' is invalid"),
+    "column": (_run_dir, ["--column", "5"], "column=5 is invalid: allowed 0 to 1"),
+    "huge-seed": (_run_dir, ["--seed", str(2**63)], "seed=9223372036854775808 is invalid"),
+    "negative-steps": (_run_dir, ["--steps", "-3"], "steps=-3 is invalid: allowed integers 1 to"),
+    "size-0": (_run_dir, ["--size", "0"], "size=0 is invalid: allowed integers 16 to"),
+    "size-huge": (_run_dir, ["--size", "100000"], "size=100000 is invalid"),
+    "frames-too-large": (_run_dir, ["--steps", "100000", "--size", "1024"], "the clip's frames would take"),
+    "format": (_run_dir, ["--out", "clip.avi"], "allowed a file ending in .gif or .mp4"),
+    "out-parent-missing": (_run_dir, ["--out", "nowhere/deeper/clip.gif"], "does not exist (create it first)"),
+    "camera": (_run_dir, ["--camera", "nonesuch"], "camera='nonesuch' is invalid"),
+    # A checkpoint without its checksums is damaged: refused, and left where it is (the run is not changed).
+    "damaged-checkpoint": (lambda t: _run_dir(t, checkpoint_checksums=True), [], "no readable checkpoint"),
+    "not-a-number": (_run_dir, ["--column", "x"], "argument --column: invalid int value"),
+}
+
+
+@pytest.mark.parametrize("make,flags,expected", VIDEO_BAD.values(), ids=VIDEO_BAD.keys())
+def test_a_bad_video_input_is_one_line_with_exit_status_2_and_writes_nothing(
+    tmp_path, monkeypatch, capsys, make, flags, expected
+):
+    run_dir = make(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(SystemExit) as end:
+        video.main([str(run_dir), *flags, "--no-compile-cache"])
+    assert end.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    *warnings, line = err  # a damaged checkpoint's warning, as the trainer prints it, before the error
+    assert line.startswith("error: ") and expected in line, err
+    assert all(w.startswith("warning: checkpoint ") and "left it in place" in w for w in warnings), err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # no directory made, no file

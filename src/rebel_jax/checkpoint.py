@@ -7,7 +7,8 @@ array is on disk, so a save interrupted by a kill never appears as a valid step.
 whose files differ from their checksums (:class:`CheckpointDamaged`, found before orbax reads
 anything) or that cannot be read back is moved aside to ``<directory>_damaged/`` by
 :meth:`Checkpointer.restore`, which then falls back to the previous step. A step without
-``checksums.json`` (from older code, or a kill just after orbax's rename) is read unchecked.
+``checksums.json`` (a kill just after orbax's rename, or a deleted file) is damaged too, unless the checkpointer is
+told that its run was written before checksums existed (``require_checksums=False``), when it is read unchecked.
 A step that reads but holds a state of other leaves or shapes than asked for
 (written by other code) is neither: :class:`CheckpointMismatch` says so, and nothing is moved.
 :meth:`Checkpointer.restore_leaves` reads only some leaves of a step (a policy's parameters, say,
@@ -206,8 +207,20 @@ def _restore_target(x) -> jax.ShapeDtypeStruct:
 class Checkpointer:
     """Saves and restores a pytree under ``directory/<round>``, keeping the latest few."""
 
-    def __init__(self, directory: pathlib.Path, max_to_keep: int = 2):
+    def __init__(
+        self, directory: pathlib.Path, max_to_keep: int = 2, require_checksums: bool = True, set_aside: bool = True
+    ):
+        """Args:
+        directory: where the steps are.
+        max_to_keep: the newest steps kept.
+        require_checksums: a step without ``checksums.json`` is damaged (False only for a run written before
+          checksums existed, which its ``meta.json`` says).
+        set_aside: move an unreadable step to ``<directory>_damaged/`` (False: leave it, for a reader that must not
+          change the run, such as ``python -m rebel_jax.video``).
+        """
         self.directory = pathlib.Path(directory).absolute()
+        self.require_checksums = require_checksums
+        self.set_aside = set_aside
         _quiet_orbax_failures()
         synchronous_dirs = ocp.AsyncOptions(create_directories_asynchronously=False)
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, async_options=synchronous_dirs)
@@ -333,18 +346,21 @@ class Checkpointer:
                 raise
             except Exception as err:  # noqa: BLE001 - orbax and tensorstore raise many kinds
                 reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
-                moved = self._set_aside(candidate)
+                done = f"moved it to {self._set_aside(candidate)}" if self.set_aside else "left it in place"
                 if jax.process_index() == 0:
                     print(
                         f"warning: checkpoint {candidate} in {self.directory} is unreadable "
-                        f"({type(err).__name__}: {reason}); moved it to {moved} and trying the previous one",
+                        f"({type(err).__name__}: {reason}); {done} and trying the previous one",
                         file=sys.stderr,
                     )
         raise FileNotFoundError(f"no readable checkpoint in {self.directory}")
 
     def _check_files(self, step: int) -> None:
         """Raises :class:`CheckpointDamaged` naming the first few files of ``step`` that differ from its checksums."""
-        differences = checksum_differences(self.directory / str(step))
+        step_dir = self.directory / str(step)
+        if self.require_checksums and not (step_dir / CHECKSUMS).is_file():
+            raise CheckpointDamaged(f"{CHECKSUMS} is missing (its save did not finish, or it was deleted)")
+        differences = checksum_differences(step_dir)
         if differences:
             raise CheckpointDamaged(f"files differ from their checksums ({_first_few(differences)})")
 

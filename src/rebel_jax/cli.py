@@ -165,7 +165,8 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
         buffer, treedef = jax.tree.flatten(like.buffer)
         return like.replace(buffer=jax.tree.unflatten(treedef, [saved_rows(i, x) for i, x in enumerate(buffer)]))
 
-    if ckpt.latest() is None:
+    finished = (run_dir / "final.json").exists()
+    if ckpt.latest() is None and not finished:
         print(f"note: --resume: no checkpoint in {run_dir} yet; starting the run from scratch", file=sys.stderr)
         return 0, state
     try:
@@ -177,6 +178,11 @@ def _restore(run_dir: pathlib.Path, ckpt: Checkpointer, state, sharding):
             "with that code, or start a new --run-dir"
         ) from err
     except FileNotFoundError as err:
+        if finished:  # Starting over would replace a finished run's results.
+            raise ConfigError(
+                f"--resume: {err}, and {run_dir} holds a finished run (final.json): it would start over and replace "
+                "it; use another --run-dir, or --overwrite to replace it"
+            ) from None
         print(f"note: --resume: {err}; starting the run from scratch", file=sys.stderr)
         return 0, state
     if replay_rows(restored) != rows:
@@ -285,7 +291,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
     state = initial_state(args, init, keys, sharding, trainer)
     grid = args.grid()
     use_ckpt = args.checkpoint_every or args.resume or args.time_limit
-    ckpt = Checkpointer(run_dir / "checkpoints") if use_ckpt else None
+    checksums = not resuming or bool(json.loads((run_dir / "meta.json").read_text()).get(rundir.CHECKSUMS_FIELD))
+    ckpt = Checkpointer(run_dir / "checkpoints", require_checksums=checksums) if use_ckpt else None
     start = 0
     if resuming:
         start, state = _restore(run_dir, ckpt, state, sharding)
@@ -419,6 +426,15 @@ def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     avoid_cpu_deadlock()
     args = parse(argv)
+    previous = rundir.terminate_as_interrupt()
+    try:
+        return _checked_main(argv, args)
+    finally:
+        rundir.restore_sigterm(previous)
+
+
+def _checked_main(argv: list[str], args) -> dict:
+    """:func:`main` once the flags are parsed: the compilation cache, the run directory, the run."""
     try:
         compile_cache.configure(args.compile_cache, args.no_compile_cache)
     except ConfigError as err:
@@ -455,9 +471,10 @@ def main(argv: list[str] | None = None) -> dict:
             raise SystemExit(EXIT_USAGE) from None
         except OSError as err:  # Disk full, a checkpoint that could not be saved, a permission changed meanwhile.
             if sweep.is_primary():
-                print(rundir.io_error_line(err), file=sys.stderr)
+                print(rundir.io_error_line(err, run_dir), file=sys.stderr)
             raise SystemExit(rundir.EXIT_IO) from None
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as stop:
+            terminated = isinstance(stop, rundir.Terminated)
             if sweep.is_primary():
-                print(rundir.interrupted_line(run_dir), file=sys.stderr)
-            raise SystemExit(rundir.EXIT_INTERRUPTED) from None
+                print(rundir.interrupted_line(run_dir, "terminated" if terminated else "interrupted"), file=sys.stderr)
+            raise SystemExit(rundir.EXIT_TERMINATED if terminated else rundir.EXIT_INTERRUPTED) from None

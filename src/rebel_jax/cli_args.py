@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import difflib
 import gc
 import io
 import math
@@ -34,6 +35,7 @@ from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError, method_sectio
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.human import HOST_TEACHERS, HumanOptions, is_loopback
 from rebel_jax.pixel_feedback import check_config
+from rebel_jax.ranges import check_ranges
 
 PROG = "python -m rebel_jax.train"
 EXIT_USAGE = rundir.EXIT_USAGE
@@ -217,11 +219,7 @@ def check_args(args: Args, preset: Config) -> None:
         raise ConfigError(f"teacher_grid={unknown!r} is invalid: allowed {', '.join(teachers.PRESETS)}")
     changed = {part: where for part, where in cfg.unused_parts().items() if getattr(cfg, part) != getattr(preset, part)}
     if changed:
-        allowed = "; ".join(f"{part} only with {where}" for part, where in changed.items())
-        raise ConfigError(
-            f"{', '.join(changed)} settings are invalid with {cfg.algo} on {cfg.env.task!r} (the run would"
-            f" ignore them): allowed {allowed}"
-        )
+        _refuse_unused(cfg, changed)
     capacity = cfg.reward.label_capacity
     if cfg.preference and capacity != preset.reward.label_capacity and capacity < cfg.feedback.labels:
         raise ConfigError(
@@ -230,8 +228,98 @@ def check_args(args: Args, preset: Config) -> None:
         )
 
 
+def _refuse_unused(cfg: Config, parts: dict[str, str], flag: str = "") -> None:
+    """Refuses settings of the config's ``parts`` that ``cfg``'s run never reads (each with where it is read)."""
+    allowed = "; ".join(f"{part} only with {where}" for part, where in parts.items())
+    raise ConfigError(
+        f"{flag + ': ' if flag else ''}{', '.join(parts)} settings are invalid with {cfg.algo} on {cfg.env.task!r}"
+        f" (the run would ignore them): allowed {allowed}"
+    )
+
+
+def flag_names(cfg: Config, host_teacher: str, every: bool = False) -> dict[str, str]:
+    """The command line's flags (``--sac.hidden``, ``--total-steps``, ``--no-progress``), each with its part (a
+    config section, or ``run`` for the run's own options).
+
+    Args:
+      cfg: the run's config (its method and task say which parts apply).
+      host_teacher: ``human``, ``replay`` or empty.
+      every: every flag of every part, not only those that apply to ``cfg``'s run.
+    """
+    parts = PARTS if every else sections(cfg)
+    own = [f.name for f in dataclasses.fields(RunOptions)] if every else run_options(cfg, host_teacher)
+    names = {flag: "run" for flag in ("--preset", "--teacher", "--obs", "--algo", HELP_ALL, "--help")}
+
+    def add(obj: Any, prefix: str, part: str) -> None:
+        for field in dataclasses.fields(obj):
+            value = getattr(obj, field.name)
+            dashed = field.name.replace("_", "-")
+            if dataclasses.is_dataclass(value):
+                add(value, f"{prefix}{dashed}.", part)
+                continue
+            names[f"--{prefix}{dashed}"] = part
+            if isinstance(value, bool):
+                names[f"--{prefix}no-{dashed}"] = part
+
+    run = RunOptions()
+    for name in own:
+        value = getattr(run, name)
+        if dataclasses.is_dataclass(value):
+            add(value, f"{name.replace('_', '-')}.", "run")
+        else:
+            dashed = name.replace("_", "-")
+            names[f"--{dashed}"] = "run"
+            if isinstance(value, bool) and not name.startswith("no_"):
+                names[f"--no-{dashed}"] = "run"
+    for part in parts:
+        add(getattr(cfg, part), "" if part in UNPREFIXED else f"{part.replace('_', '-')}.", part)
+    return names
+
+
+def _given(flags: list[str]) -> list[str]:
+    """The flag names on a command line (``--sac.hidden=64`` and ``--sac.hidden 64`` both give ``--sac.hidden``)."""
+    return [flag.split("=", 1)[0].replace("_", "-") for flag in flags if flag.startswith("--")]
+
+
+def check_flags(given: list[str], cfg: Config, host_teacher: str) -> None:
+    """Refuses a flag the run does not use (whatever its value, the preset's too) and a flag that does not exist,
+    suggesting the nearest of the method's flags (raises ConfigError)."""
+    every, applies = flag_names(cfg, host_teacher, every=True), flag_names(cfg, host_teacher)
+    unused, ignored = cfg.unused_parts(), {}
+    for flag in given:
+        if flag in applies or flag == "-h":
+            continue
+        part = every.get(flag)
+        if part in unused:
+            ignored.setdefault(part, flag)
+        elif part is not None:  # a run option of another method or teacher (--lam-grid, --human.*)
+            where = {"--lam-grid": "a method with a knob to sweep (rebel)", "--teacher-grid": "a preference method"}
+            human = flag.startswith("--human.")
+            allowed = where.get(flag, "--teacher human or --teacher replay" if human else "another method")
+            raise ConfigError(
+                f"{flag} is invalid with {cfg.algo} (the run would ignore it): allowed only with {allowed}"
+            )
+        else:
+            close = difflib.get_close_matches(flag, list(applies), n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]}?" if close else ""
+            raise ConfigError(
+                f"unrecognized flag {flag}{hint} ({PROG} {cfg.algo} --help lists the flags, {HELP_ALL} all)"
+            )
+    if ignored:
+        _refuse_unused(cfg, {part: unused[part] for part in ignored}, ", ".join(ignored.values()))
+
+
 def _warn_about(args: Args) -> None:
     cfg = args.config
+    if not cfg.pixels:
+        per_step = cfg.sac.utd * cfg.env.num_envs
+        used = max(1, round(per_step))
+        if not math.isclose(per_step, used):
+            print(
+                f"note: sac.utd={cfg.sac.utd:g} with env.num_envs={cfg.env.num_envs} runs {used} update(s) per vector"
+                f" step (utd x num_envs rounded), so the utd used is {used / cfg.env.num_envs:g}",
+                file=sys.stderr,
+            )
     if cfg.preference:
         sessions = feedback_sessions(cfg)
         most = sessions * cfg.feedback.queries
@@ -361,12 +449,18 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
     """
     own = _values(RunOptions())
     applies = {*sections(cfg), *run_options(cfg, host_teacher)}
+    conditions = {**cfg.unused_parts(), **OPTION_CONDITIONS}
     hints = typing.get_type_hints(RunOptions, include_extras=True)
     fields, values = [], {}
     given = [(n, cfg.section(n) if n in method_sections() else getattr(cfg, n)) for n in parts()]
     for name, default in [*own.items(), *given]:
         hint = hints.get(name, type(default))
-        if help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
+        if help_mode == "all" and name not in applies:  # listed in its own group, naming when it applies
+            where = f"Only with {conditions.get(name, 'another method')}: {cfg.algo} on {cfg.env.task} ignores"
+            hint = Annotated[
+                hint, tyro.conf.arg(help=f"{where} {'these flags' if name in PARTS or name == 'human' else 'it'}.")
+            ]
+        elif help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
             hint = tyro.conf.Suppress[hint]
         elif help_mode is not None and dataclasses.is_dataclass(default):
             hint = _hiding(hint, {g for g in _values(default) if not _shown(name, g, help_mode)})
@@ -378,6 +472,41 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
         values[name] = default
     target = dataclasses.make_dataclass("Flags", fields, bases=(RunOptions,), frozen=True)
     return target, target(**values)
+
+
+METHOD_LINES = {
+    "sac": "SAC alone, on the task's true reward (state tasks)",
+    "drqv2": "DrQ-v2 alone, on the task's true reward (pixel tasks)",
+    "pebble": "PEBBLE: SAC on a reward model learnt from preferences, after unsupervised pre-training",
+    "surf": "PEBBLE with SURF's pseudo-labelled pairs and temporal crops",
+    "rebel": "PEBBLE with REBEL's agent-preference term, weighted by --rebel.lam",
+    "qpa": "QPA: queries from the policy's recent episodes, hybrid replay batches and crops",
+    "rune": "PEBBLE with RUNE's exploration bonus from the reward ensemble's disagreement",
+}
+"""``--help`` without a method: one line per method (a method registered elsewhere: its ``summary`` attribute, else
+its class's first docstring line)."""
+
+
+def method_list() -> str:
+    """What ``--help`` without a method prints: the usage and one line per method."""
+    import inspect
+
+    lines = [f"usage: {PROG} METHOD [--preset P] [--obs state|pixels] [--teacher T] [FLAGS]", "", "METHOD:"]
+    for name in (*AGENTS, *methods.REGISTRY):
+        method = methods.REGISTRY.get(name)
+        doc = (inspect.getdoc(type(method)) or "").splitlines() if method is not None else []
+        line = METHOD_LINES.get(name) or getattr(method, "summary", "") or (doc[0] if doc else "")
+        lines.append(f"  {name:<8} {line}")
+    lines += ["", f"{PROG} METHOD --help lists a method's common flags, METHOD {HELP_ALL} all of them."]
+    return "\n".join(lines)
+
+
+OPTION_CONDITIONS = {
+    "lam_grid": "a method with a knob to sweep (rebel), and a scripted teacher",
+    "teacher_grid": "a preference method and a scripted teacher",
+    "human": "--teacher human or --teacher replay",
+}
+"""When the run's own options that apply to some runs only apply (``--help-all`` names it)."""
 
 
 RENAMED = {
@@ -455,10 +584,15 @@ def parse(argv: list[str] | None = None) -> Args:
         known, rest = pre.parse_known_args(argv)
         if method and known.algo and method != known.algo:
             raise ConfigError(f"algo={known.algo!r} is invalid after the method {method}: allowed one of the two")
+        if known.task == "":
+            raise ConfigError("task='' is invalid: allowed a task's name (--help lists them)")
         task = observed_task(known.task or PRESETS[known.preset or "paper"].env.task, known.obs)
         _check_spellings(rest)
     except ConfigError as err:
         raise usage_error(err) from err
+    if method is None and known.algo is None and not known.help_all and any(f in ("-h", "--help") for f in rest):
+        print(method_list())
+        raise SystemExit(0)
     preset = known.preset or default_preset(task)
     host_teacher = known.teacher if known.teacher in HOST_TEACHERS else ""
     base = PRESETS[preset]
@@ -473,6 +607,11 @@ def parse(argv: list[str] | None = None) -> Args:
     )
     helping = known.help_all or any(flag in ("-h", "--help") for flag in rest)
     mode = ("all" if known.help_all else "brief") if helping else None
+    if mode is None:
+        try:
+            check_flags(_given(rest), config, host_teacher)
+        except ConfigError as err:
+            raise usage_error(err) from err
     target, default = flags_type(config, host_teacher, mode)
     prog = f"{PROG} {config.algo}"
     said, failure = io.StringIO(), None
@@ -499,16 +638,24 @@ def parse(argv: list[str] | None = None) -> Args:
     try:
         if unknown:
             raise ConfigError(f"unrecognized flag {unknown[0]} ({prog} --help lists the flags, {HELP_ALL} all)")
-        args.config.validate()
-        if args.config.pixels:
-            check_config(args.config)  # the pixel trainer's checks, in agent steps
-        check_args(args, PRESETS[preset])
-        if host_teacher:
-            _check_host_teacher(args)
+        check_all(args, PRESETS[preset])
     except ConfigError as err:
         raise usage_error(err) from err
     _warn_about(args)
     return args
+
+
+def check_all(args: Args, preset: Config) -> None:
+    """Every check of a parsed command line, in order: each value in its range (:mod:`rebel_jax.ranges`), then
+    the config's own checks, the pixel trainer's, the combinations the CLI makes, and a host teacher's (raises
+    ConfigError)."""
+    check_ranges(args, skip=("config",))  # the run's own options; the config's in its validate
+    args.config.validate()
+    if args.config.pixels:
+        check_config(args.config)  # the pixel trainer's checks, in agent steps
+    check_args(args, preset)
+    if args.host_teacher:
+        _check_host_teacher(args)
 
 
 def _check_host_teacher(args: Args) -> None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import datetime
+import importlib.metadata
 import json
 import os
 import pathlib
@@ -35,14 +36,27 @@ RUN_FILES = (
 """What a run writes in its directory (other files there, such as a caller's log, are left alone)."""
 
 
-def _git_commit() -> str | None:
-    """The checkout's commit; ``REBEL_JAX_GIT_COMMIT`` names it where the tree was copied without its history."""
+PACKAGE_DIR = pathlib.Path(__file__).resolve().parent
+"""The package's own source directory: its repository (if any) is the code that runs, whatever the caller's."""
+
+
+def _git_commit(package_dir: pathlib.Path = PACKAGE_DIR) -> str | None:
+    """The commit of the code that runs: ``REBEL_JAX_GIT_COMMIT`` where set (a tree copied without its history),
+    else the commit of the repository that tracks the package's own source (``git -C <package dir>``, never the
+    caller's working directory), else the installed distribution's version (``installed 0.1.0``), else None."""
     if os.environ.get("REBEL_JAX_GIT_COMMIT"):
         return os.environ["REBEL_JAX_GIT_COMMIT"]
+    git = ["git", "-C", str(package_dir)]
+    try:  # the package's __init__.py tracked there: a venv's site-packages inside another repository is not it
+        tracked = subprocess.run([*git, "ls-files", "--error-unmatch", "__init__.py"], capture_output=True, timeout=5)
+        out = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        if tracked.returncode == 0 and out.returncode == 0:
+            return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() if out.returncode == 0 else None
-    except OSError:
+        return f"installed {importlib.metadata.version('rebel_jax')}"
+    except importlib.metadata.PackageNotFoundError:
         return None
 
 
@@ -121,6 +135,17 @@ def prepare_run_dir(args: Args, lock: rundir.RunLock | None = None) -> pathlib.P
         )
     else:
         run_dir = pathlib.Path(args.run_dir)
+    try:  # a name the file system refuses (too long, a NUL byte): before anything is created
+        run_dir.exists()
+    except (OSError, ValueError) as err:
+        cause = getattr(err, "strerror", None) or str(err)
+        raise ConfigError(f"run_dir={str(run_dir)!r} is invalid: the file system refuses the name ({cause})") from None
+    too_long = [part for part in run_dir.absolute().parts if len(os.fsencode(part)) > 255]
+    if too_long:
+        raise ConfigError(
+            f"run_dir={str(run_dir)!r} is invalid: allowed names of at most 255 bytes per directory "
+            f"({len(os.fsencode(too_long[0]))} bytes: {too_long[0][:40]}...)"
+        )
     if args.resume and args.overwrite:
         raise ConfigError("overwrite=True is invalid with --resume: allowed one of --resume (continue) or --overwrite")
     if run_dir.exists() and not run_dir.is_dir():
@@ -187,6 +212,7 @@ def _write_meta(run_dir: pathlib.Path, args: Args, command: str, device_columns:
         "columns": args.columns,
         "device_columns": device_columns,  # the columns computed, padding included
         "started": datetime.datetime.now().isoformat(timespec="seconds"),
+        rundir.CHECKSUMS_FIELD: True,  # every checkpoint has checksums.json: one without it is damaged
     }
     write_json(run_dir / "meta.json", meta)
     _write_config(run_dir, args)  # last: a run counts as saved (for --resume) once config.json exists
@@ -222,10 +248,12 @@ def keep_rounds_before(metrics: pathlib.Path, rounds: int) -> None:
     """Keeps the first ``rounds`` rounds of a resumed run's log: later ones are run (and logged) again.
 
     A last line cut mid-write (the process was killed while writing it) is dropped with a notice;
-    an unreadable line before the last is an error, as the log would otherwise lose a round.
+    an unreadable line before the last is an error, as the log would otherwise lose a round, and so is a log
+    without each of the first ``rounds`` rounds once, in order (raises ConfigError).
     """
     if not metrics.exists():
         return
+    rundir.check_log_order(metrics, rounds)  # each round before the checkpoint once, in order (raises ConfigError)
     records, cut = rundir.log_records(metrics)
     if cut is not None:
         print(f"note: {metrics}: dropped its last line, cut mid-write ({len(cut)} chars)", file=sys.stderr)

@@ -26,6 +26,7 @@ from rebel_jax.methods.surf import SURFConfig
 from rebel_jax.pixel_reward import PixelRewardConfig
 from rebel_jax.pretrain import PretrainConfig
 from rebel_jax.queries import QueryConfig
+from rebel_jax.ranges import ANY_INTEGER, check_ranges
 from rebel_jax.reward_model import RewardConfig
 from rebel_jax.teachers import TeacherConfig
 
@@ -37,20 +38,6 @@ Precision = Literal["tf32", "highest", "bf16"]
 MAX_UTD = 100.0
 """The largest ``sac.utd`` accepted: 100 updates per transition is far beyond any published setting
 (B-Pref 1, REDQ 20), and a larger value makes a round run for hours with no output."""
-
-INFINITE_ALLOWED = ("teacher.beta",)
-"""Float fields that may be infinite (``teacher.beta = inf`` is the rational teacher)."""
-
-
-def _check_finite(cfg, prefix: str = "") -> None:
-    """Rejects NaN in every float field of ``cfg`` (recursively) and infinity outside :data:`INFINITE_ALLOWED`."""
-    for field in dataclasses.fields(cfg):
-        value, name = getattr(cfg, field.name), prefix + field.name
-        if dataclasses.is_dataclass(value):
-            _check_finite(value, name + ".")
-        elif isinstance(value, float):
-            ok = math.isfinite(value) or (name in INFINITE_ALLOWED and value == math.inf)
-            _check(ok, name, value, "a finite number" + (" or inf" if name in INFINITE_ALLOWED else ""))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,7 +154,7 @@ class TrainConfig:
     buffer_capacity: int = 0
     """Replay capacity in transitions; 0 means ``total_steps`` (nothing evicted, as B-Pref), on pixel tasks
     ``pixel_feedback.DEFAULT_CAPACITY`` (100k, at most ``total_steps``)."""
-    seed: int = 0
+    seed: Annotated[int, ANY_INTEGER] = 0
     """Base PRNG seed; seed i of a sweep uses ``fold_in(seed, i)``."""
     overlap: bool = False
     """The agent's updates at a vector step sample the replay as it was before that step's transitions (one vector
@@ -380,7 +367,7 @@ class Config:
     def validate(self) -> Config:
         names = [*AGENTS, *methods.REGISTRY]
         _check(self.algo in names, "algo", self.algo, ", ".join(names))
-        _check_finite(self)
+        check_ranges(self)  # every numeric field in its declared range, before the checks that relate fields
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)

@@ -36,6 +36,8 @@ EXIT_USAGE = 2
 EXIT_IO = 4
 EXIT_INTERRUPTED = 130
 """128 + SIGINT, as a shell reports a process that Ctrl-C ended."""
+EXIT_TERMINATED = 143
+"""128 + SIGTERM."""
 LOCK = ".lock"
 """The lock file in a run directory (its content: the holder's pid and host)."""
 SAVED = ("config.json", "meta.json")
@@ -204,6 +206,84 @@ def logged_rounds(metrics: pathlib.Path) -> set[int]:
     return {record["round"] for _, record in log_records(metrics)[0]}
 
 
+META_TYPES: dict[str, tuple[type, ...]] = {
+    "git_commit": (str, type(None)),
+    "command": (str,),
+    "seeds": (int,),
+    "columns": (int,),
+    "device_columns": (int,),
+    "lams": (list, type(None)),
+    "teachers": (list, type(None)),
+    "resumed": (list,),
+    "checkpoint_checksums": (bool,),
+}
+"""The types of the ``meta.json`` fields that ``--resume`` reads (a field may be absent: older runs lack some)."""
+CHECKSUMS_FIELD = "checkpoint_checksums"
+"""``meta.json``'s mark of a run whose every checkpoint has its checksums (runs written before checksums lack it)."""
+
+
+def _type_names(kinds: tuple[type, ...]) -> str:
+    names = {int: "an integer", str: "a string", list: "a list", bool: "true or false", type(None): "null"}
+    return " or ".join(names[k] for k in kinds)
+
+
+def check_meta(path: pathlib.Path, what: str = "--resume") -> dict:
+    """``meta.json`` read against :data:`META_TYPES`: each field it has of its type, the counts >= 1.
+
+    Raises:
+      ConfigError: one line naming the first field of another type or out of range.
+    """
+    meta = json.loads(path.read_text())
+    for name, kinds in META_TYPES.items():
+        if name not in meta:
+            continue
+        value = meta[name]
+        ok = isinstance(value, kinds) and not (isinstance(value, bool) and bool not in kinds)
+        if ok and name in ("seeds", "columns", "device_columns"):
+            ok = value >= 1
+        if ok and name == "resumed":
+            ok = all(isinstance(item, dict) for item in value)
+        if not ok:
+            allowed = "a list of objects" if name == "resumed" else _type_names(kinds)
+            allowed += " >= 1" if name in ("seeds", "columns", "device_columns") else ""
+            raise ConfigError(
+                f"{what}: {path}: {name}={value!r} is invalid: allowed {allowed}; restore meta.json"
+                + (", or replace the run with --overwrite" if what == "--resume" else "")
+            )
+    if meta.get("device_columns", 1) < meta.get("columns", 1):
+        raise ConfigError(
+            f"{what}: {path}: device_columns={meta['device_columns']!r} is invalid: allowed >= columns="
+            f"{meta['columns']} (the run's columns and their padding); restore meta.json"
+        )
+    return meta
+
+
+def check_log_order(metrics: pathlib.Path, rounds: int, complete: bool = True) -> None:
+    """Refuses a ``metrics.jsonl`` whose records of the rounds before ``rounds`` are not rounds 0, 1, ... once each
+    and in order (a round lost, repeated or moved); later records are run and logged again on resume. Without
+    ``complete``, a log that ends early passes (the newest checkpoint may be damaged, and the resume start earlier:
+    :func:`rebel_jax.cli_rundir.keep_rounds_before` checks the log up to the checkpoint it resumes from).
+
+    Raises:
+      ConfigError: naming the first round out of place.
+    """
+    records = [record["round"] for _, record in log_records(metrics)[0] if record["round"] < rounds]
+    end = [None] if complete and len(records) < rounds else []  # with ``complete``, the log must reach ``rounds``
+    for expected, found in enumerate([*records, *end]):
+        if found is None:
+            found = rounds  # the log ends before the checkpoint's rounds do
+        if found == expected:
+            continue
+        if found < expected:
+            what = f"holds round {found} twice" if found in records[:expected] else f"holds round {found} late"
+        else:
+            what = f"lacks round {expected}"
+        raise ConfigError(
+            f"--resume: {metrics} {what} (line {expected + 1}), but the rounds before a checkpoint must be logged "
+            "once each, in order: repair the log, or replace the run with --overwrite"
+        )
+
+
 def check_resumable(run_dir: pathlib.Path) -> None:
     """Refuses (nothing written or moved) a run directory that ``--resume`` cannot continue as the run it holds.
 
@@ -233,7 +313,13 @@ def check_resumable(run_dir: pathlib.Path) -> None:
         chmod = _access_problem(run_dir / name, KINDS[name])
         if chmod:
             raise ConfigError(f"--resume: {run_dir / name} cannot be read and written by this user: {chmod}")
+    check_meta(run_dir / "meta.json")
     steps = saved_steps(run_dir)
+    if not steps and (run_dir / "final.json").exists():
+        raise ConfigError(
+            f"--resume: {run_dir} holds a finished run (final.json) and no checkpoint to continue from: it would "
+            "start over and replace it; use another --run-dir, or --overwrite to replace it"
+        )
     needed = set(range(steps[0])) if steps else set()
     metrics = run_dir / "metrics.jsonl"
     missing = sorted(needed - (logged_rounds(metrics) if metrics.exists() else set()))
@@ -244,6 +330,8 @@ def check_resumable(run_dir: pathlib.Path) -> None:
             f"--resume: {metrics} {lacks}, but checkpoint {steps[0]} holds rounds 0-{steps[0] - 1}: restore the "
             "log, or replace the run with --overwrite"
         )
+    if steps and metrics.exists():
+        check_log_order(metrics, steps[-1], complete=False)
 
 
 # -- failures during the run ----------------------------------------------------------------------------------------
@@ -255,9 +343,19 @@ def first_failure(err: OSError) -> OSError:
     return err
 
 
-def io_error_line(err: OSError) -> str:
+def kept_line(run_dir: pathlib.Path | None) -> str:
+    """What a stopped run leaves to continue from: ``checkpoint 3 is saved`` or ``no checkpoint was written``."""
+    steps = [step for step in saved_steps(run_dir) if _has_checksums(run_dir, step)] if run_dir is not None else []
+    return f"checkpoint {steps[-1]} is saved" if steps else "no checkpoint was written"
+
+
+def _has_checksums(run_dir: pathlib.Path, step: int) -> bool:
+    return (run_dir / "checkpoints" / str(step) / "checksums.json").is_file()
+
+
+def io_error_line(err: OSError, run_dir: pathlib.Path | None = None) -> str:
     """``err`` (disk full, permission denied, a failed checkpoint save; its :func:`first_failure`) as one line
-    naming the path and the cause."""
+    naming the path, the cause, and the checkpoint ``run_dir`` keeps (:func:`kept_line`)."""
     err = first_failure(err)
     text = str(err).strip()
     cause = err.strerror or (text.splitlines()[0] if text else type(err).__name__)
@@ -268,7 +366,8 @@ def io_error_line(err: OSError) -> str:
         advice = "make it writable"
     else:
         advice = "fix the cause"
-    return f"error: {where}{cause}; the run stopped (its last complete checkpoint is kept): {advice}, then --resume"
+    then = "then --resume" if run_dir is not None and saved_steps(run_dir) else "then run it again"
+    return f"error: {where}{cause}; the run stopped ({kept_line(run_dir)}): {advice}, {then}"
 
 
 def close_all(parts) -> None:
@@ -289,12 +388,39 @@ def close_all(parts) -> None:
         raise failure
 
 
-def interrupted_line(run_dir: pathlib.Path | None) -> str:
-    """What Ctrl-C prints: the last round a ``--resume`` continues after."""
+def interrupted_line(run_dir: pathlib.Path | None, what: str = "interrupted") -> str:
+    """What Ctrl-C (``interrupted``) or SIGTERM (``terminated``) prints: the last round a ``--resume`` continues
+    after."""
     steps = saved_steps(run_dir) if run_dir is not None else []
     if not steps:
-        return "interrupted before the first checkpoint; --resume starts the run again"
-    return f"interrupted after round {steps[-1] - 1}; continue with --resume"
+        return f"{what} before the first checkpoint; --resume starts the run again"
+    return f"{what} after round {steps[-1] - 1}; continue with --resume"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread as Ctrl-C's ``KeyboardInterrupt`` is (:func:`terminate_as_interrupt`)."""
+
+
+def terminate_as_interrupt():
+    """Makes SIGTERM end the run as Ctrl-C does (the checkpoints closed, one line, exit status 143); returns the
+    handler it replaces (None outside the main thread, where none is set), for :func:`restore_sigterm`."""
+    import signal
+    import threading
+
+    def raise_terminated(signum, frame):
+        raise Terminated
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, raise_terminated)
+
+
+def restore_sigterm(previous) -> None:
+    """Puts back the SIGTERM handler :func:`terminate_as_interrupt` replaced (nothing if it set none)."""
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def check_listen_address(host: str, port: int, flags: str = "--human.host, --human.port") -> None:

@@ -31,19 +31,20 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Annotated, Any
 
 import jax
 import jax.numpy as jnp
 
 from rebel_jax.errors import check as _check
+from rebel_jax.ranges import Range
 
 
 @dataclasses.dataclass(frozen=True)
 class TeacherConfig:
     """A B-Pref scripted teacher; the defaults are the oracle (perfectly rational, no noise)."""
 
-    beta: float = math.inf
+    beta: Annotated[float, Range(0, lo_open=True, inf=True)] = math.inf
     """Rationality of the Bradley-Terry answer, P(b) = sigmoid(beta * (R_b - R_a)); inf is rational."""
     gamma: float = 1.0
     """Myopia: the reward of step t of a length-H segment is weighted gamma**(H-1-t); 1 is not myopic."""

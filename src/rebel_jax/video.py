@@ -31,14 +31,13 @@ from rebel_jax.rundir import EXIT_USAGE
 
 
 def write(path: str | pathlib.Path, frames: np.ndarray, fps: float) -> pathlib.Path:
-    """Writes uint8 frames ``(T, H, W, 3)`` as a GIF or MP4 (by the file's suffix)."""
+    """Writes uint8 frames ``(T, H, W, 3)`` as a GIF or MP4 (by the file's suffix), into an existing directory."""
     import imageio.v3 as iio
 
     path = pathlib.Path(path)
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
         raise ValueError(f"frames must be uint8 (T >= 1, H, W, 3); got {frames.dtype} {frames.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".gif":
         # Pillow stores GIF frame durations in milliseconds; loop forever.
         iio.imwrite(path, frames, extension=".gif", duration=1000.0 / fps, loop=0)
@@ -119,40 +118,155 @@ def policy_video(
     return float(total)
 
 
-def load_policy(run_dir: pathlib.Path, column: int = 0):
+FORMATS = (".gif", ".mp4")
+MAX_STEPS = 100_000
+"""The most agent steps of a clip (100 episodes of dm_control's 1000 steps)."""
+MAX_SIZE = 1024
+"""The largest frame height and width."""
+MAX_FRAME_BYTES = 2**31
+"""The most bytes a clip's frames may take in memory (steps x size x size x 3)."""
+
+
+def check_run_dir(run_dir: pathlib.Path) -> tuple[dict, dict]:
+    """(config.json, meta.json) of a run directory that holds a run to render, each a JSON object of regular files
+    (a FIFO or a device is refused unread, not waited on).
+
+    Raises:
+      ConfigError: one line naming what is missing or wrong.
+    """
+    from rebel_jax import rundir
+
+    if not run_dir.is_dir():
+        why = "not a directory" if run_dir.exists() else "it does not exist"
+        raise ConfigError(f"RUN_DIR={str(run_dir)!r} is invalid: allowed a run directory ({why})")
+    saved = {}
+    for name in ("config.json", "meta.json"):
+        path = run_dir / name
+        if not path.exists():
+            raise ConfigError(f"RUN_DIR={str(run_dir)!r} is invalid: it has no {name} (not a run's directory)")
+        if not path.is_file():
+            raise ConfigError(f"{path} is invalid: allowed a regular file (it is not one)")
+        try:
+            saved[name] = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise ConfigError(
+                f"{path} is unreadable ({type(err).__name__}: {str(err).splitlines()[0][:120]})"
+            ) from None
+        if not isinstance(saved[name], dict):
+            raise ConfigError(f"{path} is invalid: it holds a JSON {type(saved[name]).__name__}, not an object")
+    meta = rundir.check_meta(run_dir / "meta.json", what="video")
+    if not rundir.saved_steps(run_dir):
+        raise ConfigError(f"RUN_DIR={str(run_dir)!r} is invalid: no checkpoint in {run_dir / 'checkpoints'} to render")
+    return saved["config.json"], meta
+
+
+def load_policy(run_dir: pathlib.Path, column: int = 0, before_restore: Callable | None = None):
     """(trainer, checkpoint step, policy parameters) of one column of a run's latest checkpoint; the trainer
     (on a pixel run too) acts with them through ``trainer.mean_action(params, obs)``.
 
-    Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run).
+    Only the policy's leaves are read from the checkpoint (not the replay buffer, gigabytes for a pixel run);
+    ``before_restore(trainer)``, if given, is called before (the caller's checks that need the task's model).
+
+    Raises:
+      ConfigError: a run directory, config, column or checkpoint that cannot be rendered (one line).
     """
-    from rebel_jax import api
-    from rebel_jax.checkpoint import Checkpointer
-    from rebel_jax.config import read_config
+    from rebel_jax import api, rundir
+    from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
+    from rebel_jax.config import Config, from_dict
     from rebel_jax.train import seed_keys
 
-    cfg = read_config(run_dir / "config.json")
-    meta = json.loads((run_dir / "meta.json").read_text())
-    columns = int(meta["columns"])
+    data, meta = check_run_dir(run_dir)
+    try:
+        cfg = from_dict(Config, data).validate()
+    except (TypeError, ValueError) as err:  # ConfigError is a ValueError
+        raise ConfigError(f"{run_dir / 'config.json'}: {err}") from None
+    columns = int(meta.get("columns", 1))
     if not 0 <= column < columns:
-        raise ValueError(f"column {column} out of range: the run has {columns} columns")
+        raise ConfigError(f"column={column} is invalid: allowed 0 to {columns - 1} (the run's columns)")
     trainer = api.make_trainer(cfg)
+    if before_restore is not None:
+        before_restore(trainer)
     keys = seed_keys(cfg.train.seed, columns)
     like = jax.eval_shape(jax.vmap(trainer.init), keys)
-    ckpt = Checkpointer(run_dir / "checkpoints")
+    checksums = bool(meta.get(rundir.CHECKSUMS_FIELD))
+    ckpt = Checkpointer(run_dir / "checkpoints", require_checksums=checksums, set_aside=False)  # the run unchanged
     try:
         step, params = ckpt.restore_leaves(like, trainer.policy_params)
+    except (FileNotFoundError, CheckpointMismatch) as err:
+        raise ConfigError(f"{err} (python -m rebel_jax.video renders a run's newest readable checkpoint)") from None
     finally:
         ckpt.close()
     return trainer, step, jax.tree.map(lambda x: jnp.asarray(x[column]), params)
 
 
+class _Parser(argparse.ArgumentParser):
+    """A bad argument is one line and exit status 2 (:class:`ConfigError`), as the trainer's are."""
+
+    def error(self, message: str):
+        raise ConfigError(message)
+
+
+def _camera(env, camera: str | None) -> int | str | None:
+    """``--camera`` as an id or a name of ``env``'s model (raises ConfigError for one it does not have)."""
+    if camera is None:
+        return None
+    import mujoco
+
+    model = env.mj_model
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
+    if camera.isdigit() and int(camera) < max(model.ncam, 1):
+        return int(camera)
+    if camera in names:
+        return camera
+    allowed = f"0 to {model.ncam - 1} or one of {names}" if model.ncam else "0 (the model has no cameras)"
+    raise ConfigError(f"camera={camera!r} is invalid: allowed {allowed}")
+
+
+def check_frames(steps: int, size: int) -> None:
+    """Refuses a clip whose frames would take more than :data:`MAX_FRAME_BYTES` (raises ConfigError)."""
+    frame_bytes = (steps + 1) * size * size * 3
+    if frame_bytes > MAX_FRAME_BYTES:
+        raise ConfigError(
+            f"steps={steps}, size={size} is invalid: the clip's frames would take {frame_bytes / 1e9:.1f} GB; allowed"
+            f" at most {MAX_FRAME_BYTES / 1e9:.1f} GB (fewer --steps or a smaller --size)"
+        )
+
+
+def check_options(args: argparse.Namespace) -> pathlib.Path:
+    """The options of :func:`main` in their ranges, and the file to write (raises ConfigError)."""
+    from rebel_jax.ranges import Range, check_value
+
+    check_value("column", args.column, int, Range())
+    check_value("seed", args.seed, int, Range())
+    check_value("size", args.size, int, Range(16, MAX_SIZE))
+    if args.steps is not None:
+        check_value("steps", args.steps, int, Range(1, MAX_STEPS))
+    out = args.out or args.run_dir / "policy.gif"
+    if out.suffix.lower() not in FORMATS:
+        raise ConfigError(f"out={str(out)!r} is invalid: allowed a file ending in {' or '.join(FORMATS)}")
+    if not out.parent.is_dir():
+        raise ConfigError(f"out={str(out)!r} is invalid: its directory {out.parent} does not exist (create it first)")
+    if out.exists() and not out.is_file():
+        raise ConfigError(f"out={str(out)!r} is invalid: it exists and is not a regular file")
+    return out
+
+
 def main(argv: list[str] | None = None) -> pathlib.Path:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """``python -m rebel_jax.video``: every input checked first; a bad one is one line and exit status 2."""
+    try:
+        return _main(argv)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE) from None
+
+
+def _main(argv: list[str] | None) -> pathlib.Path:
+    parser = _Parser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=pathlib.Path)
     parser.add_argument("--out", type=pathlib.Path, default=None, help="GIF or MP4; default RUN_DIR/policy.gif")
     parser.add_argument("--column", type=int, default=0, help="which vmapped seed column")
-    parser.add_argument("--steps", type=int, default=None, help="agent steps (default: one episode)")
-    parser.add_argument("--size", type=int, default=240, help="frame height and width")
+    parser.add_argument("--steps", type=int, default=None, help=f"agent steps, 1 to {MAX_STEPS} (default: one episode)")
+    parser.add_argument("--size", type=int, default=240, help=f"frame height and width, 16 to {MAX_SIZE}")
     parser.add_argument(
         "--camera", default=None, help="camera id or name (default: 0; the quadruped: the labelling page's, y)"
     )
@@ -165,19 +279,21 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
     )
     parser.add_argument("--no-compile-cache", action="store_true", help="no persistent compilation cache")
     args = parser.parse_args(argv)
-    try:
-        compile_cache.configure(args.compile_cache, args.no_compile_cache)
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(EXIT_USAGE) from None
-    trainer, step, params = load_policy(args.run_dir, args.column)
+    compile_cache.configure(args.compile_cache, args.no_compile_cache)
+    check_run_dir(args.run_dir)
+    out = check_options(args)
+    chosen = {}
+
+    def check_model(trainer) -> None:  # before the checkpoint is read
+        if not hasattr(trainer.env, "mj_model"):
+            raise ConfigError(f"the run's task {trainer.cfg.env.task!r} has no MuJoCo model to render")
+        chosen["camera"] = _camera(trainer.env, args.camera)
+        chosen["steps"] = args.steps or trainer.env.episode_length
+        check_frames(chosen["steps"], args.size)
+
+    trainer, step, params = load_policy(args.run_dir, args.column, check_model)
     policy = functools.partial(trainer.mean_action, params)
-    env = trainer.env
-    if not hasattr(env, "mj_model"):
-        raise ValueError(f"task {trainer.cfg.env.task!r} has no MuJoCo model to render")
-    camera = int(args.camera) if args.camera and args.camera.isdigit() else args.camera
-    out = args.out or args.run_dir / "policy.gif"
-    steps = args.steps or env.episode_length
+    env, camera, steps = trainer.env, chosen["camera"], chosen["steps"]
     total = policy_video(env, policy, jax.random.PRNGKey(args.seed), out, steps, args.size, camera)
     print(f"{out}: checkpoint {step}, column {args.column}, {steps} steps, return {total:.1f}")
     return out

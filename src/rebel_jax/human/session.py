@@ -22,6 +22,8 @@ import math
 import pathlib
 import random
 import secrets
+import threading
+from typing import Annotated
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +33,7 @@ from rebel_jax.budget import offered_pairs, remaining_budget, within_budget
 from rebel_jax.human import clips as clips_lib
 from rebel_jax.human.labels import LabelError, LabelFile, SessionAnswers, now, query_id
 from rebel_jax.human.server import Labelling, Query, Server, Session
+from rebel_jax.ranges import Range
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,19 +42,19 @@ class HumanOptions:
 
     host: str = "127.0.0.1"
     """Address the labelling page binds to (loopback by default; 0.0.0.0 exposes it to the network)."""
-    port: int = 8765
+    port: Annotated[int, Range(0, 65535, note="0: any free port")] = 8765
     """Port of the labelling page (0: any free port; the URL is printed, and without its token written to
     RUN_DIR/human_url.txt)."""
     token: str | None = None
     """Token the page's requests must carry (default: a random one per run, printed in the page's URL and
     written nowhere); '' for none, allowed only on a loopback --human.host."""
-    timeout: float = 0.0
+    timeout: Annotated[float, Range(0, min(threading.TIMEOUT_MAX, 1e9), note="seconds; 0: no limit")] = 0.0
     """Seconds a session waits for answers before training goes on without the missing ones; 0: no limit."""
     labeller: str = ""
     """Labeller id written with each answer; default: the login name."""
     labels: pathlib.Path | None = None
     """``--teacher replay`` only: the ``labels.jsonl`` of an earlier human run to take every answer from."""
-    clip_size: int = 256
+    clip_size: Annotated[int, Range(16, 4096)] = 256
     """Width and height of the clips, in pixels."""
 
 
