@@ -246,7 +246,7 @@ def flag_names(cfg: Config, host_teacher: str, every: bool = False) -> dict[str,
       host_teacher: ``human``, ``replay`` or empty.
       every: every flag of every part, not only those that apply to ``cfg``'s run.
     """
-    parts = PARTS if every else sections(cfg)
+    chosen = parts() if every else sections(cfg)
     own = [f.name for f in dataclasses.fields(RunOptions)] if every else run_options(cfg, host_teacher)
     names = {flag: "run" for flag in ("--preset", "--teacher", "--obs", "--algo", HELP_ALL, "--help")}
 
@@ -271,7 +271,7 @@ def flag_names(cfg: Config, host_teacher: str, every: bool = False) -> dict[str,
             names[f"--{dashed}"] = "run"
             if isinstance(value, bool) and not name.startswith("no_"):
                 names[f"--no-{dashed}"] = "run"
-    for part in parts:
+    for part in chosen:
         add(getattr(cfg, part), "" if part in UNPREFIXED else f"{part.replace('_', '-')}.", part)
     return names
 
@@ -458,7 +458,7 @@ def flags_type(cfg: Config, host_teacher: str, help_mode: str | None = None) -> 
         if help_mode == "all" and name not in applies:  # listed in its own group, naming when it applies
             where = f"Only with {conditions.get(name, 'another method')}: {cfg.algo} on {cfg.env.task} ignores"
             hint = Annotated[
-                hint, tyro.conf.arg(help=f"{where} {'these flags' if name in PARTS or name == 'human' else 'it'}.")
+                hint, tyro.conf.arg(help=f"{where} {'these flags' if name in parts() or name == 'human' else 'it'}.")
             ]
         elif help_mode is not None and (name not in applies or (name in own and not _shown("run", name, help_mode))):
             hint = tyro.conf.Suppress[hint]

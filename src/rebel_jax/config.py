@@ -367,12 +367,13 @@ class Config:
     def validate(self) -> Config:
         names = [*AGENTS, *methods.REGISTRY]
         _check(self.algo in names, "algo", self.algo, ", ".join(names))
-        check_ranges(self)  # every numeric field in its declared range, before the checks that relate fields
+        # Every numeric field in its declared range, before the checks that relate fields; the methods' sections too.
+        check_ranges(self, skip=("method_settings",))
+        for name in method_sections():
+            check_ranges(self.section(name), name + ".")
         self.env.validate()
         self.sac.validate()
         self.train.validate(self.env.num_envs)
-        for name in method_sections():  # every section a method declared: its own fields' values
-            _check_finite(self.section(name), name + ".")
         pixels = self.pixels
         if self.algo == "drqv2" or pixels:
             allowed = (
