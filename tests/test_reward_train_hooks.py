@@ -3,13 +3,12 @@ and the loss terms' own metrics (rebel_jax.reward_train)."""
 
 from __future__ import annotations
 
-import types
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from test_qpa_rune import _labelled_state
 
 from rebel_jax import reward_model, reward_train
 from rebel_jax.reward_model import RewardConfig
@@ -18,18 +17,9 @@ CFG = RewardConfig(ensemble_size=2, hidden=16, depth=2, batch_size=4, lr=1e-2)
 COUNT, LENGTH = 10, 5
 
 
-def _stored(labels=None):
-    """A fresh ensemble with ``COUNT`` labelled pairs of random segments (labels given, or a learnable rule)."""
-    state = reward_model.init(CFG, jax.random.key(1), 3, 1, LENGTH)
-    k = jax.random.split(jax.random.key(2), 4)
-    obs_a, obs_b = (jax.random.normal(k[i], (COUNT, LENGTH, 3)) for i in (0, 1))
-    seg_a, seg_b = (
-        types.SimpleNamespace(obs=o, action=jax.random.normal(k[i], (COUNT, LENGTH, 1)))
-        for o, i in ((obs_a, 2), (obs_b, 3))
-    )
-    if labels is None:
-        labels = (obs_b[..., 0].sum(-1) > obs_a[..., 0].sum(-1)).astype(jnp.float32)
-    return reward_model.add_labels(state, seg_a, seg_b, jnp.asarray(labels, jnp.float32), jnp.ones(COUNT))
+def _stored():
+    """A fresh ensemble with ``COUNT`` labelled pairs of random segments (tests/test_qpa_rune.py's)."""
+    return _labelled_state(CFG, COUNT, LENGTH)
 
 
 def _params(state):
