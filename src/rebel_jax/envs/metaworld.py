@@ -17,6 +17,7 @@ References:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import pathlib
 from collections.abc import Callable
@@ -27,6 +28,8 @@ import mujoco
 import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
+
+from rebel_jax.envs._mjx import plain_cholesky
 
 ASSETS = pathlib.Path(__file__).parent / "metaworld_assets"
 """Meta-World 3.1.1's ``metaworld/assets`` files that these tasks' models read (its LICENSE beside them)."""
@@ -349,6 +352,37 @@ class MetaWorldEnv(Env):
         info = dict(info, success=metrics["success"])
         return State(d, obs, reward.astype(jnp.float32), done, metrics, info)
 
+    def state_at(
+        self,
+        qpos: jax.Array,
+        qvel: jax.Array,
+        mocap_pos: jax.Array,
+        mocap_quat: jax.Array,
+        qacc_warmstart: jax.Array,
+        body_pos: jax.Array,
+        previous: jax.Array,
+        target_pos: jax.Array,
+        init_tcp: jax.Array,
+    ) -> State:
+        """The ``State`` at a given MuJoCo state of an episode (as after a ``step``), for comparisons with Meta-World.
+
+        Args:
+          qpos, qvel, mocap_pos, mocap_quat, qacc_warmstart: the MuJoCo state.
+          body_pos: the moved body's position (the reset's draw).
+          previous: the previous observation's first 18 numbers.
+          target_pos, init_tcp: the episode's goal and fingertip centre after its reset.
+
+        Returns:
+          The state, with the observation, reward and success Meta-World's ``step`` returns there.
+        """
+        d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
+        d = d.replace(qpos=qpos, qvel=qvel, mocap_pos=mocap_pos, mocap_quat=mocap_quat, qacc_warmstart=qacc_warmstart)
+        info = {"target_pos": target_pos, "init_tcp": init_tcp, "body_pos": body_pos}
+        zero = jnp.zeros(())
+        if self.episode_length is not None:
+            info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
+        return self._observe(d, self.model(body_pos), previous, info, zero)
+
     def draw(self, rng: jax.Array) -> jax.Array:
         """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719)."""
         low, high = np.asarray(self.spec.reset_low), np.asarray(self.spec.reset_high)
@@ -380,7 +414,9 @@ class MetaWorldEnv(Env):
 
     def step(self, state: State, action: jax.Array) -> State:
         """Moves the mocap by ``action[:3]`` cm (clipped to [-1, 1] and to the hand's bounds), sets the gripper to
-        ``action[3]`` and runs 5 physics steps (sawyer_xyz_env.py:580-640)."""
+        ``action[3]`` and runs 5 physics steps (sawyer_xyz_env.py:580-640). On the CPU, MJX's Cholesky
+        factorizations run in plain JAX operations (``_mjx.plain_cholesky``), as :class:`~rebel_jax.envs.dmc.DMCEnv`
+        runs them."""
         if action.shape != (4,):
             raise ValueError(f"{self.spec.name}: action must have shape (4,), got {action.shape}")
         d = state.pipeline_state
@@ -392,7 +428,8 @@ class MetaWorldEnv(Env):
             mocap_quat=jnp.array([MOCAP_QUAT], d.mocap_quat.dtype),
             ctrl=jnp.stack([action[3], -action[3]]).astype(d.ctrl.dtype),
         )
-        d = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
+        with plain_cholesky() if jax.default_backend() == "cpu" else contextlib.nullcontext():
+            d = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
         info = dict(state.info)
         done = jnp.zeros_like(state.done)
         if self.episode_length is not None:

@@ -6,9 +6,10 @@ virtual environment:
     python3.11 -m venv /tmp/mwenv && /tmp/mwenv/bin/pip install metaworld==3.1.1 packaging
     /tmp/mwenv/bin/python tests/data/metaworld/make_reference.py
 
-(gymnasium 1.4, which metaworld pulls in, imports ``packaging`` without requiring it), which writes ``tests/data/metaworld/<task>.npz`` for each task of :data:`TASKS`, and the state that Meta-World's
-reset leaves the arm in, ``src/rebel_jax/envs/metaworld_assets/hand_reset.npz`` (the same at every reset: the
-objects are away from the hand's path; the tests check it). Each test file holds:
+(gymnasium 1.4, which metaworld pulls in, imports ``packaging`` without requiring it). It writes
+``tests/data/metaworld/<task>.npz`` for each task of :data:`TASKS`, and the state that Meta-World's reset leaves the
+arm in, ``src/rebel_jax/envs/metaworld_assets/hand_reset.npz`` (the same at every reset: the objects are away from
+the hand's path; the tests check it). Each test file holds:
 
 - ``reset_*``: :data:`RESETS` independent resets (Meta-World's ``_last_rand_vec``, ``_target_pos``,
   ``obj_init_pos``), for the KS tests of the reset distribution;
