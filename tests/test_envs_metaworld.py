@@ -152,7 +152,7 @@ def test_spaces_and_time_step(envs):
     env = envs["drawer-open"]
     assert (env.observation_size, env.action_size) == (39, 4)
     assert env.dt == pytest.approx(0.0125)
-    assert env.mj_model.opt.cone == 1 and env.mj_model.opt.iterations == 50  # elliptic, the XML's
+    assert env.mujoco_model.opt.cone == 1 and env.mujoco_model.opt.iterations == 50  # elliptic, the XML's
 
 
 def test_hidden_goal_is_zeros_and_reward_unchanged(envs):

@@ -238,6 +238,9 @@ class MetaWorldEnv(Env):
       info: ``success`` (1.0 where Meta-World's ``info["success"]`` is true), ``target_pos``, ``init_tcp`` and
         ``body_pos`` (the reset's draw), and with a time limit ``steps`` and ``truncation``.
 
+    Its compiled MuJoCo model is ``mujoco_model`` (not ``mj_model``, which the training command's evaluation clip and
+    ``rebel_jax.video`` look for: drawing Meta-World's scenes is not done yet).
+
     Args:
       task: a key of :data:`TASKS`.
       episode_length: control steps per episode (Meta-World: 500); None for no time limit (brax's convention).
@@ -253,8 +256,8 @@ class MetaWorldEnv(Env):
         self.spec = TASKS[task]
         self.episode_length = episode_length
         self.goal_observable = goal_observable
-        self.mj_model = mj_model(task)
-        m = self.mj_model
+        self.mujoco_model = mj_model(task)
+        m = self.mujoco_model
         self.sys = mjx.put_model(m)
         self.hand_reset = hand_reset(task, m)
         start = self.hand_reset
@@ -294,7 +297,7 @@ class MetaWorldEnv(Env):
 
     @property
     def dt(self) -> float:
-        return float(self.mj_model.opt.timestep) * FRAME_SKIP
+        return float(self.mujoco_model.opt.timestep) * FRAME_SKIP
 
     @property
     def backend(self) -> str:
