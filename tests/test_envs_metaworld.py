@@ -20,7 +20,8 @@ from rebel_jax.config import ConfigError, EnvConfig
 from rebel_jax.envs import METAWORLD_TASKS, make_env, metaworld
 
 DATA = pathlib.Path(__file__).parent / "data" / "metaworld"
-TASKS = ["drawer-open"]
+TASKS = ["drawer-open", "button-press"]
+STEPPED = ["drawer-open"]  # the tasks whose physics step runs (metaworld.STEP_REFUSED)
 OBS_TOL = 1e-5
 # Meta-World's rewards lie in [0, 10]; float32 carries about 7 significant digits, and the rewards' long-tail terms
 # amplify the observation's float32 rounding (~3e-7 in positions near 1) about twenty-fold near their bounds.
@@ -41,10 +42,18 @@ def envs():
     return {task: metaworld.MetaWorldEnv(task) for task in TASKS}
 
 
+def _episodes(env, ref):
+    """The reset of each recorded episode at Meta-World's draws: its state, and its info (the episode's goal,
+    fingertip centre and constants) per recorded row."""
+    draws = ref["episode_draws"]
+    assert draws.shape[1] == 2  # Meta-World's reset runs reset_model twice
+    return jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, 1]), _f32(draws[:, 0]))
+
+
 def _states_at(env, ref, rows):
     """Our states at the recorded rows (steps after a reset: t > 0)."""
-    ep = ref["episode"][rows]
-    moved = env._moved_body
+    info = jax.tree.map(lambda x: x[ref["episode"][rows]], _episodes(env, ref).info)
+    episode = {k: info[k] for k in ("target_pos", "init_tcp", "body_pos", "consts")}
     at = jax.jit(jax.vmap(env.state_at))
     return at(
         _f32(ref["qpos"][rows]),
@@ -52,10 +61,8 @@ def _states_at(env, ref, rows):
         _f32(ref["mocap_pos"][rows]),
         _f32(ref["mocap_quat"][rows]),
         _f32(ref["qacc_warmstart"][rows]),
-        _f32(ref["episode_body_pos"][ep, moved]),
         _f32(ref["obs"][rows - 1, :18]),
-        _f32(ref["episode_target_pos"][ep]),
-        _f32(ref["episode_init_tcp"][ep]),
+        episode,
     )
 
 
@@ -92,12 +99,10 @@ def test_observation_reward_success_equal_metaworld_on_all_recorded_states(envs,
 
 @pytest.mark.parametrize("task", TASKS)
 def test_reset_equals_metaworlds_at_the_same_draws(envs, reference, task):
-    """The reset's state, observation (the hand one physics step back, the object at Meta-World's first draw),
-    goal and fingertip centre, at the draws Meta-World made in each recorded reset."""
+    """The reset's state, observation (drawer-open: the hand one physics step back, the object at Meta-World's first
+    draw), goal and fingertip centre, at the draws Meta-World made in each recorded reset."""
     env, ref = envs[task], reference[task]
-    draws = ref["episode_draws"]
-    assert draws.shape[1] == 2  # Meta-World's reset runs reset_model twice
-    state = jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, 1]), _f32(draws[:, 0]))
+    state = _episodes(env, ref)
     rows = np.where(ref["t"] == 0)[0]
     np.testing.assert_allclose(np.asarray(state.obs), ref["obs"][rows], atol=OBS_TOL)
     np.testing.assert_allclose(np.asarray(state.info["target_pos"]), ref["episode_target_pos"], atol=OBS_TOL)
@@ -112,7 +117,9 @@ def test_reset_distribution_matches_metaworlds(envs, reference, task):
     """1,000 of our resets against Meta-World's 1,000 recorded ones: the draw and the goal, per coordinate (KS)."""
     env, ref = envs[task], reference[task]
     draws = jax.vmap(env.draw)(jax.random.split(jax.random.PRNGKey(0), 1000))
-    targets = jax.vmap(lambda v: env.spec.reset(v).target_pos)(draws)
+    targets = jax.jit(jax.vmap(lambda k: env.reset(k).info["target_pos"]))(
+        jax.random.split(jax.random.PRNGKey(0), 1000)
+    )
     for ours, theirs, name in ((draws, ref["reset_rand_vec"], "draw"), (targets, ref["reset_target_pos"], "goal")):
         ours = np.asarray(ours)
         for i in range(ours.shape[1]):
@@ -143,6 +150,11 @@ def test_task_names_pixels_and_impl_refused_in_one_line():
     assert "\n" not in str(pixels.value)
     with pytest.raises(ValueError, match="impl='jax' only"):
         make_env("metaworld_drawer-open", impl="warp")
+    with pytest.raises(ValueError, match="metaworld_button-press cannot run: MJX's JAX step") as refused:
+        make_env("metaworld_button-press")
+    assert "\n" not in str(refused.value)
+    with pytest.raises(ConfigError, match="cannot run"):
+        EnvConfig(task="metaworld_button-press").validate()
     with pytest.raises(ConfigError, match="metaworld_drawer-open"):
         EnvConfig(task="metaworld_drawer-opne").validate()
     EnvConfig(task="metaworld_drawer-open", episode_length=500).validate()
@@ -167,7 +179,7 @@ def test_hidden_goal_is_zeros_and_reward_unchanged(envs):
 
 
 @pytest.mark.heavy
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", STEPPED)
 def test_one_control_step_from_recorded_states(envs, reference, task):
     """One control step (5 physics steps of MJX's JAX step in float32) from every 16th recorded state, against the
     state Meta-World's step (MuJoCo 3.3 in float64) reached with the same action.

@@ -24,9 +24,16 @@ PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t, spec in TASKS.items() if spec.h
 ``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.render`) draws planes, spheres and capsules only, so
 the quadruped (ellipsoid and cylinder geoms) has no pixel version."""
 
-METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS)
+METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED)
 """Meta-World's manipulation tasks (:mod:`rebel_jax.envs.metaworld`): ``metaworld_drawer-open``. State only; their
-physics runs MJX's JAX step (``impl='jax'``)."""
+physics runs MJX's JAX step (``impl='jax'``). Tasks of :data:`rebel_jax.envs.metaworld.STEP_REFUSED` are left out
+(:func:`not_runnable` says why)."""
+
+
+def not_runnable(name: str) -> str | None:
+    """Why the Meta-World task ``name`` cannot run here: a one-line reason, or None."""
+    why = metaworld.STEP_REFUSED.get(name.removeprefix(metaworld.PREFIX))
+    return f"{name} cannot run: {why}" if name.startswith(metaworld.PREFIX) and why else None
 
 
 def no_pixel_version(name: str) -> str | None:
@@ -72,8 +79,8 @@ def make_env(
         del unroll_substeps, all_contacts, worlds  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
-    if reason:
-        raise ValueError(reason)
+    if reason or not_runnable(name):
+        raise ValueError(reason or not_runnable(name))
     if name in METAWORLD_TASKS:
         return _metaworld_env(name, solver, episode_length, impl)
     if name not in TASKS:
@@ -110,5 +117,6 @@ __all__ = [
     "VmapWrapper",
     "make_env",
     "no_pixel_version",
+    "not_runnable",
     "parse_solver",
 ]

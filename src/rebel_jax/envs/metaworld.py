@@ -65,17 +65,28 @@ def long_tail_tolerance(x: jax.Array, upper: float, margin: jax.Array) -> jax.Ar
     return jnp.where(x <= upper, 1.0, 1.0 / ((d * scale) ** 2 + 1.0))
 
 
+def hamacher_product(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Meta-World's ``reward_utils.hamacher_product`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:240-244):
+    ``a * b / (a + b - a * b)``, 0 where the denominator is not positive."""
+    denominator = a + b - a * b
+    return jnp.where(denominator > 0, a * b / jnp.where(denominator > 0, denominator, 1.0), 0.0)
+
+
 @dataclasses.dataclass(frozen=True)
-class Reset:
-    """What a reset draws: the model's moved body, the objects' joint positions and the goal.
+class Context:
+    """What a task's reward reads besides the observation.
 
     Attributes:
-      body_pos: the position of the task's moved body (``TaskSpec.moved_body``), or None.
-      target_pos: the goal (Meta-World's ``_target_pos``), in the observation's last three numbers.
+      tcp: the fingertips' centre now (``tcp_center``).
+      target_pos: the episode's goal (``_target_pos``).
+      init_tcp: the fingertips' centre after the reset (``init_tcp``).
+      consts: the episode's other constants of the reset (task-specific; ``(1,)``).
     """
 
-    body_pos: jax.Array | None
+    tcp: jax.Array
     target_pos: jax.Array
+    init_tcp: jax.Array
+    consts: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,10 +100,14 @@ class TaskSpec:
         default to them) and the goal's clipping bounds (``goal_space``).
       reset_low, reset_high: the uniform reset draw (``_random_reset_space``).
       hand_init_pos: where the hand is driven at reset.
-      moved_body: the body whose model position the reset sets (Meta-World writes ``model.body(...).pos``).
-      reset: ``rand_vec -> Reset``.
-      objects: ``mjx.Data -> (position (3,), quaternion (4,))`` of the task's object.
-      reward: ``(obs, target_pos, init_tcp) -> (reward, info)`` with ``success`` among the info.
+      moved_body: the body whose model position the reset sets to the draw (Meta-World writes
+        ``model.body(...).pos``).
+      reset_forward: the task's ``reset_model`` ends with ``set_state`` (which runs ``mj_forward``), so the reset's
+        observation shows the state the episode starts from; otherwise it shows MuJoCo's stale kinematics
+        (:meth:`MetaWorldEnv.reset`).
+      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (1,))``.
+      objects: ``model ids -> (mjx.Data -> (position (3,), quaternion (4,)))`` of the task's object.
+      reward: ``(model ids) -> ((obs, Context) -> (reward, info))`` with ``success`` among the info.
     """
 
     name: str
@@ -102,23 +117,40 @@ class TaskSpec:
     reset_low: tuple[float, ...]
     reset_high: tuple[float, ...]
     hand_init_pos: tuple[float, float, float]
-    moved_body: str | None
-    reset: Callable[[jax.Array], Reset]
+    moved_body: str
+    reset_forward: bool
+    goal: Callable[[mujoco.MjModel], Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]]
     objects: Callable[[mujoco.MjModel], Callable[[mjx.Data], tuple[jax.Array, jax.Array]]]
-    reward: Callable[[jax.Array, jax.Array, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]
+    reward: Callable[[jax.Array, Context], tuple[jax.Array, dict[str, jax.Array]]]
+
+
+def _body(model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+
+
+def _site(model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
+
+
+def _flags(**values: jax.Array) -> dict[str, jax.Array]:
+    return {k: v.astype(jnp.float32) for k, v in values.items()}
 
 
 # drawer-open: metaworld@3.1.1:metaworld/envs/sawyer_drawer_open_v3.py
 DRAWER_MAX_DIST = 0.2  # sawyer_drawer_open_v3.py:58 (maxDist)
 
 
-def _drawer_reset(rand_vec: jax.Array) -> Reset:
-    """sawyer_drawer_open_v3.py:99-115: the drawer's body at the draw, the goal 36 cm in front of its handle."""
-    return Reset(rand_vec, rand_vec + jnp.array([0.0, -0.16 - DRAWER_MAX_DIST, 0.09]))
+def _drawer_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_drawer_open_v3.py:99-115: the goal 36 cm in front of the closed drawer's handle."""
+        del d
+        return rand_vec + jnp.array([0.0, -0.16 - DRAWER_MAX_DIST, 0.09]), jnp.zeros(1)
+
+    return goal
 
 
 def _drawer_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
-    link = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "drawer_link")
+    link = _body(model, "drawer_link")
 
     def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
         # sawyer_drawer_open_v3.py:92-97: the handle, 16 cm in front of the drawer link's frame.
@@ -127,25 +159,72 @@ def _drawer_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Arr
     return objects
 
 
-def _drawer_reward(obs: jax.Array, target: jax.Array, init_tcp: jax.Array) -> tuple[jax.Array, dict]:
+def _drawer_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     """sawyer_drawer_open_v3.py:117-157 (reward version v2) and its ``evaluate_state`` (:62-85)."""
     gripper, handle = obs[:3], obs[4:7]
-    handle_error = jnp.linalg.norm(handle - target)
+    handle_error = jnp.linalg.norm(handle - c.target_pos)
     opening = long_tail_tolerance(handle_error, 0.02, DRAWER_MAX_DIST)
-    handle_init = target + jnp.array([0.0, DRAWER_MAX_DIST, 0.0])
+    handle_init = c.target_pos + jnp.array([0.0, DRAWER_MAX_DIST, 0.0])
     scale = jnp.array([3.0, 3.0, 1.0])
-    caging_margin = jnp.linalg.norm((handle_init - init_tcp) * scale)
+    caging_margin = jnp.linalg.norm((handle_init - c.init_tcp) * scale)
     caging = long_tail_tolerance(jnp.linalg.norm((handle - gripper) * scale), 0.01, caging_margin)
     reward = 5.0 * (caging + opening)
     gripper_error = jnp.linalg.norm(handle - gripper)
-    info = {
-        "success": (handle_error <= 0.03).astype(jnp.float32),
-        "near_object": (gripper_error <= 0.03).astype(jnp.float32),
-        "grasp_success": (obs[3] > 0).astype(jnp.float32),
-        "grasp_reward": caging,
-        "in_place_reward": opening,
-        "obj_to_target": handle_error,
-    }
+    info = _flags(
+        success=handle_error <= 0.03,
+        near_object=gripper_error <= 0.03,
+        grasp_success=obs[3] > 0,
+        grasp_reward=caging,
+        in_place_reward=opening,
+        obj_to_target=handle_error,
+    )
+    return reward, info
+
+
+# button-press: metaworld@3.1.1:metaworld/envs/sawyer_button_press_v3.py
+
+
+def _button_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    hole, start = _site(model, "hole"), _site(model, "buttonStart")
+
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_button_press_v3.py:107-125: the goal is the site ``hole``; the button's travel to it from
+        ``buttonStart`` along y (``_obj_to_target_init``) is the episode's constant."""
+        del rand_vec
+        target = d.site_xpos[hole]
+        return target, jnp.abs(target[1] - d.site_xpos[start, 1])[None]
+
+    return goal
+
+
+def _button_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+    button = _body(model, "button")
+
+    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        # sawyer_button_press_v3.py:93-97: 19.3 cm in front of the button's frame.
+        return d.xpos[button] + jnp.array([0.0, -0.193, 0.0]), d.xquat[button]
+
+    return objects
+
+
+def _button_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_button_press_v3.py:127-165 (reward version v2) and its ``evaluate_state`` (:62-84)."""
+    obj = obs[4:7]
+    tcp_to_obj = jnp.linalg.norm(obj - c.tcp)
+    tcp_to_obj_init = jnp.linalg.norm(obj - c.init_tcp)
+    obj_to_target = jnp.abs(c.target_pos[1] - obj[1])
+    tcp_closed = jnp.maximum(obs[3], 0.0)
+    near_button = long_tail_tolerance(tcp_to_obj, 0.05, tcp_to_obj_init)
+    button_pressed = long_tail_tolerance(obj_to_target, 0.005, c.consts[0])
+    reward = 2.0 * hamacher_product(tcp_closed, near_button) + jnp.where(tcp_to_obj <= 0.05, 8.0 * button_pressed, 0.0)
+    info = _flags(
+        success=obj_to_target <= 0.02,
+        near_object=tcp_to_obj <= 0.05,
+        grasp_success=obs[3] > 0,
+        grasp_reward=near_button,
+        in_place_reward=button_pressed,
+        obj_to_target=obj_to_target,
+    )
     return reward, info
 
 
@@ -159,12 +238,33 @@ TASKS: dict[str, TaskSpec] = {
         reset_high=(0.1, 0.9, 0.0),
         hand_init_pos=(0.0, 0.6, 0.2),
         moved_body="drawer",
-        reset=_drawer_reset,
+        reset_forward=False,
+        goal=_drawer_goal,
         objects=_drawer_objects,
         reward=_drawer_reward,
     ),
+    "button-press": TaskSpec(
+        name="button-press",
+        xml="sawyer_button_press.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        reset_low=(-0.1, 0.85, 0.115),
+        reset_high=(0.1, 0.9, 0.115),
+        hand_init_pos=(0.0, 0.4, 0.2),
+        moved_body="box",
+        reset_forward=True,
+        goal=_button_goal,
+        objects=_button_objects,
+        reward=_button_reward,
+    ),
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
+
+STEP_REFUSED = {
+    "button-press": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
+    "not wired into the Meta-World tasks yet",
+}
+"""Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
 
 
 def mj_model(task: str) -> mujoco.MjModel:
@@ -258,10 +358,17 @@ class MetaWorldEnv(Env):
         self.goal_observable = goal_observable
         self.mujoco_model = mj_model(task)
         m = self.mujoco_model
-        self.sys = mjx.put_model(m)
+        self.step_refused = STEP_REFUSED.get(task)
+        if self.step_refused:  # MJX builds no model with collisions it lacks: its kinematics only, without contacts
+            kinematic = mujoco.MjModel.from_xml_path(str(ASSETS / "sawyer_xyz" / self.spec.xml))
+            kinematic.geom_contype[:] = kinematic.geom_conaffinity[:] = 0
+            self.sys = mjx.put_model(kinematic)
+        else:
+            kinematic = m
+            self.sys = mjx.put_model(m)
         self.hand_reset = hand_reset(task, m)
         start = self.hand_reset
-        d0 = mjx.make_data(m)
+        d0 = mjx.make_data(kinematic)
         self._data0 = jax.device_get(
             d0.replace(
                 qpos=jnp.asarray(start.qpos, jnp.float32),
@@ -273,6 +380,7 @@ class MetaWorldEnv(Env):
             )
         )
         self._objects = self.spec.objects(m)
+        self._goal = self.spec.goal(m)
         name = lambda kind, n: mujoco.mj_name2id(m, kind, n)  # noqa: E731
         self._hand = name(mujoco.mjtObj.mjOBJ_BODY, "hand")
         self._claws = (name(mujoco.mjtObj.mjOBJ_BODY, "rightclaw"), name(mujoco.mjtObj.mjOBJ_BODY, "leftclaw"))
@@ -280,7 +388,7 @@ class MetaWorldEnv(Env):
             name(mujoco.mjtObj.mjOBJ_SITE, "rightEndEffector"),
             name(mujoco.mjtObj.mjOBJ_SITE, "leftEndEffector"),
         )
-        self._moved_body = name(mujoco.mjtObj.mjOBJ_BODY, self.spec.moved_body) if self.spec.moved_body else None
+        self._moved_body = name(mujoco.mjtObj.mjOBJ_BODY, self.spec.moved_body)
         low = np.concatenate([HAND_SPACE[0], [-1.0], np.full(OBJ_PADDED, -np.inf)])
         high = np.concatenate([HAND_SPACE[1], [1.0], np.full(OBJ_PADDED, np.inf)])
         self._obs_low = np.concatenate([low, low, self.spec.hand_low]).astype(np.float32)
@@ -309,8 +417,6 @@ class MetaWorldEnv(Env):
 
     def model(self, body_pos: jax.Array) -> mjx.Model:
         """The MJX model with the reset's moved body at ``body_pos`` (Meta-World moves it in the model)."""
-        if self._moved_body is None:
-            return self.sys
         return self.sys.replace(body_pos=self.sys.body_pos.at[self._moved_body].set(body_pos))
 
     def current(self, d: mjx.Data) -> jax.Array:
@@ -348,7 +454,8 @@ class MetaWorldEnv(Env):
         clip = previous is not None
         obs = self.observation(current, current if previous is None else previous, info["target_pos"], clip)
         # The reward reads the goal itself, not the observation's (zeros when the goal is hidden).
-        reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), info["target_pos"], info["init_tcp"])
+        context = Context(self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"])
+        reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), context)
         if previous is None:  # Meta-World's reset returns no reward
             reward = jnp.zeros(())
         metrics = {k: v.astype(jnp.float32) for k, v in metrics.items()}
@@ -362,29 +469,26 @@ class MetaWorldEnv(Env):
         mocap_pos: jax.Array,
         mocap_quat: jax.Array,
         qacc_warmstart: jax.Array,
-        body_pos: jax.Array,
         previous: jax.Array,
-        target_pos: jax.Array,
-        init_tcp: jax.Array,
+        episode: dict[str, jax.Array],
     ) -> State:
         """The ``State`` at a given MuJoCo state of an episode (as after a ``step``), for comparisons with Meta-World.
 
         Args:
           qpos, qvel, mocap_pos, mocap_quat, qacc_warmstart: the MuJoCo state.
-          body_pos: the moved body's position (the reset's draw).
           previous: the previous observation's first 18 numbers.
-          target_pos, init_tcp: the episode's goal and fingertip centre after its reset.
+          episode: the episode's reset's ``info`` (``body_pos``, ``target_pos``, ``init_tcp``, ``consts``).
 
         Returns:
           The state, with the observation, reward and success Meta-World's ``step`` returns there.
         """
         d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
         d = d.replace(qpos=qpos, qvel=qvel, mocap_pos=mocap_pos, mocap_quat=mocap_quat, qacc_warmstart=qacc_warmstart)
-        info = {"target_pos": target_pos, "init_tcp": init_tcp, "body_pos": body_pos}
+        info = {k: episode[k] for k in ("target_pos", "init_tcp", "body_pos", "consts")}
         zero = jnp.zeros(())
         if self.episode_length is not None:
             info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
-        return self._observe(d, self.model(body_pos), previous, info, zero)
+        return self._observe(d, self.model(info["body_pos"]), previous, info, zero)
 
     def draw(self, rng: jax.Array) -> jax.Array:
         """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719)."""
@@ -394,32 +498,34 @@ class MetaWorldEnv(Env):
     def reset(self, rng: jax.Array) -> State:
         """Draws the object (and goal) uniformly in the task's reset space, the hand at its reset state.
 
-        As Meta-World's ``reset`` (sawyer_xyz_env.py:664-682) runs ``reset_model`` twice and observes without a
-        ``mj_forward``, its observation shows the hand one physics step back (:class:`HandReset`) and the object
-        where the first of two independent draws put it; the episode runs with the second.
+        As Meta-World's ``reset`` (sawyer_xyz_env.py:664-682) runs ``reset_model`` twice and, unless the task's
+        ``reset_model`` ends with ``set_state`` (``TaskSpec.reset_forward``), observes without a ``mj_forward``, its
+        observation shows the hand one physics step back (:class:`HandReset`) and the object where the first of two
+        independent draws put it; the episode runs with the second. ``init_tcp`` is one physics step back always.
         """
         shown_key, key = jax.random.split(rng)
         return self.reset_to(self.draw(key), self.draw(shown_key))
 
     def reset_to(self, rand_vec: jax.Array, shown_vec: jax.Array) -> State:
         """The reset state of the draw ``rand_vec``, its observation showing the object at ``shown_vec``."""
-        drawn, shown = self.spec.reset(rand_vec), self.spec.reset(shown_vec)
-        body_pos = drawn.body_pos if drawn.body_pos is not None else jnp.zeros(3)
-        m = self.model(body_pos)
+        m = self.model(rand_vec)
         d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
-        m_shown = self.model(shown.body_pos if shown.body_pos is not None else body_pos)
-        seen = mjx.kinematics(m_shown, d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype)))
-        info = {"target_pos": drawn.target_pos, "init_tcp": self.tcp_center(seen), "body_pos": body_pos}
+        target, consts = self._goal(rand_vec, mjx.kinematics(m, d))
+        stale = d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype))
+        seen = mjx.kinematics(self.model(shown_vec), stale)
+        info = {"target_pos": target, "init_tcp": self.tcp_center(seen), "body_pos": rand_vec, "consts": consts}
         zero = jnp.zeros(())
         if self.episode_length is not None:
             info.update(steps=jnp.zeros((), jnp.int32), truncation=zero)
-        return self._observe(d, m, None, info, zero, shown=seen)
+        return self._observe(d, m, None, info, zero, shown=None if self.spec.reset_forward else seen)
 
     def step(self, state: State, action: jax.Array) -> State:
         """Moves the mocap by ``action[:3]`` cm (clipped to [-1, 1] and to the hand's bounds), sets the gripper to
         ``action[3]`` and runs 5 physics steps (sawyer_xyz_env.py:580-640). On the CPU, MJX's Cholesky
         factorizations run in plain JAX operations (``_mjx.plain_cholesky``), as :class:`~rebel_jax.envs.dmc.DMCEnv`
         runs them."""
+        if self.step_refused:
+            raise ValueError(f"metaworld_{self.spec.name} cannot step: {self.step_refused}")
         if action.shape != (4,):
             raise ValueError(f"{self.spec.name}: action must have shape (4,), got {action.shape}")
         d = state.pipeline_state

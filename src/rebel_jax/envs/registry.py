@@ -61,7 +61,7 @@ def brax_names() -> dict[str, Callable[..., object]]:
     """The names this module registers with brax, and their constructors."""
     names: dict[str, Callable[..., object]] = {f"{PREFIX}{task}": _task_factory(task) for task in dmc.TASKS}
     names[f"{PREFIX}probe_point"] = _probe
-    for task in metaworld.TASKS:
+    for task in (t for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED):
         names[f"{PREFIX}{metaworld.PREFIX}{task}"] = _metaworld_factory(task)
     return names
 
