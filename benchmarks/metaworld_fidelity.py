@@ -57,19 +57,23 @@ def _stats(err: np.ndarray) -> dict:
     return {"median": float(np.median(per_state)), "max": float(per_state.max())}
 
 
-def states_at(env: metaworld.MetaWorldEnv, ref: dict, rows: np.ndarray):
-    """Our states at recorded rows (steps after a reset)."""
-    ep = ref["episode"][rows]
+def episodes(env: metaworld.MetaWorldEnv, ref: dict):
+    """The resets of the recorded episodes, at the draws Meta-World made."""
+    draws = ref["episode_draws"]
+    return jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, 1]), _f32(draws[:, 0]))
+
+
+def states_at(env: metaworld.MetaWorldEnv, ref: dict, rows: np.ndarray, resets):
+    """Our states at recorded rows (steps after a reset) of the episodes ``resets`` began."""
+    info = jax.tree.map(lambda x: x[ref["episode"][rows]], resets.info)
     return jax.jit(jax.vmap(env.state_at))(
         _f32(ref["qpos"][rows]),
         _f32(ref["qvel"][rows]),
         _f32(ref["mocap_pos"][rows]),
         _f32(ref["mocap_quat"][rows]),
         _f32(ref["qacc_warmstart"][rows]),
-        _f32(ref["episode_body_pos"][ep, env._moved_body]),
         _f32(ref["obs"][rows - 1, :18]),
-        _f32(ref["episode_target_pos"][ep]),
-        _f32(ref["episode_init_tcp"][ep]),
+        {k: info[k] for k in ("target_pos", "init_tcp", "body_pos", "consts")},
     )
 
 
@@ -91,7 +95,8 @@ def measure(task: str, every: int) -> dict:
     env = metaworld.MetaWorldEnv(task)
     out: dict = {"versions": [str(v) for v in ref["versions"]]}
     rows = np.where(ref["t"] > 0)[0]
-    s = states_at(env, ref, rows)
+    r = episodes(env, ref)
+    s = states_at(env, ref, rows, r)
     out["states"] = {
         "n": len(rows),
         "successes": int(ref["success"][rows].sum()),
@@ -99,8 +104,6 @@ def measure(task: str, every: int) -> dict:
         "reward_max_err": float(np.abs(np.asarray(s.reward) - ref["reward"][rows]).max()),
         "success_mismatches": int((np.asarray(s.info["success"]) != ref["success"][rows]).sum()),
     }
-    draws = ref["episode_draws"]
-    r = jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, 1]), _f32(draws[:, 0]))
     first = np.where(ref["t"] == 0)[0]
     out["reset"] = {
         "n": len(first),
@@ -115,9 +118,11 @@ def measure(task: str, every: int) -> dict:
         "qpos_max_diff": float(np.abs(qpos - ref["qpos"][first[0]]).max()),
         "qvel_max_diff": float(np.abs(qvel - ref["qvel"][first[0]]).max()),
     }
+    if env.step_refused:
+        return out
     rows = rows[ref["t"][rows] < metaworld.EPISODE_LENGTH][::every]
     start = time.perf_counter()
-    stepped = jax.jit(jax.vmap(env.step))(states_at(env, ref, rows), _f32(ref["action"][rows + 1]))
+    stepped = jax.jit(jax.vmap(env.step))(states_at(env, ref, rows, r), _f32(ref["action"][rows + 1]))
     jax.block_until_ready(stepped)
     nxt = rows + 1
     out["step"] = {
