@@ -48,6 +48,11 @@ for _t in ("door-open", "button-press"):  # metaworld@3.1.1: sawyer_door_v3.py:2
     HAND[_t] = ((-0.5, 0.40, 0.05), (0.5, 1.0, 0.5))
 
 
+# MuJoCo Warp's buffers per world: its defaults (48 contacts, 64 constraint rows for these models) overflow on
+# contact-rich states and drop contacts.
+CONTACTS, CONSTRAINTS = 256, 1024
+
+
 def _f32(x) -> np.ndarray:
     return np.asarray(x, np.float32)
 
@@ -150,7 +155,7 @@ def measure_warp(task: str, every: int) -> dict:
     low, high = (jnp.asarray(b) for b in HAND[task])
 
     def one(m, qpos, qvel, mocap_pos, qacc_warmstart, action):
-        d = mjx.make_data(model, impl="warp")
+        d = mjx.make_data(model, impl="warp", naconmax=CONTACTS, njmax=CONSTRAINTS)
         mocap = jnp.clip(mocap_pos[0] + jnp.clip(action[:3], -1, 1) * metaworld.ACTION_SCALE, low, high)
         d = d.replace(
             qpos=qpos,
