@@ -2,9 +2,10 @@
 
 Each task is a ``brax.envs.Env`` with brax's ``State`` equal to Meta-World 3.1.1's ``<task>-v3`` environment
 (``metaworld.env_dict.ALL_V3_ENVIRONMENTS``, reward version ``v2``, its default) as the preference-RL code bases
-build it (rll-research/BPref@f3ece2e:utils.py:59-72): a fresh random object position at every reset, 500-step
-episodes, a 4-number action (end-effector displacement of at most 1 cm per axis, and the gripper) and a 39-number
-observation (hand position, gripper opening, object pose, the same 18 numbers of the previous step, the goal).
+build it (rll-research/BPref@f3ece2e:utils.py, ``make_metaworld_env``): a fresh random object position at every
+reset, 500-step episodes, a 4-number action (end-effector displacement of at most 1 cm per axis, and the gripper)
+and a 39-number observation (hand position, gripper opening, object pose, the same 18 numbers of the previous step,
+the goal).
 ``goal_observable=False`` zeroes the goal as those code bases' observation does (docs/tasks.md says why).
 
 The models, meshes and textures are Meta-World's own (``metaworld_assets/``, MIT licence). The tests compare
@@ -44,13 +45,13 @@ HAND_RESET_STEPS = 50  # sawyer_xyz_env.py:684 (_reset_hand)
 MOCAP_QUAT = (1.0, 0.0, 1.0, 0.0)  # sawyer_xyz_env.py:336, set (unnormalised) at every step
 WELD_DATA = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0)  # sawyer_xyz_env.py:139 (reset_mocap_welds)
 HAND_SPACE = ((-0.525, 0.348, -0.0525), (0.525, 1.025, 0.7))  # sawyer_xyz_env.py:146-150 (_HAND_SPACE)
-OBJ_PADDED = 14  # sawyer_xyz_env.py:250 (_obs_obj_max_len)
+OBJ_PADDED = 14  # sawyer_xyz_env.py:244 (_obs_obj_max_len)
 VALUE_AT_MARGIN = 0.1  # metaworld@3.1.1:metaworld/utils/reward_utils.py:10
 
 
 def long_tail_tolerance(x: jax.Array, upper: float, margin: jax.Array) -> jax.Array:
     """Meta-World's ``reward_utils.tolerance(x, bounds=(0, upper), margin, sigmoid='long_tail')`` for ``x >= 0``
-    and ``margin > 0`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:63-65, 131-139); ``margin`` may be traced.
+    and ``margin > 0`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:63-65, 97-150); ``margin`` may be traced.
 
     Args:
       x: distances (>= 0).
@@ -142,7 +143,7 @@ DRAWER_MAX_DIST = 0.2  # sawyer_drawer_open_v3.py:58 (maxDist)
 
 def _drawer_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
     def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        """sawyer_drawer_open_v3.py:99-115: the goal 36 cm in front of the closed drawer's handle."""
+        """sawyer_drawer_open_v3.py:99-113: the goal 36 cm in front of the closed drawer's handle."""
         del d
         return rand_vec + jnp.array([0.0, -0.16 - DRAWER_MAX_DIST, 0.09]), jnp.zeros(1)
 
@@ -153,14 +154,14 @@ def _drawer_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Arr
     link = _body(model, "drawer_link")
 
     def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        # sawyer_drawer_open_v3.py:92-97: the handle, 16 cm in front of the drawer link's frame.
+        # sawyer_drawer_open_v3.py:93-97: the handle, 16 cm in front of the drawer link's frame.
         return d.xpos[link] + jnp.array([0.0, -0.16, 0.0]), d.xquat[link]
 
     return objects
 
 
 def _drawer_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
-    """sawyer_drawer_open_v3.py:117-157 (reward version v2) and its ``evaluate_state`` (:62-85)."""
+    """sawyer_drawer_open_v3.py:115-158 (reward version v2) and its ``evaluate_state`` (:66-88)."""
     gripper, handle = obs[:3], obs[4:7]
     handle_error = jnp.linalg.norm(handle - c.target_pos)
     opening = long_tail_tolerance(handle_error, 0.02, DRAWER_MAX_DIST)
@@ -188,7 +189,7 @@ def _button_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple
     hole, start = _site(model, "hole"), _site(model, "buttonStart")
 
     def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        """sawyer_button_press_v3.py:107-125: the goal is the site ``hole``; the button's travel to it from
+        """sawyer_button_press_v3.py:105-124: the goal is the site ``hole``; the button's travel to it from
         ``buttonStart`` along y (``_obj_to_target_init``) is the episode's constant."""
         del rand_vec
         target = d.site_xpos[hole]
@@ -201,14 +202,14 @@ def _button_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Arr
     button = _body(model, "button")
 
     def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        # sawyer_button_press_v3.py:93-97: 19.3 cm in front of the button's frame.
+        # sawyer_button_press_v3.py:92-96: 19.3 cm in front of the button's frame.
         return d.xpos[button] + jnp.array([0.0, -0.193, 0.0]), d.xquat[button]
 
     return objects
 
 
 def _button_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
-    """sawyer_button_press_v3.py:127-165 (reward version v2) and its ``evaluate_state`` (:62-84)."""
+    """sawyer_button_press_v3.py:126-166 (reward version v2) and its ``evaluate_state`` (:61-83)."""
     obj = obs[4:7]
     tcp_to_obj = jnp.linalg.norm(obj - c.tcp)
     tcp_to_obj_init = jnp.linalg.norm(obj - c.init_tcp)
@@ -434,7 +435,7 @@ class MetaWorldEnv(Env):
 
     def observation(self, current: jax.Array, previous: jax.Array, target: jax.Array, clip: bool = True) -> jax.Array:
         """The 39 numbers: ``current``, ``previous``, the goal (zeros unless ``goal_observable``), clipped to
-        Meta-World's observation space as its ``step`` clips them (sawyer_xyz_env.py:513-527, 610-615); the reset's
+        Meta-World's observation space as its ``step`` clips them (sawyer_xyz_env.py:513-527, 620-628); the reset's
         observation is not clipped (``clip=False``)."""
         goal = target if self.goal_observable else jnp.zeros(3)
         obs = jnp.concatenate([current, previous, goal])

@@ -21,10 +21,11 @@ the hand's path; the tests check it). Each test file holds:
   ``body_pos`` after the reset (the reset moves object bodies in the model), the target
   position and ``init_tcp`` (the fingertip centre after the reset, which the rewards read).
 
-The environments are built as the PbRL code bases build them (rll-research/BPref@f3ece2e:utils.py:59-72, the
-same in huxiao09/QPA@502a966:utils.py): a fresh random object position at every reset (``_freeze_rand_vec =
-False``), drawn here from the seeded generator (``seeded_rand_vec``) for reproducibility, and with the goal
-observable (``_partially_observable = False``) so that the observation's last three numbers are tested too.
+The environments are built as the PbRL code bases build them (rll-research/BPref@f3ece2e:utils.py,
+``make_metaworld_env``, the same in huxiao09/QPA@502a966:utils.py): a fresh random object position at every reset
+(``_freeze_rand_vec = False``), drawn here from the seeded generator (``seeded_rand_vec``) for reproducibility, and
+with the goal observable (``_partially_observable = False``) so that the observation's last three numbers are tested
+too.
 """
 
 from __future__ import annotations
