@@ -15,7 +15,19 @@ import numpy as np
 import pytest
 from brax.envs.wrappers import training
 
-from rebel_jax.envs import SOLVERS, TASKS, AutoResetWrapper, DMCEnv, PointProbe, State, make_env, probe, registry
+from rebel_jax.envs import (
+    METAWORLD_TASKS,
+    SOLVERS,
+    TASKS,
+    AutoResetWrapper,
+    DMCEnv,
+    PointProbe,
+    State,
+    make_env,
+    probe,
+    registry,
+)
+from rebel_jax.envs.metaworld import MetaWorldEnv
 
 B = 3  # environments per batch
 L = 3  # episode length of the episode tests
@@ -58,7 +70,7 @@ def _actions(steps: int, size: int, seed: int = 1) -> jax.Array:
 def test_every_task_is_registered_with_brax_without_a_time_limit():
     assert State is brax.envs.State  # one State type: ours is brax's
     names = registry.brax_names()
-    assert set(names) == {f"rebel_{t}" for t in TASKS} | {"rebel_probe_point"}
+    assert set(names) == {f"rebel_{t}" for t in (*TASKS, *METAWORLD_TASKS)} | {"rebel_probe_point"}
     for task in TASKS:
         env = brax.envs.get_environment(f"rebel_{task}")
         assert isinstance(env, brax.envs.Env) and isinstance(env, DMCEnv)
@@ -69,6 +81,12 @@ def test_every_task_is_registered_with_brax_without_a_time_limit():
         assert isinstance(state, brax.envs.State) and state.obs.shape == (ours.observation_size,)
         assert state.info == {}  # the step count is EpisodeWrapper's
     assert brax.envs.get_environment("rebel_cheetah_run", solver="dm_control").solver == SOLVERS["dm_control"]
+    for task in METAWORLD_TASKS:
+        env = brax.envs.get_environment(f"rebel_{task}")
+        assert isinstance(env, MetaWorldEnv) and env.episode_length is None and env.goal_observable
+        state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+        assert state.obs.shape == (39,) and "steps" not in state.info and "success" in state.info
+        assert not brax.envs.get_environment(f"rebel_{task}", goal_observable=False).goal_observable
     point = brax.envs.get_environment("rebel_probe_point")
     assert isinstance(point, PointProbe) and isinstance(point, brax.envs.Env) and point.episode_length is None
 

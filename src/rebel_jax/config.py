@@ -73,13 +73,26 @@ class EnvConfig:
     3); with the JAX step the physics alone was not faster, so it is off by default."""
 
     def validate(self) -> None:
-        from rebel_jax.envs import IMPLS, PIXEL_TASKS, PROBES, SOLVERS, TASKS, no_pixel_version
+        from rebel_jax.envs import (
+            IMPLS,
+            METAWORLD_TASKS,
+            PIXEL_TASKS,
+            PROBES,
+            SOLVERS,
+            TASKS,
+            no_pixel_version,
+            not_runnable,
+        )
         from rebel_jax.envs.dmc import check_impl
 
         if no_pixel_version(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
-        known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS
-        _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *PROBES]}")
+        if not_runnable(self.task):
+            raise ConfigError(f"env.task={self.task!r} is invalid: {not_runnable(self.task)}")
+        known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS or self.task in METAWORLD_TASKS
+        _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]}")
+        if self.task in METAWORLD_TASKS and self.impl != "jax":
+            raise ConfigError(f"env.impl={self.impl!r} is invalid for {self.task}: it runs with impl='jax' only")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.impl in IMPLS, "env.impl", self.impl, f"one of {list(IMPLS)}")
         if self.impl == "warp":

@@ -7,7 +7,7 @@ with brax as ``rebel_<task>`` (:mod:`rebel_jax.envs.registry`).
 from __future__ import annotations
 
 import rebel_jax.envs._mjx  # noqa: F401 - first: imports mujoco.mjx without its warp noise
-from rebel_jax.envs import dmc, pixels, registry
+from rebel_jax.envs import dmc, metaworld, pixels, registry
 from rebel_jax.envs.dmc import IMPLS, SOLVERS, TASKS, DMCEnv, Solver, State, parse_solver  # State: brax's
 from rebel_jax.envs.pixel_probe import PixelProbe
 from rebel_jax.envs.pixels import PixelEnv
@@ -24,11 +24,24 @@ PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t, spec in TASKS.items() if spec.h
 ``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.render`) draws planes, spheres and capsules only, so
 the quadruped (ellipsoid and cylinder geoms) has no pixel version."""
 
+METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED)
+"""Meta-World's manipulation tasks (:mod:`rebel_jax.envs.metaworld`): ``metaworld_drawer-open``. State only; their
+physics runs MJX's JAX step (``impl='jax'``). Tasks of :data:`rebel_jax.envs.metaworld.STEP_REFUSED` are left out
+(:func:`not_runnable` says why)."""
+
+
+def not_runnable(name: str) -> str | None:
+    """Why the Meta-World task ``name`` cannot run here: a one-line reason, or None."""
+    why = metaworld.STEP_REFUSED.get(name.removeprefix(metaworld.PREFIX))
+    return f"{name} cannot run: {why}" if name.startswith(metaworld.PREFIX) and why else None
+
 
 def no_pixel_version(name: str) -> str | None:
     """Why ``name``, a state task's name with the pixel suffix, is no task: a one-line reason, or None where
     ``name`` is not such a name."""
     state = name.removesuffix(pixels.SUFFIX)
+    if name != state and state in METAWORLD_TASKS:
+        return f"{state} has no pixel version: Meta-World's tasks are state tasks here (observations of 39 numbers)"
     if name == state or state not in TASKS or TASKS[state].has_pixels:
         return None
     return (
@@ -45,9 +58,9 @@ def make_env(
     all_contacts: bool = False,
     impl: str = "jax",
     worlds: int = 1,
-) -> DMCEnv | PixelEnv | PointProbe:
-    """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`
-    or :data:`PROBES`.
+) -> DMCEnv | PixelEnv | PointProbe | metaworld.MetaWorldEnv:
+    """Builds a task by name: one of :data:`TASKS` (see :func:`rebel_jax.envs.dmc.make_env`), :data:`PIXEL_TASKS`,
+    :data:`METAWORLD_TASKS` (:func:`rebel_jax.envs.metaworld.make_env`) or :data:`PROBES`.
 
     A probe has no physics engine: ``solver`` and ``impl`` are checked but unused, and so are ``unroll_substeps``,
     ``all_contacts`` and ``worlds``.
@@ -66,15 +79,29 @@ def make_env(
         del unroll_substeps, all_contacts, worlds  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
-    if reason:
-        raise ValueError(reason)
+    if reason or not_runnable(name):
+        raise ValueError(reason or not_runnable(name))
+    if name in METAWORLD_TASKS:
+        return _metaworld_env(name, solver, episode_length, impl)
     if name not in TASKS:
-        valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS]))
+        valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS, *METAWORLD_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
     return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts, impl, worlds)
 
 
+def _metaworld_env(name: str, solver: str | Solver, episode_length: int | None, impl: str) -> metaworld.MetaWorldEnv:
+    """A Meta-World task: it runs its model's own solver settings (Newton, 50 iterations, as Meta-World) and MJX's
+    JAX step, so ``solver`` is checked but unused and ``impl='warp'`` is refused."""
+    parse_solver(solver)
+    if impl not in IMPLS:
+        dmc.check_impl(impl)
+    if impl != "jax":
+        raise ValueError(f"{name} runs with impl='jax' only: MuJoCo Warp's step is not tested against Meta-World")
+    return metaworld.make_env(name, episode_length)
+
+
 __all__ = [
+    "METAWORLD_TASKS",
     "IMPLS",
     "PIXEL_TASKS",
     "PROBES",
@@ -90,5 +117,6 @@ __all__ = [
     "VmapWrapper",
     "make_env",
     "no_pixel_version",
+    "not_runnable",
     "parse_solver",
 ]

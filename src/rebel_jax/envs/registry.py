@@ -22,7 +22,7 @@ from collections.abc import Callable
 
 from brax import envs as brax_envs
 
-from rebel_jax.envs import dmc
+from rebel_jax.envs import dmc, metaworld
 from rebel_jax.envs.probe import PointProbe
 
 PREFIX = "rebel_"
@@ -43,6 +43,15 @@ def _task_factory(task: str) -> Callable[..., dmc.DMCEnv]:
     return make
 
 
+def _metaworld_factory(task: str) -> Callable[..., metaworld.MetaWorldEnv]:
+    def make(goal_observable: bool = True) -> metaworld.MetaWorldEnv:
+        return metaworld.MetaWorldEnv(task, None, goal_observable)
+
+    make.__name__ = make.__qualname__ = f"{PREFIX}{metaworld.PREFIX}{task}"
+    make.__doc__ = f"Meta-World's {task} without a time limit, for brax's registry (see {__name__})."
+    return make
+
+
 def _probe() -> PointProbe:
     """probe_point without a time limit, for brax's registry."""
     return PointProbe(episode_length=None)
@@ -52,6 +61,8 @@ def brax_names() -> dict[str, Callable[..., object]]:
     """The names this module registers with brax, and their constructors."""
     names: dict[str, Callable[..., object]] = {f"{PREFIX}{task}": _task_factory(task) for task in dmc.TASKS}
     names[f"{PREFIX}probe_point"] = _probe
+    for task in (t for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED):
+        names[f"{PREFIX}{metaworld.PREFIX}{task}"] = _metaworld_factory(task)
     return names
 
 

@@ -1,0 +1,554 @@
+"""Meta-World's manipulation tasks on MJX: the Sawyer arm driven through its mocap weld.
+
+Each task is a ``brax.envs.Env`` with brax's ``State`` equal to Meta-World 3.1.1's ``<task>-v3`` environment
+(``metaworld.env_dict.ALL_V3_ENVIRONMENTS``, reward version ``v2``, its default) as the preference-RL code bases
+build it (rll-research/BPref@f3ece2e:utils.py, ``make_metaworld_env``): a fresh random object position at every
+reset, 500-step episodes, a 4-number action (end-effector displacement of at most 1 cm per axis, and the gripper)
+and a 39-number observation (hand position, gripper opening, object pose, the same 18 numbers of the previous step,
+the goal).
+``goal_observable=False`` zeroes the goal as those code bases' observation does (docs/tasks.md says why).
+
+The models, meshes and textures are Meta-World's own (``metaworld_assets/``, MIT licence). The tests compare
+observations, rewards, success flags, the reset distribution and single steps with data recorded from Meta-World
+(``tests/data/metaworld/make_reference.py``, ``tests/test_envs_metaworld.py``).
+
+References:
+  Yu et al., "Meta-World: A Benchmark and Evaluation for Multi-Task and Meta Reinforcement Learning", CoRL 2019.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import pathlib
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from rebel_jax.envs._mjx import plain_cholesky
+
+ASSETS = pathlib.Path(__file__).parent / "metaworld_assets"
+"""Meta-World 3.1.1's ``metaworld/assets`` files that these tasks' models read (its LICENSE beside them)."""
+
+PREFIX = "metaworld_"
+"""Task names: ``metaworld_drawer-open``, ... (B-Pref's ``metaworld_<env>`` names without the version)."""
+
+EPISODE_LENGTH = 500  # metaworld@3.1.1:metaworld/sawyer_xyz_env.py:153 (max_path_length)
+FRAME_SKIP = 5  # sawyer_xyz_env.py:177
+ACTION_SCALE = 1.0 / 100  # sawyer_xyz_env.py:182: metres of mocap displacement per unit of action
+HAND_RESET_STEPS = 50  # sawyer_xyz_env.py:684 (_reset_hand)
+MOCAP_QUAT = (1.0, 0.0, 1.0, 0.0)  # sawyer_xyz_env.py:336, set (unnormalised) at every step
+WELD_DATA = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0)  # sawyer_xyz_env.py:139 (reset_mocap_welds)
+HAND_SPACE = ((-0.525, 0.348, -0.0525), (0.525, 1.025, 0.7))  # sawyer_xyz_env.py:146-150 (_HAND_SPACE)
+OBJ_PADDED = 14  # sawyer_xyz_env.py:244 (_obs_obj_max_len)
+VALUE_AT_MARGIN = 0.1  # metaworld@3.1.1:metaworld/utils/reward_utils.py:10
+
+
+def long_tail_tolerance(x: jax.Array, upper: float, margin: jax.Array) -> jax.Array:
+    """Meta-World's ``reward_utils.tolerance(x, bounds=(0, upper), margin, sigmoid='long_tail')`` for ``x >= 0``
+    and ``margin > 0`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:63-65, 97-150); ``margin`` may be traced.
+
+    Args:
+      x: distances (>= 0).
+      upper: the upper bound of the target interval.
+      margin: where the output falls to 0.1.
+
+    Returns:
+      1 within ``[0, upper]``, else ``1 / ((d * scale)^2 + 1)`` of the scaled distance ``d = (x - upper) / margin``.
+    """
+    scale = np.sqrt(1.0 / VALUE_AT_MARGIN - 1.0)
+    d = (x - upper) / margin
+    return jnp.where(x <= upper, 1.0, 1.0 / ((d * scale) ** 2 + 1.0))
+
+
+def hamacher_product(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Meta-World's ``reward_utils.hamacher_product`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:240-244):
+    ``a * b / (a + b - a * b)``, 0 where the denominator is not positive."""
+    denominator = a + b - a * b
+    return jnp.where(denominator > 0, a * b / jnp.where(denominator > 0, denominator, 1.0), 0.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Context:
+    """What a task's reward reads besides the observation.
+
+    Attributes:
+      tcp: the fingertips' centre now (``tcp_center``).
+      target_pos: the episode's goal (``_target_pos``).
+      init_tcp: the fingertips' centre after the reset (``init_tcp``).
+      consts: the episode's other constants of the reset (task-specific; ``(1,)``).
+    """
+
+    tcp: jax.Array
+    target_pos: jax.Array
+    init_tcp: jax.Array
+    consts: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    """One Meta-World task.
+
+    Attributes:
+      name: Meta-World's name without the version (``drawer-open``).
+      xml: the model file, relative to ``metaworld_assets/sawyer_xyz``.
+      hand_low, hand_high: the mocap's bounds (Meta-World's ``hand_low``/``hand_high``; its ``mocap_low``/``high``
+        default to them) and the goal's clipping bounds (``goal_space``).
+      reset_low, reset_high: the uniform reset draw (``_random_reset_space``).
+      hand_init_pos: where the hand is driven at reset.
+      moved_body: the body whose model position the reset sets to the draw (Meta-World writes
+        ``model.body(...).pos``).
+      reset_forward: the task's ``reset_model`` ends with ``set_state`` (which runs ``mj_forward``), so the reset's
+        observation shows the state the episode starts from; otherwise it shows MuJoCo's stale kinematics
+        (:meth:`MetaWorldEnv.reset`).
+      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (1,))``.
+      objects: ``model ids -> (mjx.Data -> (position (3,), quaternion (4,)))`` of the task's object.
+      reward: ``(model ids) -> ((obs, Context) -> (reward, info))`` with ``success`` among the info.
+    """
+
+    name: str
+    xml: str
+    hand_low: tuple[float, float, float]
+    hand_high: tuple[float, float, float]
+    reset_low: tuple[float, ...]
+    reset_high: tuple[float, ...]
+    hand_init_pos: tuple[float, float, float]
+    moved_body: str
+    reset_forward: bool
+    goal: Callable[[mujoco.MjModel], Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]]
+    objects: Callable[[mujoco.MjModel], Callable[[mjx.Data], tuple[jax.Array, jax.Array]]]
+    reward: Callable[[jax.Array, Context], tuple[jax.Array, dict[str, jax.Array]]]
+
+
+def _body(model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+
+
+def _site(model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
+
+
+def _flags(**values: jax.Array) -> dict[str, jax.Array]:
+    return {k: v.astype(jnp.float32) for k, v in values.items()}
+
+
+# drawer-open: metaworld@3.1.1:metaworld/envs/sawyer_drawer_open_v3.py
+DRAWER_MAX_DIST = 0.2  # sawyer_drawer_open_v3.py:58 (maxDist)
+
+
+def _drawer_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_drawer_open_v3.py:99-113: the goal 36 cm in front of the closed drawer's handle."""
+        del d
+        return rand_vec + jnp.array([0.0, -0.16 - DRAWER_MAX_DIST, 0.09]), jnp.zeros(1)
+
+    return goal
+
+
+def _drawer_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+    link = _body(model, "drawer_link")
+
+    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        # sawyer_drawer_open_v3.py:93-97: the handle, 16 cm in front of the drawer link's frame.
+        return d.xpos[link] + jnp.array([0.0, -0.16, 0.0]), d.xquat[link]
+
+    return objects
+
+
+def _drawer_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_drawer_open_v3.py:115-158 (reward version v2) and its ``evaluate_state`` (:66-88)."""
+    gripper, handle = obs[:3], obs[4:7]
+    handle_error = jnp.linalg.norm(handle - c.target_pos)
+    opening = long_tail_tolerance(handle_error, 0.02, DRAWER_MAX_DIST)
+    handle_init = c.target_pos + jnp.array([0.0, DRAWER_MAX_DIST, 0.0])
+    scale = jnp.array([3.0, 3.0, 1.0])
+    caging_margin = jnp.linalg.norm((handle_init - c.init_tcp) * scale)
+    caging = long_tail_tolerance(jnp.linalg.norm((handle - gripper) * scale), 0.01, caging_margin)
+    reward = 5.0 * (caging + opening)
+    gripper_error = jnp.linalg.norm(handle - gripper)
+    info = _flags(
+        success=handle_error <= 0.03,
+        near_object=gripper_error <= 0.03,
+        grasp_success=obs[3] > 0,
+        grasp_reward=caging,
+        in_place_reward=opening,
+        obj_to_target=handle_error,
+    )
+    return reward, info
+
+
+# button-press: metaworld@3.1.1:metaworld/envs/sawyer_button_press_v3.py
+
+
+def _button_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    hole, start = _site(model, "hole"), _site(model, "buttonStart")
+
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_button_press_v3.py:105-124: the goal is the site ``hole``; the button's travel to it from
+        ``buttonStart`` along y (``_obj_to_target_init``) is the episode's constant."""
+        del rand_vec
+        target = d.site_xpos[hole]
+        return target, jnp.abs(target[1] - d.site_xpos[start, 1])[None]
+
+    return goal
+
+
+def _button_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+    button = _body(model, "button")
+
+    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        # sawyer_button_press_v3.py:92-96: 19.3 cm in front of the button's frame.
+        return d.xpos[button] + jnp.array([0.0, -0.193, 0.0]), d.xquat[button]
+
+    return objects
+
+
+def _button_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_button_press_v3.py:126-166 (reward version v2) and its ``evaluate_state`` (:61-83)."""
+    obj = obs[4:7]
+    tcp_to_obj = jnp.linalg.norm(obj - c.tcp)
+    tcp_to_obj_init = jnp.linalg.norm(obj - c.init_tcp)
+    obj_to_target = jnp.abs(c.target_pos[1] - obj[1])
+    tcp_closed = jnp.maximum(obs[3], 0.0)
+    near_button = long_tail_tolerance(tcp_to_obj, 0.05, tcp_to_obj_init)
+    button_pressed = long_tail_tolerance(obj_to_target, 0.005, c.consts[0])
+    reward = 2.0 * hamacher_product(tcp_closed, near_button) + jnp.where(tcp_to_obj <= 0.05, 8.0 * button_pressed, 0.0)
+    info = _flags(
+        success=obj_to_target <= 0.02,
+        near_object=tcp_to_obj <= 0.05,
+        grasp_success=obs[3] > 0,
+        grasp_reward=near_button,
+        in_place_reward=button_pressed,
+        obj_to_target=obj_to_target,
+    )
+    return reward, info
+
+
+TASKS: dict[str, TaskSpec] = {
+    "drawer-open": TaskSpec(
+        name="drawer-open",
+        xml="sawyer_drawer.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        reset_low=(-0.1, 0.9, 0.0),
+        reset_high=(0.1, 0.9, 0.0),
+        hand_init_pos=(0.0, 0.6, 0.2),
+        moved_body="drawer",
+        reset_forward=False,
+        goal=_drawer_goal,
+        objects=_drawer_objects,
+        reward=_drawer_reward,
+    ),
+    "button-press": TaskSpec(
+        name="button-press",
+        xml="sawyer_button_press.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        reset_low=(-0.1, 0.85, 0.115),
+        reset_high=(0.1, 0.9, 0.115),
+        hand_init_pos=(0.0, 0.4, 0.2),
+        moved_body="box",
+        reset_forward=True,
+        goal=_button_goal,
+        objects=_button_objects,
+        reward=_button_reward,
+    ),
+}
+"""The tasks by Meta-World's name (without ``-v3``)."""
+
+STEP_REFUSED = {
+    "button-press": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
+    "not wired into the Meta-World tasks yet",
+}
+"""Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
+
+
+def mj_model(task: str) -> mujoco.MjModel:
+    """The compiled model of ``task`` with Meta-World's weld data (``reset_mocap_welds``, sawyer_xyz_env.py:133-141).
+
+    Args:
+      task: a key of :data:`TASKS`.
+
+    Returns:
+      The MuJoCo model; its solver options are the XML's (Newton, 50 iterations, elliptic cones).
+    """
+    model = mujoco.MjModel.from_xml_path(str(ASSETS / "sawyer_xyz" / TASKS[task].xml))
+    for i in range(model.neq):
+        if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+            # Meta-World's 11 numbers (MuJoCo 3.3 has 11 weld fields); MuJoCo 3.17's twelfth keeps its compiled value.
+            model.eq_data[i, : len(WELD_DATA)] = WELD_DATA
+    return model
+
+
+HAND_RESET = ASSETS / "hand_reset.npz"
+"""The MuJoCo state that Meta-World 3.1.1's reset leaves the arm in, per task (``<task>/qpos``, ``qvel``,
+``mocap_pos``, ``mocap_quat``, ``qacc_warmstart``), recorded by tests/data/metaworld/make_reference.py."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HandReset:
+    """The state Meta-World's reset leaves the arm in, and the one its reset observation shows.
+
+    Meta-World's ``_reset_hand`` drives the mocap to ``hand_init_pos`` for 50 control steps (250 physics steps,
+    sawyer_xyz_env.py:684-695), with the objects away from the hand's path, so every reset ends in the same state.
+    It is Meta-World's own (:data:`HAND_RESET`): MuJoCo 3.17 runs those 250 steps of the redundant arm to joint
+    angles up to 7e-3 rad away from MuJoCo 3.3's (docs/tasks.md).
+
+    The reset's observation and ``init_tcp`` read MuJoCo's kinematics as the last ``mj_step`` left them, computed
+    before that step's integration: at ``shown_qpos``, one physics step back along ``qvel``.
+
+    Attributes:
+      qpos, qvel, mocap_pos, mocap_quat, qacc_warmstart: the state (float64).
+      shown_qpos: where the reset's kinematics are (``mj_integratePos`` by ``-timestep``).
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    mocap_pos: np.ndarray
+    mocap_quat: np.ndarray
+    qacc_warmstart: np.ndarray
+    shown_qpos: np.ndarray
+
+
+def hand_reset(task: str, model: mujoco.MjModel) -> HandReset:
+    """Meta-World's reset state of ``task`` (:class:`HandReset`) for ``model`` (:func:`mj_model`'s)."""
+    with np.load(HAND_RESET) as saved:
+        fields = {
+            k: np.asarray(saved[f"{task}/{k}"], np.float64)
+            for k in ("qpos", "qvel", "mocap_pos", "mocap_quat", "qacc_warmstart")
+        }
+    shown = fields["qpos"].copy()
+    mujoco.mj_integratePos(model, shown, fields["qvel"], -model.opt.timestep)
+    return HandReset(**fields, shown_qpos=shown)
+
+
+class MetaWorldEnv(Env):
+    """A Meta-World task on MJX, a ``brax.envs.Env``.
+
+    Its ``State`` (brax's) holds:
+      pipeline_state: the MJX physics data, kinematics current.
+      obs: the 39-number observation.
+      reward: Meta-World's dense reward (reward version v2) of the last transition.
+      done: 1.0 once the episode has run ``episode_length`` steps (Meta-World's truncation; tasks never terminate).
+      metrics: the reward's components (Meta-World's info) and ``success``.
+      info: ``success`` (1.0 where Meta-World's ``info["success"]`` is true), ``target_pos``, ``init_tcp`` and
+        ``body_pos`` (the reset's draw), and with a time limit ``steps`` and ``truncation``.
+
+    Its compiled MuJoCo model is ``mujoco_model`` (not ``mj_model``, which the training command's evaluation clip and
+    ``rebel_jax.video`` look for: drawing Meta-World's scenes is not done yet).
+
+    Args:
+      task: a key of :data:`TASKS`.
+      episode_length: control steps per episode (Meta-World: 500); None for no time limit (brax's convention).
+      goal_observable: the observation's last three numbers are the goal; False: zeros, as in the preference-RL
+        code bases (Meta-World's default ``_partially_observable``).
+    """
+
+    def __init__(self, task: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True):
+        if task not in TASKS:
+            raise ValueError(f"unknown Meta-World task {task!r}; valid: {', '.join(TASKS)}")
+        if episode_length is not None and episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
+        self.spec = TASKS[task]
+        self.episode_length = episode_length
+        self.goal_observable = goal_observable
+        self.mujoco_model = mj_model(task)
+        m = self.mujoco_model
+        self.step_refused = STEP_REFUSED.get(task)
+        if self.step_refused:  # MJX builds no model with collisions it lacks: its kinematics only, without contacts
+            kinematic = mujoco.MjModel.from_xml_path(str(ASSETS / "sawyer_xyz" / self.spec.xml))
+            kinematic.geom_contype[:] = kinematic.geom_conaffinity[:] = 0
+            self.sys = mjx.put_model(kinematic)
+        else:
+            kinematic = m
+            self.sys = mjx.put_model(m)
+        self.hand_reset = hand_reset(task, m)
+        start = self.hand_reset
+        d0 = mjx.make_data(kinematic)
+        self._data0 = jax.device_get(
+            d0.replace(
+                qpos=jnp.asarray(start.qpos, jnp.float32),
+                qvel=jnp.asarray(start.qvel, jnp.float32),
+                mocap_pos=jnp.asarray(start.mocap_pos, jnp.float32),
+                mocap_quat=jnp.asarray(start.mocap_quat, jnp.float32),
+                qacc_warmstart=jnp.asarray(start.qacc_warmstart, jnp.float32),
+                ctrl=jnp.asarray((-1.0, 1.0), jnp.float32),  # the hand reset's last gripper command
+            )
+        )
+        self._objects = self.spec.objects(m)
+        self._goal = self.spec.goal(m)
+        name = lambda kind, n: mujoco.mj_name2id(m, kind, n)  # noqa: E731
+        self._hand = name(mujoco.mjtObj.mjOBJ_BODY, "hand")
+        self._claws = (name(mujoco.mjtObj.mjOBJ_BODY, "rightclaw"), name(mujoco.mjtObj.mjOBJ_BODY, "leftclaw"))
+        self._pads = (
+            name(mujoco.mjtObj.mjOBJ_SITE, "rightEndEffector"),
+            name(mujoco.mjtObj.mjOBJ_SITE, "leftEndEffector"),
+        )
+        self._moved_body = name(mujoco.mjtObj.mjOBJ_BODY, self.spec.moved_body)
+        low = np.concatenate([HAND_SPACE[0], [-1.0], np.full(OBJ_PADDED, -np.inf)])
+        high = np.concatenate([HAND_SPACE[1], [1.0], np.full(OBJ_PADDED, np.inf)])
+        self._obs_low = np.concatenate([low, low, self.spec.hand_low]).astype(np.float32)
+        self._obs_high = np.concatenate([high, high, self.spec.hand_high]).astype(np.float32)
+
+    # brax's Env properties.
+    @property
+    def observation_size(self) -> int:
+        return 39
+
+    @property
+    def action_size(self) -> int:
+        return 4
+
+    @property
+    def dt(self) -> float:
+        return float(self.mujoco_model.opt.timestep) * FRAME_SKIP
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def unwrapped(self) -> MetaWorldEnv:
+        return self
+
+    def model(self, body_pos: jax.Array) -> mjx.Model:
+        """The MJX model with the reset's moved body at ``body_pos`` (Meta-World moves it in the model)."""
+        return self.sys.replace(body_pos=self.sys.body_pos.at[self._moved_body].set(body_pos))
+
+    def current(self, d: mjx.Data) -> jax.Array:
+        """The observation's first 18 numbers at ``d`` (kinematics current): Meta-World's
+        ``_get_curr_obs_combined_no_goal`` (sawyer_xyz_env.py:475-511)."""
+        right, left = self._claws
+        opening = jnp.clip(jnp.linalg.norm(d.xpos[right] - d.xpos[left]) / 0.1, 0.0, 1.0)
+        pos, quat = self._objects(d)
+        padding = jnp.zeros(OBJ_PADDED - 7)
+        return jnp.concatenate([d.xpos[self._hand], opening[None], pos, quat, padding])
+
+    def tcp_center(self, d: mjx.Data) -> jax.Array:
+        """The fingertips' centre (``tcp_center``, sawyer_xyz_env.py:71-81)."""
+        return (d.site_xpos[self._pads[0]] + d.site_xpos[self._pads[1]]) / 2.0
+
+    def observation(self, current: jax.Array, previous: jax.Array, target: jax.Array, clip: bool = True) -> jax.Array:
+        """The 39 numbers: ``current``, ``previous``, the goal (zeros unless ``goal_observable``), clipped to
+        Meta-World's observation space as its ``step`` clips them (sawyer_xyz_env.py:513-527, 620-628); the reset's
+        observation is not clipped (``clip=False``)."""
+        goal = target if self.goal_observable else jnp.zeros(3)
+        obs = jnp.concatenate([current, previous, goal])
+        if not clip:
+            return obs
+        low, high = self._obs_low, self._obs_high
+        if not self.goal_observable:
+            low, high = low.copy(), high.copy()
+            low[-3:] = high[-3:] = 0.0
+        return jnp.clip(obs, low, high)
+
+    def _observe(
+        self, d: mjx.Data, m: mjx.Model, previous: jax.Array | None, info: dict, done: jax.Array, shown=None
+    ) -> State:
+        d = mjx.kinematics(m, d)
+        current = self.current(d if shown is None else shown)
+        clip = previous is not None
+        obs = self.observation(current, current if previous is None else previous, info["target_pos"], clip)
+        # The reward reads the goal itself, not the observation's (zeros when the goal is hidden).
+        context = Context(self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"])
+        reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), context)
+        if previous is None:  # Meta-World's reset returns no reward
+            reward = jnp.zeros(())
+        metrics = {k: v.astype(jnp.float32) for k, v in metrics.items()}
+        info = dict(info, success=metrics["success"])
+        return State(d, obs, reward.astype(jnp.float32), done, metrics, info)
+
+    def state_at(
+        self,
+        qpos: jax.Array,
+        qvel: jax.Array,
+        mocap_pos: jax.Array,
+        mocap_quat: jax.Array,
+        qacc_warmstart: jax.Array,
+        previous: jax.Array,
+        episode: dict[str, jax.Array],
+    ) -> State:
+        """The ``State`` at a given MuJoCo state of an episode (as after a ``step``), for comparisons with Meta-World.
+
+        Args:
+          qpos, qvel, mocap_pos, mocap_quat, qacc_warmstart: the MuJoCo state.
+          previous: the previous observation's first 18 numbers.
+          episode: the episode's reset's ``info`` (``body_pos``, ``target_pos``, ``init_tcp``, ``consts``).
+
+        Returns:
+          The state, with the observation, reward and success Meta-World's ``step`` returns there.
+        """
+        d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
+        d = d.replace(qpos=qpos, qvel=qvel, mocap_pos=mocap_pos, mocap_quat=mocap_quat, qacc_warmstart=qacc_warmstart)
+        info = {k: episode[k] for k in ("target_pos", "init_tcp", "body_pos", "consts")}
+        zero = jnp.zeros(())
+        if self.episode_length is not None:
+            info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
+        return self._observe(d, self.model(info["body_pos"]), previous, info, zero)
+
+    def draw(self, rng: jax.Array) -> jax.Array:
+        """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719)."""
+        low, high = np.asarray(self.spec.reset_low), np.asarray(self.spec.reset_high)
+        return low + jax.random.uniform(rng, low.shape) * (high - low)
+
+    def reset(self, rng: jax.Array) -> State:
+        """Draws the object (and goal) uniformly in the task's reset space, the hand at its reset state.
+
+        As Meta-World's ``reset`` (sawyer_xyz_env.py:664-682) runs ``reset_model`` twice and, unless the task's
+        ``reset_model`` ends with ``set_state`` (``TaskSpec.reset_forward``), observes without a ``mj_forward``, its
+        observation shows the hand one physics step back (:class:`HandReset`) and the object where the first of two
+        independent draws put it; the episode runs with the second. ``init_tcp`` is one physics step back always.
+        """
+        shown_key, key = jax.random.split(rng)
+        return self.reset_to(self.draw(key), self.draw(shown_key))
+
+    def reset_to(self, rand_vec: jax.Array, shown_vec: jax.Array) -> State:
+        """The reset state of the draw ``rand_vec``, its observation showing the object at ``shown_vec``."""
+        m = self.model(rand_vec)
+        d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
+        target, consts = self._goal(rand_vec, mjx.kinematics(m, d))
+        stale = d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype))
+        seen = mjx.kinematics(self.model(shown_vec), stale)
+        info = {"target_pos": target, "init_tcp": self.tcp_center(seen), "body_pos": rand_vec, "consts": consts}
+        zero = jnp.zeros(())
+        if self.episode_length is not None:
+            info.update(steps=jnp.zeros((), jnp.int32), truncation=zero)
+        return self._observe(d, m, None, info, zero, shown=None if self.spec.reset_forward else seen)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """Moves the mocap by ``action[:3]`` cm (clipped to [-1, 1] and to the hand's bounds), sets the gripper to
+        ``action[3]`` and runs 5 physics steps (sawyer_xyz_env.py:580-640). On the CPU, MJX's Cholesky
+        factorizations run in plain JAX operations (``_mjx.plain_cholesky``), as :class:`~rebel_jax.envs.dmc.DMCEnv`
+        runs them."""
+        if self.step_refused:
+            raise ValueError(f"metaworld_{self.spec.name} cannot step: {self.step_refused}")
+        if action.shape != (4,):
+            raise ValueError(f"{self.spec.name}: action must have shape (4,), got {action.shape}")
+        d = state.pipeline_state
+        m = self.model(state.info["body_pos"])
+        delta = jnp.clip(action[:3], -1.0, 1.0) * ACTION_SCALE
+        mocap = jnp.clip(d.mocap_pos[0] + delta, jnp.array(self.spec.hand_low), jnp.array(self.spec.hand_high))
+        d = d.replace(
+            mocap_pos=mocap[None].astype(d.mocap_pos.dtype),
+            mocap_quat=jnp.array([MOCAP_QUAT], d.mocap_quat.dtype),
+            ctrl=jnp.stack([action[3], -action[3]]).astype(d.ctrl.dtype),
+        )
+        with plain_cholesky() if jax.default_backend() == "cpu" else contextlib.nullcontext():
+            d = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
+        info = dict(state.info)
+        done = jnp.zeros_like(state.done)
+        if self.episode_length is not None:
+            info["steps"] = state.info["steps"] + 1
+            done = (info["steps"] >= self.episode_length).astype(jnp.float32)
+            info["truncation"] = done
+        return self._observe(d, m, state.obs[:18], info, done)
+
+
+def make_env(name: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True) -> MetaWorldEnv:
+    """Builds ``metaworld_<task>`` (see :class:`MetaWorldEnv`)."""
+    return MetaWorldEnv(name.removeprefix(PREFIX), episode_length, goal_observable)
