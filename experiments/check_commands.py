@@ -19,7 +19,6 @@ the field existed: ``BEFORE``'s, else its default in ``Config()`` (as ``--resume
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import pathlib
@@ -28,7 +27,7 @@ import shlex
 import sys
 
 from rebel_jax import cli
-from rebel_jax.config import Config
+from rebel_jax.config import Config, to_dict
 
 ROOT = pathlib.Path(__file__).parents[1]
 BEFORE = {
@@ -89,11 +88,11 @@ def mismatches(run_dir: pathlib.Path, programs: list[list[str]]) -> list[str]:
     """
     saved = cli.flatten(json.loads((run_dir / "config.json").read_text()))
     meta = json.loads((run_dir / "meta.json").read_text())
-    defaults = cli.flatten(json.loads(json.dumps(dataclasses.asdict(Config()))))
+    defaults = cli.flatten(json.loads(json.dumps(to_dict(Config()))))
     best = None
     for flags in programs:
         args = _parsed(tuple(flags))
-        now = cli.flatten(json.loads(json.dumps(dataclasses.asdict(args.config))))
+        now = cli.flatten(json.loads(json.dumps(to_dict(args.config))))
         unused = tuple(f"{part}." for part in args.config.unused_parts())
         diffs = []
         for name in sorted(saved.keys() | now.keys()):

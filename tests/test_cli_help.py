@@ -92,10 +92,10 @@ def test_help_all_lists_every_flag_the_conditional_ones_in_groups_naming_their_c
     _check_prefixes(groups)
     cfg = cli.parse([method, "--obs", obs]).config
     capsys.readouterr()
-    expected = {name.replace("_", "-") for name in cli_args.PARTS} | {"human"}
+    expected = {name.replace("_", "-") for name in cli_args.parts()} | {"human"}
     listed = {group for group in groups if group not in ("description", "options")}
     assert listed == expected
-    for name in cli_args.PARTS:
+    for name in cli_args.parts():
         group = name.replace("_", "-")
         prefix = "--" if name in cli_args.UNPREFIXED else f"--{group}."
         assert {flag.removeprefix(prefix) for flag in groups[group]} == _field_flags(type(getattr(cfg, name)))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import pathlib
 import sys
@@ -10,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from rebel_jax.config import PRESETS
+from rebel_jax.config import PRESETS, to_dict
 
 sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "experiments"))
 import compare  # noqa: E402
@@ -26,7 +25,7 @@ def write_grid_run(run_dir: pathlib.Path, algo: str = "rebel", labels: int = 100
     Returns the (rounds, columns) returns.
     """
     run_dir.mkdir(parents=True)
-    cfg = dataclasses.asdict(PRESETS["tiny"])
+    cfg = to_dict(PRESETS["tiny"])
     cfg["algo"], cfg["feedback"]["labels"] = algo, labels
     meta = {
         "devices": ["cpu"],
@@ -234,7 +233,7 @@ def test_a_pooled_method_lists_every_runs_provenance_and_refuses_runs_of_other_s
 def _write_run(run_dir: pathlib.Path, algo: str, returns: np.ndarray, train_seed: int = 0) -> None:
     """A one-method run (no grid) of ``algo`` whose seed j's evaluation return at round i is ``returns[i, j]``."""
     run_dir.mkdir(parents=True)
-    cfg = dataclasses.asdict(PRESETS["tiny"])
+    cfg = to_dict(PRESETS["tiny"])
     cfg["algo"], cfg["train"]["seed"], cfg["feedback"]["labels"] = algo, train_seed, 100
     seeds = returns.shape[1]
     meta = {"devices": ["cpu"], "command": "train.py --preset tiny", "seeds": seeds, "columns": seeds}
