@@ -465,14 +465,19 @@ class Trainer:
             due, first = self.session_due(round_index)
             index, agent_step = self.session_index(round_index), round_index * self.cfg.train.steps_per_round
 
+            traced = {}  # the session's metrics as its trace leaves them, for the branch without one
+
             def session_fn(ts):
-                return self.feedback_session(ts, first, index, agent_step)
+                ts, metrics = self.feedback_session(ts, first, index, agent_step)
+                traced.update(jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), metrics))
+                return ts, metrics
 
             def no_session(ts):  # the session's metrics NaN (the method's own too), labels_used as it is
-                shapes = jax.eval_shape(session_fn, ts)[1]
+                shapes = traced or jax.eval_shape(session_fn, ts)[1]  # switch traces its branches in order
                 return ts, {**nan_like(shapes), **summary(self.feedback.session_metrics, ts, {})}
 
-            ts, session = jax.lax.cond(due, session_fn, no_session, ts)
+            # Branch 0 is the session (traced first), branch 1 the round without one.
+            ts, session = jax.lax.switch(1 - due.astype(jnp.int32), (session_fn, no_session), ts)
         before = ts.episodes
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
