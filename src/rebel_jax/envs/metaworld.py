@@ -150,14 +150,20 @@ def _drawer_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple
     return goal
 
 
-def _drawer_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
-    link = _body(model, "drawer_link")
+def _offset_body(name: str, offset: tuple[float, float, float]):
+    """The object of a task that observes one body: its position moved by ``offset`` in world axes, and its
+    orientation (drawer-open's handle, sawyer_drawer_open_v3.py:93-97; button-press's button,
+    sawyer_button_press_v3.py:92-96)."""
 
-    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        # sawyer_drawer_open_v3.py:93-97: the handle, 16 cm in front of the drawer link's frame.
-        return d.xpos[link] + jnp.array([0.0, -0.16, 0.0]), d.xquat[link]
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        body = _body(model, name)
 
-    return objects
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.xpos[body] + jnp.array(offset), d.xquat[body]
+
+        return objects
+
+    return factory
 
 
 def _drawer_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
@@ -198,16 +204,6 @@ def _button_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple
     return goal
 
 
-def _button_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
-    button = _body(model, "button")
-
-    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        # sawyer_button_press_v3.py:92-96: 19.3 cm in front of the button's frame.
-        return d.xpos[button] + jnp.array([0.0, -0.193, 0.0]), d.xquat[button]
-
-    return objects
-
-
 def _button_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     """sawyer_button_press_v3.py:126-166 (reward version v2) and its ``evaluate_state`` (:61-83)."""
     obj = obs[4:7]
@@ -241,7 +237,7 @@ TASKS: dict[str, TaskSpec] = {
         moved_body="drawer",
         reset_forward=False,
         goal=_drawer_goal,
-        objects=_drawer_objects,
+        objects=_offset_body("drawer_link", (0.0, -0.16, 0.0)),
         reward=_drawer_reward,
     ),
     "button-press": TaskSpec(
@@ -255,7 +251,7 @@ TASKS: dict[str, TaskSpec] = {
         moved_body="box",
         reset_forward=True,
         goal=_button_goal,
-        objects=_button_objects,
+        objects=_offset_body("button", (0.0, -0.193, 0.0)),
         reward=_button_reward,
     ),
 }
