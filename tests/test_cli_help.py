@@ -12,9 +12,10 @@ import re
 
 import pytest
 
-from rebel_jax import cli, cli_args, methods
+from rebel_jax import methods
 from rebel_jax.config import AGENTS, Config
-from rebel_jax.human import HumanOptions
+from rebel_jax.run import cli, cli_args
+from rebel_jax.run.human import HumanOptions
 
 MOST_FLAGS = 40
 TINY = ["--preset", "tiny", "--task", "probe_point"]

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from rebel_jax import train
-from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, SACConfig, TrainConfig
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 MICRO = Config(

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from test_envs_quadruped import _batch  # MJX data holding dm_control's physics states
 
-from rebel_jax.cli import parse
 from rebel_jax.envs import dmc, make_env
+from rebel_jax.run.cli import parse
 
 suite = pytest.importorskip("dm_control.suite")
 
@@ -204,7 +204,7 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
     the same command whose round compiles at its first call, as with the JAX step."""
     import json
 
-    from rebel_jax import cli
+    from rebel_jax.run import cli
 
     flags = ["sac", "--preset", "tiny", "--task", "walker_walk", "--impl", "warp", "--seeds", "1",
              "--num-envs", "2", "--episode-length", "20", "--total-steps", "80", "--seed-steps", "20",
