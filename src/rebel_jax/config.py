@@ -8,6 +8,7 @@ compiled program; float hyperparameters are plain data.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import os
@@ -85,8 +86,11 @@ class EnvConfig:
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
         if not_runnable(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {not_runnable(self.task)}")
-        known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS or self.task in METAWORLD_TASKS
-        _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]}")
+        names = [*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]
+        if self.task not in names:
+            close = difflib.get_close_matches(self.task, names, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ConfigError(f"env.task={self.task!r} is invalid{hint}: allowed one of {names}")
         if self.task in METAWORLD_TASKS and self.impl != "jax":
             raise ConfigError(f"env.impl={self.impl!r} is invalid for {self.task}: it runs with impl='jax' only")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
