@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from timing import merge_rows, provenance
 
-from rebel_jax.checkpoint import CHECKSUMS, Checkpointer, file_checksums
+from rebel_jax.run.checkpoint import CHECKSUMS, Checkpointer, file_checksums
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "checkpoint_checksums.json"
 

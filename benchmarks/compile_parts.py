@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 
-from rebel_jax.cli import parse
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 DEFAULT = ["pebble", "--preset", "paper", "--task", "walker_walk", "--feedback.labels", "100", "--seeds", "5"]

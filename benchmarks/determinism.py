@@ -33,7 +33,7 @@ def run_twice(flags: list[str], rounds: int) -> tuple[list, list[list[float]], l
     """Two runs of ``rounds`` rounds of the configuration ``flags`` from the same seed keys, in one process (the
     second reuses the first's compiled programs). Returns both final states (on the host), the seconds of each
     round and the rounds' metrics."""
-    from rebel_jax.cli import column_keys, initial_state, parse
+    from rebel_jax.run.cli import column_keys, initial_state, parse
     from rebel_jax.train import Trainer, compiled
 
     args = parse(flags)

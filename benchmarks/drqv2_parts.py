@@ -36,15 +36,15 @@ import jax.numpy as jnp
 from drqv2_update import FRAMES, WALKER_ACTIONS, random_batch
 from timing import median_seconds, merge_rows, provenance
 
-from rebel_jax.drqv2 import DrQV2, DrQV2Config, random_shift, task_config
-from rebel_jax.networks import CONV_LAYOUT, conv_patch_kernel_grad, dense_kwargs
+from rebel_jax.agents.drqv2 import DrQV2, DrQV2Config, random_shift, task_config
+from rebel_jax.agents.networks import CONV_LAYOUT, conv_patch_kernel_grad, dense_kwargs
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_parts.json"
 
 
 def conv(x: jax.Array, kernel: jax.Array, stride: int, precision: str, patches: bool = False) -> jax.Array:
     """One encoder convolution (3x3, no padding) in the encoder's compute dtype, as ``nn.Conv`` runs it;
-    with ``patches``, :func:`rebel_jax.networks.conv_patch_kernel_grad` (``drqv2.kernel_grad patches``)."""
+    with ``patches``, :func:`rebel_jax.agents.networks.conv_patch_kernel_grad` (``drqv2.kernel_grad patches``)."""
     kw = dense_kwargs(precision)
     x, kernel = x.astype(kw["dtype"]), kernel.astype(kw["dtype"])
     if patches:

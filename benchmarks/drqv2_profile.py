@@ -28,7 +28,7 @@ from drqv2_update import program_fields, update_scan
 from kernel_profile import Event, categories, category, module_name, summarize, trace, trace_events
 from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 
-from rebel_jax.drqv2 import DrQV2Config, task_config
+from rebel_jax.agents.drqv2 import DrQV2Config, task_config
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_profile.json"
 __all__ = ["Event", "categories", "category", "main", "row", "summarize", "trace_events"]  # the tests' names

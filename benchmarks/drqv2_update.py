@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from timing import median_seconds, merge_rows, provenance
 
-from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
+from rebel_jax.agents.drqv2 import DrQV2, DrQV2Config, PixelTransition, task_config
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "drqv2_update.json"
 WALKER_ACTIONS = 6

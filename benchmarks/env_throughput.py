@@ -27,7 +27,7 @@ import numpy as np
 from timing import add_xla_flags_argument, provenance, random_steps_seconds, use_xla_flags
 
 from rebel_jax.envs import IMPLS, SOLVERS, TASKS, Solver, make_env
-from rebel_jax.logging import write_json
+from rebel_jax.run.logging import write_json
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "env_throughput.json"
 STEPS_PER_CALL = 20

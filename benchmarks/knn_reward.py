@@ -1,5 +1,6 @@
 """PEBBLE's pre-training reward (``pretrain.knn_reward``), seed-vmapped at B-Pref's walker shapes, by how each
-chunk's smallest distances are found (``--select``: ``argmin``, ``rebel_jax.pretrain.smallest``, or ``top_k``) and
+chunk's smallest distances are found (``--select``: ``argmin``, ``rebel_jax.preference.pretrain.smallest``, or
+``top_k``) and
 by chunk size, at several fills of the pre-training buffer.
 
     python benchmarks/knn_reward.py                    # 5 seeds, batch 1024, 10,000 rows of 24 numbers
@@ -21,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from timing import add_xla_flags_argument, median_seconds, merge_rows, provenance, use_xla_flags
 
-from rebel_jax.pretrain import knn_reward
+from rebel_jax.preference.pretrain import knn_reward
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "knn_reward.json"
 

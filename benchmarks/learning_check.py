@@ -18,7 +18,7 @@ import pathlib
 
 import numpy as np
 
-from rebel_jax.rundir import log_records
+from rebel_jax.run.rundir import log_records
 
 
 def returns(run_dir: pathlib.Path, key: str = "eval_return") -> dict[int, np.ndarray]:

@@ -39,9 +39,9 @@ import jax
 from sac_profile import random_minibatch
 from timing import add_xla_flags_argument, median_seconds, merge_rows, provenance, use_xla_flags
 
+from rebel_jax.agents.sac import SAC
 from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
-from rebel_jax.sac import SAC
 from rebel_jax.train import on_second_stream
 
 MODES = ("physics", "updates", "serial", "independent", "stream", "stream_updates")

@@ -38,7 +38,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from rebel_jax.cli import parse
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer
 
 GIB = 2**30

@@ -36,8 +36,8 @@ import jax.numpy as jnp
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from pixel_memory import CONFIGS, with_total_steps  # noqa: E402 - benchmarks/ is not a package
 
-from rebel_jax import frame_replay  # noqa: E402
-from rebel_jax.cli import parse  # noqa: E402
+from rebel_jax.agents import frame_replay  # noqa: E402
+from rebel_jax.run.cli import parse  # noqa: E402
 from rebel_jax.train import Trainer, compiled, seed_keys  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_smoke.json"

@@ -44,8 +44,9 @@ from pixel_memory import CONFIGS  # noqa: E402 - benchmarks/ is not a package
 from pixel_preference_smoke import Results, job_flags, peak_gib  # noqa: E402
 from timing import provenance  # noqa: E402
 
-from rebel_jax import frame_replay, reward_model, reward_train  # noqa: E402
-from rebel_jax.cli import parse  # noqa: E402
+from rebel_jax.agents import frame_replay
+from rebel_jax.preference import reward_model, reward_train  # noqa: E402
+from rebel_jax.run.cli import parse  # noqa: E402
 from rebel_jax.train import Trainer, TrainState, seed_keys  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "pixel_session_parts.json"

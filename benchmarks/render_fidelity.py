@@ -5,7 +5,7 @@ Usage:
 
 For states every 10 control steps along a random-action dm_control trajectory, renders camera 0
 with dm_control (MuJoCo's OpenGL renderer; EGL on a CPU needs Mesa, ``make gl``) and with
-``rebel_jax.render`` on our model, and reports the share of pixels whose geom id agrees with
+``rebel_jax.envs.render`` on our model, and reports the share of pixels whose geom id agrees with
 MuJoCo's segmentation render and the mean absolute RGB difference (of 255), with shadows and
 reflection on and off. Writes ``benchmarks/results/render_fidelity.json`` and, per task, a PNG of
 the first four states (rows: ours | MuJoCo's | 4 x |difference|) to ``results/render_<task>.png``.
@@ -30,7 +30,7 @@ from dm_control import suite  # noqa: E402
 from mujoco import mjx  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from rebel_jax import render  # noqa: E402
+from rebel_jax.envs import render  # noqa: E402
 from rebel_jax.envs.dmc import mj_model  # noqa: E402
 
 ROOT = pathlib.Path(__file__).parents[1]

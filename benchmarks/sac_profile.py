@@ -27,7 +27,7 @@ master copies and bf16 casts would show) apart from the ``other`` instructions o
 and part by category, for the ``--top`` instructions, the traced events (on a GPU, kernels) per update, and the wall
 time of the same calls: what the kernels leave of it is launch gaps and the host.
 The update's row also gives the FLOPs of the matrix products of one compiled update (``kernel_profile.dot_flops``),
-XLA's own count of all its FLOPs (``cost_analysis``), the analytic count ``rebel_jax.sac.update_flops``, the
+XLA's own count of all its FLOPs (``cost_analysis``), the analytic count ``rebel_jax.agents.sac.update_flops``, the
 compiled update's launches (``train_throughput.hlo_counts``), and the achieved TFLOP/s of the matrix products against
 ``--peak-tflops`` (the card's bf16 matmul ceiling, e.g. about 800 on an H100; given, never guessed).
 """
@@ -46,34 +46,34 @@ from kernel_profile import Rule, categories, dot_flops, module_name, parts, summ
 from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 from train_throughput import hlo_counts
 
+from rebel_jax.agents.sac import SAC, Transition, update_flops
 from rebel_jax.api import make_trainer
 from rebel_jax.config import PRESETS
-from rebel_jax.errors import ConfigError
-from rebel_jax.sac import SAC, Transition, update_flops
+from rebel_jax.core.errors import ConfigError
 from rebel_jax.train import compiled as compiled_trainer
 from rebel_jax.train import seed_keys
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "sac_profile.json"
 PARTS = ("update", "round")
 UPDATE_PARTS = (
-    Rule("target update (Polyak)", "rebel_jax/sac.py", "polyak"),
+    Rule("target update (Polyak)", "rebel_jax/agents/sac.py", "polyak"),
     Rule("optimiser (Adam)", "/optax/"),
-    Rule("critic loss", "rebel_jax/sac.py", "make_critic_loss"),
-    Rule("actor loss", "rebel_jax/sac.py", "make_actor_loss"),
-    Rule("temperature", "rebel_jax/sac.py", "alpha"),  # make_alpha_loss, SAC._alpha_step
-    Rule("SAC.update itself (keys, counters)", "rebel_jax/sac.py", "SAC.update"),
+    Rule("critic loss", "rebel_jax/agents/sac.py", "make_critic_loss"),
+    Rule("actor loss", "rebel_jax/agents/sac.py", "make_actor_loss"),
+    Rule("temperature", "rebel_jax/agents/sac.py", "alpha"),  # make_alpha_loss, SAC._alpha_step
+    Rule("SAC.update itself (keys, counters)", "rebel_jax/agents/sac.py", "SAC.update"),
 )
 """The parts of one SAC update, first match wins (Polyak's step calls optax's ``incremental_update``)."""
 ROUND_PARTS = (
-    Rule("SAC updates", "rebel_jax/sac.py", "SAC.update"),
+    Rule("SAC updates", "rebel_jax/agents/sac.py", "SAC.update"),
     Rule("feedback session", "", "feedback_session"),
     Rule("physics", "/mujoco/"),
     Rule("physics", "/brax/"),
     Rule("physics", "rebel_jax/envs/"),
-    Rule("acting", "rebel_jax/sac.py", "SAC.act"),  # act and act_deterministic
-    Rule("replay", "rebel_jax/replay.py"),
-    Rule("intrinsic reward (pre-training)", "rebel_jax/pretrain.py"),
-    Rule("learned reward", "rebel_jax/reward_model.py"),
+    Rule("acting", "rebel_jax/agents/sac.py", "SAC.act"),  # act and act_deterministic
+    Rule("replay", "rebel_jax/agents/replay.py"),
+    Rule("intrinsic reward (pre-training)", "rebel_jax/preference/pretrain.py"),
+    Rule("learned reward", "rebel_jax/preference/reward_model.py"),
     Rule("learned reward", "rebel_jax/methods/"),
     Rule("SAC updates", "rebel_jax/", "_updates"),  # the updates' loop: its carry's copies and casts
 )

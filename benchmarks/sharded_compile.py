@@ -10,7 +10,7 @@ crash (a segmentation fault) is reported as one row instead of ending the check;
 at once. Parts are the seed-vmapped ``init``, ``round``, one ``vector_step`` (the round's scan body), one
 feedback ``session`` (state tasks) and ``evaluate`` of the run's trainer. Modes:
 
-- ``per_device``: what ``train.compiled`` does (:func:`rebel_jax.sweep.per_device`): the one-device program
+- ``per_device``: what ``train.compiled`` does (:func:`rebel_jax.train.placement.per_device`): the one-device program
   of a block of seeds, compiled for each device;
 - ``shard_map``: one SPMD program in which each device runs its block of seeds (``jax.shard_map``, with
   zero-size arrays kept outside it);
@@ -55,13 +55,15 @@ def compile_part(preset: str, algo: str, task: str, part: str, mode: str, per_de
     import jax
     import jax.numpy as jnp
 
-    from rebel_jax import api, config, sweep, train
+    from rebel_jax import api, config
+    from rebel_jax.train import placement
+    from rebel_jax.train import trainer as train
 
     base = config.PRESETS[preset]
     cfg = dataclasses.replace(base, algo=algo, env=dataclasses.replace(base.env, task=task))
     trainer = api.make_trainer(cfg)
     seeds = per_device * jax.device_count()
-    sharding = sweep.seed_sharding(seeds)
+    sharding = placement.seed_sharding(seeds)
     keys = train.seed_keys(0, seeds)
     state = jax.eval_shape(jax.vmap(trainer.init), keys)
     fn, batched = _functions(trainer)[part]

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from drqv2_update import update_scan
 from timing import merge_rows, provenance
 
-from rebel_jax.drqv2 import DrQV2Config, draw_shifts, shift_images, task_config
+from rebel_jax.agents.drqv2 import DrQV2Config, draw_shifts, shift_images, task_config
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "shift_bench.json"
 

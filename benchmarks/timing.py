@@ -13,7 +13,7 @@ import time
 
 import jax
 
-from rebel_jax.cli import _git_commit
+from rebel_jax.run.cli import _git_commit
 
 
 def add_xla_flags_argument(p: argparse.ArgumentParser) -> None:

@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 from timing import add_xla_flags_argument, device_name, median_seconds, merge_rows, provenance, use_xla_flags
 
-from rebel_jax import replay
+from rebel_jax.agents import replay
+from rebel_jax.agents.sac import SAC, update_flops
 from rebel_jax.config import PRESETS
-from rebel_jax.sac import SAC, update_flops
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "train_throughput.json"
 BF16_CEILING_TFLOPS = {"NVIDIA H100 80GB HBM3": 798.0, "NVIDIA H200": 788.0}  # measured, see BENCHMARKS.md

@@ -20,8 +20,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import reward_model
 from rebel_jax.methods import Method
+from rebel_jax.preference import reward_model
 
 
 def l2_penalty(weight: float, rewards_a: jax.Array, rewards_b: jax.Array, mask: jax.Array) -> jax.Array:

@@ -15,9 +15,10 @@ Run it as a method of the command line (this file registers it, then runs ``rebe
 
 from __future__ import annotations
 
-from rebel_jax import cli, methods
+from rebel_jax import methods
 from rebel_jax.methods.qpa import QPA
 from rebel_jax.methods.rebel import REBEL
+from rebel_jax.run import cli
 
 
 class REBELOnQPA(QPA, REBEL):

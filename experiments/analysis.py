@@ -47,10 +47,10 @@ from rliable import library as rly  # noqa: E402
 from rliable import metrics as rly_metrics  # noqa: E402
 
 # Reading and plotting curves lives in the package (the CLI draws each run's curve); re-exported here.
-from rebel_jax.plots import Curve, load_runs, plot_curves  # noqa: E402, F401
-from rebel_jax.plots import nanmean_std as _nanmean_std  # noqa: E402
-from rebel_jax.plots import per_seed as _per_seed  # noqa: E402, F401
-from rebel_jax.plots import records as _records  # noqa: E402
+from rebel_jax.run.plots import Curve, load_runs, plot_curves  # noqa: E402, F401
+from rebel_jax.run.plots import nanmean_std as _nanmean_std  # noqa: E402
+from rebel_jax.run.plots import per_seed as _per_seed  # noqa: E402, F401
+from rebel_jax.run.plots import records as _records  # noqa: E402
 
 Interval = tuple[float, float]
 """``(low, high)`` of a confidence interval; NaN where it is undefined."""

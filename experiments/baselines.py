@@ -18,7 +18,7 @@ import pathlib
 import numpy as np
 from analysis import _per_seed, _records, bootstrap_ci, iqm, sample_std
 
-from rebel_jax.plots import load_runs, plot_curves
+from rebel_jax.run.plots import load_runs, plot_curves
 
 ROOT = pathlib.Path(__file__).parents[1]
 RESULTS = ROOT / "results"

@@ -26,8 +26,8 @@ import re
 import shlex
 import sys
 
-from rebel_jax import cli
 from rebel_jax.config import Config, to_dict
+from rebel_jax.run import cli
 
 ROOT = pathlib.Path(__file__).parents[1]
 BEFORE = {

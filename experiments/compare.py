@@ -53,8 +53,8 @@ from analysis import (  # noqa: E402
     sample_std,
 )
 
-from rebel_jax import teachers  # noqa: E402
 from rebel_jax.config import AGENTS  # noqa: E402
+from rebel_jax.preference import teachers  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 

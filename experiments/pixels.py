@@ -43,7 +43,7 @@ from analysis import (
 from compare import compare, gather, methods
 
 from rebel_jax.envs import make_env
-from rebel_jax.plots import per_seed, plot_curves, records
+from rebel_jax.run.plots import per_seed, plot_curves, records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 CHEETAH_PREFERENCE = [
@@ -172,7 +172,8 @@ REWARD_METRICS = ("reward_accuracy_new", "reward_correlation")
 """The pixel sessions' measures of the learned reward, averaged per seed over its sessions (:func:`session_means`):
 the ensemble's accuracy on each session's new (not equal) pairs before it trains on them, its generalisation
 (0.5 is chance), and the Pearson correlation of the relabelled and the true reward over the replay
-(``reward_correlation_replay`` of :data:`rebel_jax.pixel_feedback.PIXEL_SESSION_METRICS`; logs written before that
+(``reward_correlation_replay`` of :data:`rebel_jax.preference.pixel_feedback.PIXEL_SESSION_METRICS`; logs written
+before that
 name call it ``reward_correlation``, the name kept here)."""
 
 LOGGED_AS = {"reward_correlation": ("reward_correlation_replay", "reward_correlation")}

@@ -71,9 +71,9 @@ from analysis import (
 )
 from compare import compare, gather, methods
 
-from rebel_jax.feedback import ROUND_REWARD_METRICS
-from rebel_jax.plots import records as _records
-from rebel_jax.teachers import PRESETS
+from rebel_jax.preference.feedback import ROUND_REWARD_METRICS
+from rebel_jax.preference.teachers import PRESETS
+from rebel_jax.run.plots import records as _records
 
 RESULTS = pathlib.Path(__file__).parents[1] / "results"
 RUNS = {  # task -> run directories under results/runs (REBEL's runs join them as they land)

@@ -21,7 +21,7 @@ import pytest
 _CACHE = pathlib.Path(os.environ.get("REBEL_JAX_TEST_CACHE", pathlib.Path(__file__).parents[1] / ".jax_cache"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-# The command lines' own cache (rebel_jax.compile_cache): in subprocesses that are not given the one above, the
+# The command lines' own cache (rebel_jax.run.compile_cache): in subprocesses that are not given the one above, the
 # same directory rather than the user's ~/.cache.
 os.environ.setdefault("REBEL_JAX_CACHE_DIR", str(_CACHE))
 

@@ -1,4 +1,4 @@
-"""The Agent interface (``rebel_jax.agent``): SAC and DrQ-v2 driven through one generic code path, as the trainer
+"""The Agent interface (``rebel_jax.agents.base``): SAC and DrQ-v2 driven through one generic code path, as the trainer
 drives them, give what their own networks and update steps give when called directly; their update schedules
 match Python loops of B-Pref's and DrQ-v2's rules."""
 
@@ -10,12 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax.agent import Agent, UpdateSchedule
+from rebel_jax.agents.base import Agent, UpdateSchedule
+from rebel_jax.agents.drqv2 import DrQV2, DrQV2Config, PixelTransition, std_schedule, truncated_sample
+from rebel_jax.agents.networks import mode_action, sample_action
+from rebel_jax.agents.replay import Transition
+from rebel_jax.agents.sac import SAC
 from rebel_jax.config import SACConfig
-from rebel_jax.drqv2 import DrQV2, DrQV2Config, PixelTransition, std_schedule, truncated_sample
-from rebel_jax.networks import mode_action, sample_action
-from rebel_jax.replay import Transition
-from rebel_jax.sac import SAC
 
 OBS, ACTIONS, BATCH, FRAMES = 5, 2, 8, (16, 16, 9)
 

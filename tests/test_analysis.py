@@ -23,8 +23,8 @@ analysis = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(analysis)
 from rliable import library as rly  # noqa: E402
 
-from rebel_jax.teachers import PRESETS as TEACHERS  # noqa: E402
-from rebel_jax.teachers import TeacherConfig  # noqa: E402
+from rebel_jax.preference.teachers import PRESETS as TEACHERS  # noqa: E402
+from rebel_jax.preference.teachers import TeacherConfig  # noqa: E402
 
 ORACLE = dataclasses.asdict(TeacherConfig())
 """The oracle's knobs as a run's ``config.json`` records them."""

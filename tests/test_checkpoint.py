@@ -14,9 +14,9 @@ import pytest
 from test_pixel_preference import MICRO as PIXEL_PEBBLE  # the same run, PEBBLE
 from test_pixel_train import MICRO as PIXEL  # the tiny pixel run: 16x16 probe frames, 2 envs
 
-from rebel_jax import checkpoint, cli
-from rebel_jax.checkpoint import CHECKSUMS, CheckpointDamaged, Checkpointer, CheckpointMismatch
 from rebel_jax.config import ConfigError
+from rebel_jax.run import checkpoint, cli
+from rebel_jax.run.checkpoint import CHECKSUMS, CheckpointDamaged, Checkpointer, CheckpointMismatch
 from rebel_jax.train import Trainer, seed_keys
 
 

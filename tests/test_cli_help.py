@@ -12,9 +12,10 @@ import re
 
 import pytest
 
-from rebel_jax import cli, cli_args, methods
+from rebel_jax import methods
 from rebel_jax.config import AGENTS, Config
-from rebel_jax.human import HumanOptions
+from rebel_jax.run import cli, cli_args
+from rebel_jax.run.human import HumanOptions
 
 MOST_FLAGS = 40
 TINY = ["--preset", "tiny", "--task", "probe_point"]
@@ -195,3 +196,13 @@ def test_a_flag_of_the_older_spelling_is_refused_naming_the_new_one(old, new, fi
     assert exit_info.value.code == 2 and len(err) == 1 and err[0].startswith(f"error: {old} is now {new}"), err
     cfg = cli.parse(["pebble", *TINY, new, "16"]).config
     assert getattr(getattr(cfg, field), old[2:]) == 16
+
+
+@pytest.mark.parametrize("task", ["walker_walk", "cheetah_run", "metaworld_drawer-open", "quadruped_run"])
+def test_a_mistyped_task_gets_the_task_it_misspells(task, capsys):
+    typed = task[:3] + task[4:]  # one letter dropped
+    with pytest.raises(SystemExit) as end:
+        cli.parse(["pebble", *TINY, "--task", typed])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert end.value.code == 2 and len(err) == 1, err
+    assert f"env.task={typed!r} is invalid (did you mean {task}?)" in err[0], err

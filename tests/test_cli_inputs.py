@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from tyro import _unsafe_cache as tyro_cache
 
-from rebel_jax import cli
 from rebel_jax.config import PRESETS
-from rebel_jax.logging import RunLogger
+from rebel_jax.run import cli
+from rebel_jax.run.logging import RunLogger
 from rebel_jax.train import Trainer
 
 TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tensorboard"]

@@ -1,5 +1,5 @@
 """Every numeric flag of every method, fed its edge values, is refused in one line that names it and its range, or
-gives a value the program runs with; nothing is written before (``rebel_jax.ranges``)."""
+gives a value the program runs with; nothing is written before (``rebel_jax.core.ranges``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import math
 
 import pytest
 
-from rebel_jax import cli_args
 from rebel_jax.config import PRESETS, ConfigError
-from rebel_jax.ranges import FLOAT_MAX, INT_MAX, field_ranges
+from rebel_jax.core.ranges import FLOAT_MAX, INT_MAX, field_ranges
+from rebel_jax.run import cli_args
 
 EDGES = (-1, 0, 2**31, 2**63, math.nan, math.inf, 1e300)
 TINY = ["--preset", "tiny", "--task", "probe_point", "--no-progress", "--no-tensorboard"]

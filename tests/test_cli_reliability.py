@@ -25,7 +25,7 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
-from rebel_jax import cli, cli_outputs, video
+from rebel_jax.run import cli, cli_outputs, video
 from rebel_jax.train import Trainer, seed_keys
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -35,8 +35,8 @@ ROOT = pathlib.Path(__file__).parents[1]
 KILLED_TRAIN = textwrap.dedent(
     """
     import os, runpy, signal, sys, time
-    from rebel_jax.checkpoint import Checkpointer
-    from rebel_jax.logging import RunLogger
+    from rebel_jax.run.checkpoint import Checkpointer
+    from rebel_jax.run.logging import RunLogger
 
     where, at = os.environ["KILL_AT"].split(":")
 
@@ -193,7 +193,7 @@ def test_resume_with_checkpoint_every_0_extends_a_run_to_more_steps(whole, tmp_p
 def test_resume_refuses_a_checkpoint_of_another_state_and_keeps_the_run(whole, tmp_path, capsys):
     """A checkpoint that reads but holds other leaves (written by other code) is not "damaged": nothing is
     moved aside, the log is not cut back to round 0, and the error says which code wrote it."""
-    from rebel_jax.checkpoint import Checkpointer
+    from rebel_jax.run.checkpoint import Checkpointer
 
     run_dir = tmp_path / "run"
     shutil.copytree(whole, run_dir)
@@ -213,7 +213,7 @@ def test_resume_refuses_a_checkpoint_of_another_state_and_keeps_the_run(whole, t
 
 
 def test_checkpoint_of_other_shapes_is_a_mismatch_not_damage(tmp_path):
-    from rebel_jax.checkpoint import Checkpointer, CheckpointMismatch
+    from rebel_jax.run.checkpoint import Checkpointer, CheckpointMismatch
 
     ckpt = Checkpointer(tmp_path / "checkpoints")
     ckpt.save(1, {"a": jnp.zeros(3), "b": jnp.ones(2)})
@@ -389,7 +389,7 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
     _same_run(whole, extended, rounded=("reward_correlation_replay", "reward_correlation_replay_mean"))
     assert _metrics(extended)[-1]["labels_used"] == [8.0, 8.0]
     _same_checkpoint(whole, extended)
-    # `python -m rebel_jax.video RUN_DIR`'s policy of each column is the one final.json evaluated.
+    # `python -m rebel_jax.run.video RUN_DIR`'s policy of each column is the one final.json evaluated.
     final = _final(whole)["final_eval_return"]
     for column in range(2):
         trainer, step, params = video.load_policy(whole, column)
@@ -399,7 +399,7 @@ def test_a_pixel_preference_run_extended_from_its_checkpoint_is_the_same_run(tmp
 
 
 def test_a_checkpoint_slower_than_its_round_is_noted_once_with_a_larger_interval(whole, tmp_path, monkeypatch, capsys):
-    from rebel_jax.checkpoint import Checkpointer
+    from rebel_jax.run.checkpoint import Checkpointer
 
     save = Checkpointer.save
 

@@ -25,7 +25,7 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO
 from test_cli_runs import ROUNDS, _env, _metrics
 
-from rebel_jax import cli, rundir
+from rebel_jax.run import cli, rundir
 from rebel_jax.train import seed_keys
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -205,7 +205,7 @@ def test_resume_refuses_files_it_cannot_read_or_write(run_dir, damage, expected)
 FAILING_SAVE = textwrap.dedent(
     """
     import os, resource, runpy, signal, sys
-    from rebel_jax.checkpoint import Checkpointer
+    from rebel_jax.run.checkpoint import Checkpointer
 
     at, how = os.environ["FAIL_AT"].split(":")
     save = Checkpointer.save
@@ -265,7 +265,7 @@ def test_a_second_process_in_the_run_directory_is_refused_naming_the_first(run_d
 HOLD_LOCK = textwrap.dedent(
     """
     import pathlib, sys, time
-    from rebel_jax.rundir import RunLock
+    from rebel_jax.run.rundir import RunLock
 
     with RunLock() as lock:
         lock.acquire(pathlib.Path(sys.argv[1]))
@@ -281,7 +281,7 @@ HOLD_LOCK = textwrap.dedent(
 INTERRUPTED = textwrap.dedent(
     """
     import runpy, sys
-    from rebel_jax.logging import RunLogger
+    from rebel_jax.run.logging import RunLogger
 
     write = RunLogger.write
 

@@ -1,4 +1,4 @@
-"""The persistent compilation cache of ``python -m rebel_jax.train`` (:mod:`rebel_jax.compile_cache`).
+"""The persistent compilation cache of ``python -m rebel_jax.train`` (:mod:`rebel_jax.run.compile_cache`).
 
 Whole runs in subprocesses (a fresh JAX each, as a user's second command is), each with its own cache directory
 under ``tmp_path``: a first run fills the directory, a second identical one loads every program from it (JAX logs
@@ -16,8 +16,8 @@ import sys
 import pytest
 from test_cli_runs import MICRO_FLAGS, ROOT, _metrics
 
-from rebel_jax import cli, compile_cache, video
-from rebel_jax.errors import ConfigError
+from rebel_jax.core.errors import ConfigError
+from rebel_jax.run import cli, compile_cache, video
 
 JAX_CACHE_VARIABLES = (
     "JAX_COMPILATION_CACHE_DIR",

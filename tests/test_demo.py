@@ -21,8 +21,8 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from rebel_jax.cli import _final_evaluation, last_logged, parse, summary_table
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+from rebel_jax.run.cli import _final_evaluation, last_logged, parse, summary_table
 from rebel_jax.train import Trainer, compiled
 
 ROOT = pathlib.Path(__file__).parents[1]

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from test_cli_runs import MICRO_FLAGS, ROOT, ROUNDS, _env, _metrics, _saved_arrays
 
-from rebel_jax import cli
+from rebel_jax.run import cli
 
 DEADLINE = 600
 """Seconds a launch of the training processes may take (a cold compile takes about a minute on 2 cores)."""

@@ -15,8 +15,7 @@ import numpy as np
 import optax
 import pytest
 
-from rebel_jax.config import ConfigError
-from rebel_jax.drqv2 import (
+from rebel_jax.agents.drqv2 import (
     CLAMP_EPS,
     DrQV2,
     DrQV2Config,
@@ -29,7 +28,8 @@ from rebel_jax.drqv2 import (
     task_config,
     truncated_sample,
 )
-from rebel_jax.networks import Encoder, conv_patch_kernel_grad, encoder_output_size
+from rebel_jax.agents.networks import Encoder, conv_patch_kernel_grad, encoder_output_size
+from rebel_jax.config import ConfigError
 
 
 def _grid_sample_reference(x: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -412,7 +412,7 @@ def test_critic_out_f32_keeps_q_off_the_bfloat16_grid():
     output layer's bfloat16 matmul on the bfloat16 grid (steps of 1/128 to 1/32 between 1 and 8), so 4,096 inputs give a
     couple of hundred values; with the output layer in float32 they stay distinct, within a grid step of the
     rounded ones, from the same parameters."""
-    from rebel_jax.networks import PixelCritic
+    from rebel_jax.agents.networks import PixelCritic
 
     rng = np.random.default_rng(0)
     h = jnp.asarray(rng.normal(size=(4096, 100)), jnp.float32)

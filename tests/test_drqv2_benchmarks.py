@@ -114,7 +114,7 @@ def test_bad_counts_are_refused(profile):
 def test_shift_by_selects_takes_the_same_window_as_shift_images_at_every_shift(shift_bench, pad):
     import jax.numpy as jnp
 
-    from rebel_jax.drqv2 import shift_images
+    from rebel_jax.agents.drqv2 import shift_images
 
     rng = np.random.default_rng(pad)
     shifts = np.array([(sx, sy) for sx in range(2 * pad + 1) for sy in range(2 * pad + 1)])

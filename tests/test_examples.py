@@ -23,7 +23,8 @@ from test_preference_train import MICRO_PEBBLE
 from test_qpa_rune import METHOD_FLAGS
 from test_qpa_rune import MICRO_FLAGS as QPA_MICRO
 
-from rebel_jax import api, cli, config, methods, train
+from rebel_jax import api, config, methods, train
+from rebel_jax.run import cli
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "examples"))
 from l2_reward import L2Reward, l2_penalty  # noqa: E402

@@ -13,15 +13,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import queries, reward_train
-from rebel_jax import reward_model as rm
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.methods import rebel as agent_preference
 from rebel_jax.methods import surf
 from rebel_jax.methods.rebel import AgentPreferenceConfig
-from rebel_jax.pretrain import PretrainConfig
-from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import RewardConfig
+from rebel_jax.preference import queries, reward_train
+from rebel_jax.preference import reward_model as rm
+from rebel_jax.preference.pretrain import PretrainConfig
+from rebel_jax.preference.queries import QueryConfig
+from rebel_jax.preference.reward_model import RewardConfig
 from rebel_jax.train import Trainer
 
 # -- the reward network's initial weights -------------------------------------------------------

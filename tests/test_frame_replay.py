@@ -14,8 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import frame_replay, pixel_reward
-from rebel_jax.frame_replay import FrameStep
+from rebel_jax.agents import frame_replay
+from rebel_jax.agents.frame_replay import FrameStep
+from rebel_jax.preference import pixel_reward
 
 STACK, FRAME, ENVS, GAMMA = 3, (4, 4, 3), 2, 0.9
 

@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from rebel_jax import cli_rundir
+from rebel_jax.run import cli_rundir
 
 
 def _git(*args, cwd) -> str:

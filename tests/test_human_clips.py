@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from rebel_jax.envs.dmc import TASKS, mj_model
-from rebel_jax.human import clips
+from rebel_jax.run.human import clips
 
 ROOT = pathlib.Path(__file__).parents[1]
 
@@ -64,7 +64,7 @@ RENDER = textwrap.dedent(
     import json, sys
     import numpy as np
     from rebel_jax.envs.dmc import mj_model
-    from rebel_jax.human import clips
+    from rebel_jax.run.human import clips
 
     try:
         renderer = clips.make_renderer("walker_walk", 256)
@@ -111,7 +111,7 @@ QUADRUPED_RENDER = textwrap.dedent(
     import json, sys
     import numpy as np
     from rebel_jax.envs.dmc import mj_model
-    from rebel_jax.human import clips
+    from rebel_jax.run.human import clips
 
     try:
         renderer = clips.make_renderer("quadruped_walk", 256)

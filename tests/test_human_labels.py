@@ -15,9 +15,9 @@ import urllib.request
 
 import pytest
 
-from rebel_jax.human.labels import LabelError, LabelFile, SessionAnswers, query_id, to_label
-from rebel_jax.human.server import Access, Labelling, Query, Server, Session, host_name, is_loopback
-from rebel_jax.human.session import hide_token, page_lines, redact_token
+from rebel_jax.run.human.labels import LabelError, LabelFile, SessionAnswers, query_id, to_label
+from rebel_jax.run.human.server import Access, Labelling, Query, Server, Session, host_name, is_loopback
+from rebel_jax.run.human.session import hide_token, page_lines, redact_token
 
 TOKEN = "0123abcd" * 6  # what the page fixture's server asks for
 
@@ -633,7 +633,7 @@ TINY = ["--preset", "tiny", "--task", "probe_point", "--algo", "pebble"]
     ],
 )
 def test_cli_rejects_bad_human_flags(flags, message, capsys):
-    from rebel_jax.cli import parse
+    from rebel_jax.run.cli import parse
 
     with pytest.raises(SystemExit):
         parse(TINY + flags)
@@ -641,8 +641,8 @@ def test_cli_rejects_bad_human_flags(flags, message, capsys):
 
 
 def test_cli_human_teacher_compares_with_the_oracle(tmp_path: pathlib.Path):
-    from rebel_jax import teachers
-    from rebel_jax.cli import parse
+    from rebel_jax.preference import teachers
+    from rebel_jax.run.cli import parse
 
     args = parse(TINY + ["--teacher", "human", "--human.port", "0", "--human.timeout", "30"])
     assert args.host_teacher == "human" and args.human.port == 0 and args.human.timeout == 30

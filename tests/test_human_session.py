@@ -25,9 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax.cli import parse
-from rebel_jax.feedback import SESSION_METRICS
-from rebel_jax.human import HostTeacher, HumanOptions
+from rebel_jax.preference.feedback import SESSION_METRICS
+from rebel_jax.run.cli import parse
+from rebel_jax.run.human import HostTeacher, HumanOptions
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 # REBEL on the probe task, rounds of 20 vector steps (40 env steps); sessions at the start of rounds
@@ -477,9 +477,9 @@ def test_the_page_says_when_the_trainer_is_away_and_when_the_run_is_over(tmp_pat
         pytest.skip(f"Debian's Chromium is not at {CHROMIUM}: apt-get install chromium chromium-driver")
     from playwright.sync_api import sync_playwright
 
-    from rebel_jax.human.clips import sheet
-    from rebel_jax.human.labels import LabelFile, SessionAnswers
-    from rebel_jax.human.server import Labelling, Query, Server, Session
+    from rebel_jax.run.human.clips import sheet
+    from rebel_jax.run.human.labels import LabelFile, SessionAnswers
+    from rebel_jax.run.human.server import Labelling, Query, Server, Session
 
     token = "page-test-token"
     labelling = Labelling(LabelFile(tmp_path / "labels.jsonl"), "tester", "Which is better?", 10, 5)

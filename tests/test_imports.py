@@ -14,7 +14,7 @@ import pathlib
 
 import pytest
 
-from rebel_jax.cli import collector_paused
+from rebel_jax.run.cli import collector_paused
 
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src"
 
@@ -104,23 +104,60 @@ def _write_package(root: pathlib.Path, files: dict[str, str]) -> None:
 
 def test_the_package_has_no_import_cycle():
     graph = import_graph(SRC, "rebel_jax")
-    assert {"rebel_jax.train", "rebel_jax.cli", "rebel_jax.reward_model", "rebel_jax.methods.surf"} <= set(graph)
-    assert "rebel_jax.reward_model" in graph["rebel_jax.methods.surf"]  # The graph sees the package's own imports.
+    assert {
+        "rebel_jax.train",
+        "rebel_jax.run.cli",
+        "rebel_jax.preference.reward_model",
+        "rebel_jax.methods.surf",
+    } <= set(graph)
+    assert "rebel_jax.preference.reward_model" in graph["rebel_jax.methods.surf"]  # it sees the package's imports
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
+LAYERS = ("core", "envs", "agents", "preference", "methods", "config", "train", "api", "run")
+"""The package's layers, bottom first (each package's docstring says what it may import): a module may import its
+own layer and those below it, never one above."""
+
+
+def layer(module: str) -> int:
+    """The index in :data:`LAYERS` of ``module``'s layer (``rebel_jax.X...``; the package's root sits below all)."""
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 else -1
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """``a -> b`` for each import of ``graph`` from a lower layer to a higher one."""
+    return sorted(f"{a} -> {b}" for a, targets in graph.items() for b in targets if layer(b) > layer(a))
+
+
+def test_every_top_level_entry_is_a_layer():
+    entries = {p.stem for p in (SRC / "rebel_jax").iterdir() if p.name != "__pycache__"} - {"__init__"}
+    assert entries == set(LAYERS)
+
+
+def test_imports_flow_down_the_layers():
+    graph = import_graph(SRC, "rebel_jax")
+    assert "rebel_jax.config" in graph["rebel_jax.train.trainer"]  # the graph sees imports across layers
+    assert upward_imports(graph) == []
+
+
+def test_an_upward_import_is_caught():
+    graph = {"rebel_jax.agents.sac": {"rebel_jax.config"}, "rebel_jax.run.cli": {"rebel_jax.train"}}
+    assert upward_imports(graph) == ["rebel_jax.agents.sac -> rebel_jax.config"]
+
+
 def test_train_does_not_import_the_command_line():
     graph = import_graph(SRC, "rebel_jax")
-    assert "rebel_jax.cli" not in graph["rebel_jax.train"]
-    assert "rebel_jax.train" in graph["rebel_jax.cli"]
+    assert not any(b.startswith("rebel_jax.run") for b in graph["rebel_jax.train.trainer"])
+    assert "rebel_jax.train" in graph["rebel_jax.run.cli"]
 
 
 def test_the_methods_terms_import_the_reward_model_and_not_the_reverse():
     graph = import_graph(SRC, "rebel_jax")
     for method in ("rebel_jax.methods.surf", "rebel_jax.methods.rebel"):
-        assert "rebel_jax.reward_model" in graph[method]
-        assert method not in graph["rebel_jax.reward_model"]
+        assert "rebel_jax.preference.reward_model" in graph[method]
+        assert method not in graph["rebel_jax.preference.reward_model"]
 
 
 @pytest.mark.parametrize(

@@ -18,7 +18,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from rebel_jax import api, budget, cli_args
+from rebel_jax import api
+from rebel_jax.preference import budget
+from rebel_jax.run import cli_args
 
 PACKAGE = '''
 import dataclasses

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from test_preference_train import MICRO_PEBBLE
 
-from rebel_jax import budget, reward_model
+from rebel_jax.agents.replay import Transition
+from rebel_jax.agents.sac import SAC
 from rebel_jax.config import PRESETS, ConfigError, FeedbackConfig, SACConfig, TrainConfig
 from rebel_jax.methods import mrn
-from rebel_jax.pretrain import PretrainConfig
-from rebel_jax.replay import Transition
-from rebel_jax.sac import SAC
+from rebel_jax.preference import budget, reward_model
+from rebel_jax.preference.pretrain import PretrainConfig
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 OBS, ACT, B, LR, WEIGHT = 3, 2, 6, 0.1, 0.1

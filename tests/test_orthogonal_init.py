@@ -1,6 +1,6 @@
 """The orthogonal kernel init under the seed and member ``vmap``s: the pixel reward ensemble of 2 seeds
 initialises (jaxlib 0.10.2's batched LAPACK QR deadlocked on the 2-core CPU), its kernels are orthogonal
-with their gains, and :func:`rebel_jax.networks.orthogonal` gives flax's values for the same key."""
+with their gains, and :func:`rebel_jax.agents.networks.orthogonal` gives flax's values for the same key."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import pixel_reward
-from rebel_jax.networks import orthogonal
-from rebel_jax.pixel_reward import PixelRewardConfig
+from rebel_jax.agents.networks import orthogonal
+from rebel_jax.preference import pixel_reward
+from rebel_jax.preference.pixel_reward import PixelRewardConfig
 from rebel_jax.train import seed_keys
 
 

@@ -10,10 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import train
-from rebel_jax.cli import parse
 from rebel_jax.config import Config, ConfigError, EnvConfig, SACConfig, TrainConfig
-from rebel_jax.train import Trainer, compiled, seed_keys
+from rebel_jax.run.cli import parse
+from rebel_jax.train import Trainer, compiled, placement, seed_keys
 
 MICRO = Config(
     env=EnvConfig(task="probe_point", num_envs=2, episode_length=20),
@@ -75,8 +74,8 @@ def test_overlap_needs_transitions_before_the_first_update(capsys):
 def test_on_a_gpu_the_env_step_is_annotated_for_a_second_stream_and_computes_the_same(behind, monkeypatch, api):
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the trace as on a GPU; it still runs here
     if api == "compute_on":  # as on JAX 0.11: the keyword form named compute_on, no compute_on2
-        monkeypatch.setattr(train.jax_compute_on, "compute_on", train.jax_compute_on.compute_on2)
-        monkeypatch.delattr(train.jax_compute_on, "compute_on2")
+        monkeypatch.setattr(placement.jax_compute_on, "compute_on", placement.jax_compute_on.compute_on2)
+        monkeypatch.delattr(placement.jax_compute_on, "compute_on2")
     streamed, text, _ = _two_rounds(OVERLAP)
     assert "_xla_stream_annotation" in text and "_xla_stream_annotation" not in behind[1]
     chex.assert_trees_all_equal(behind[0], streamed)

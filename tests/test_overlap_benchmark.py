@@ -8,9 +8,9 @@ import jax
 import numpy as np
 import pytest
 
+from rebel_jax.agents.sac import SAC
 from rebel_jax.config import PRESETS
 from rebel_jax.envs import make_env
-from rebel_jax.sac import SAC
 
 
 def _final_states(bench, modes):

@@ -14,20 +14,21 @@ import optax
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from rebel_jax import frame_replay, pixel_reward, teachers
-from rebel_jax import reward_model as rm
-from rebel_jax import reward_train as rt
-from rebel_jax.cli import parse
+from rebel_jax.agents import frame_replay
+from rebel_jax.agents.drqv2 import DrQV2Config, task_config
 from rebel_jax.config import Config, ConfigError, EnvConfig, FeedbackConfig, TrainConfig
-from rebel_jax.drqv2 import DrQV2Config, task_config
 from rebel_jax.methods import rebel as agent_preference
 from rebel_jax.methods import surf
 from rebel_jax.methods.rebel import AgentPreferenceConfig
 from rebel_jax.methods.surf import SURFConfig
-from rebel_jax.pixel_reward import PixelRewardConfig, SegmentPlaces
-from rebel_jax.pretrain import PretrainConfig
-from rebel_jax.queries import QueryConfig
-from rebel_jax.teachers import TeacherConfig
+from rebel_jax.preference import pixel_reward, teachers
+from rebel_jax.preference import reward_model as rm
+from rebel_jax.preference import reward_train as rt
+from rebel_jax.preference.pixel_reward import PixelRewardConfig, SegmentPlaces
+from rebel_jax.preference.pretrain import PretrainConfig
+from rebel_jax.preference.queries import QueryConfig
+from rebel_jax.preference.teachers import TeacherConfig
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 STACK, SIZE, ENVS, LENGTH, ACTIONS = 3, 16, 2, 6, 2

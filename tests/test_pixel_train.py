@@ -10,10 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import frame_replay
-from rebel_jax.cli import parse
+from rebel_jax.agents import frame_replay
+from rebel_jax.agents.drqv2 import DrQV2Config
 from rebel_jax.config import Config, ConfigError, EnvConfig, TrainConfig
-from rebel_jax.drqv2 import DrQV2Config
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 # Episodes of 20 frames = 10 agent steps (action repeat 2), 16x16 images, rounds of one episode.

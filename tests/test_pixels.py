@@ -12,8 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import render
-from rebel_jax.envs import PIXEL_TASKS, TASKS, AutoResetWrapper, PixelEnv, dmc, make_env
+from rebel_jax.envs import PIXEL_TASKS, TASKS, AutoResetWrapper, PixelEnv, dmc, make_env, render
 
 _TINY_XML = """
 <mujoco>

@@ -11,16 +11,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import pretrain, reward_model
-from rebel_jax.budget import offered_pairs, remaining_budget, within_budget
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig, TrainConfig
-from rebel_jax.feedback import SESSION_METRICS, saturated_fraction
 from rebel_jax.methods.rebel import AgentPreferenceConfig
 from rebel_jax.methods.surf import SURFConfig
-from rebel_jax.pretrain import PretrainConfig
-from rebel_jax.queries import QueryConfig
-from rebel_jax.reward_model import RewardConfig
-from rebel_jax.teachers import TeacherConfig
+from rebel_jax.preference import pretrain, reward_model
+from rebel_jax.preference.budget import offered_pairs, remaining_budget, within_budget
+from rebel_jax.preference.feedback import SESSION_METRICS, saturated_fraction
+from rebel_jax.preference.pretrain import PretrainConfig
+from rebel_jax.preference.queries import QueryConfig
+from rebel_jax.preference.reward_model import RewardConfig
+from rebel_jax.preference.teachers import TeacherConfig
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 # Episodes of 40 steps, rounds of 20 vector steps: 20 seed steps, 60 pre-training steps, then a

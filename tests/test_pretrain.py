@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import pretrain
+from rebel_jax.preference import pretrain
 
 
 @flax.struct.dataclass

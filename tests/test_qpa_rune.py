@@ -23,17 +23,20 @@ from test_pixel_preference import MICRO as PIXEL_MICRO
 from test_pixel_preference import _filled_buffer as _filled_pixel_buffer
 from test_pixel_preference import _place_of
 
-from rebel_jax import cli, frame_replay, pixel_reward, replay, reward_model, reward_train, train
+from rebel_jax import train
+from rebel_jax.agents import frame_replay, replay
+from rebel_jax.agents.drqv2 import DrQV2Config
 from rebel_jax.config import Config, EnvConfig, FeedbackConfig, SACConfig
-from rebel_jax.drqv2 import DrQV2Config
-from rebel_jax.feedback import StateFeedback
 from rebel_jax.methods import REGISTRY
 from rebel_jax.methods.base import Method
 from rebel_jax.methods.qpa import QPAConfig
 from rebel_jax.methods.rune import RUNEConfig, bonus_weight
-from rebel_jax.pixel_feedback import PixelFeedback
-from rebel_jax.pixel_reward import PixelRewardConfig
-from rebel_jax.reward_model import PrefBatch, RewardConfig, Steps
+from rebel_jax.preference import pixel_reward, reward_model, reward_train
+from rebel_jax.preference.feedback import StateFeedback
+from rebel_jax.preference.pixel_feedback import PixelFeedback
+from rebel_jax.preference.pixel_reward import PixelRewardConfig
+from rebel_jax.preference.reward_model import PrefBatch, RewardConfig, Steps
+from rebel_jax.run import cli
 from rebel_jax.train import Trainer
 
 # A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment

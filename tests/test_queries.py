@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import queries, replay
+from rebel_jax.agents import replay
+from rebel_jax.preference import queries
 
 EPISODE_LENGTH, NUM_ENVS, CAPACITY, H = 12, 3, 60, 5
 _sample_pairs = jax.jit(queries.sample_pairs, static_argnums=(2, 3, 4, 5))

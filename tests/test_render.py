@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from rebel_jax import render
+from rebel_jax.envs import render
 from rebel_jax.envs.dmc import mj_model
 
 TASKS = ["walker_walk", "cheetah_run"]

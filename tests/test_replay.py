@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import queries, replay
+from rebel_jax.agents import replay
+from rebel_jax.preference import queries
 
 E, OBS, ACT = 3, 4, 2
 

@@ -1,4 +1,5 @@
-"""The replay contract (``rebel_jax.replay``'s docstring): the state ring and the frame ring share their field and
+"""The replay contract (``rebel_jax.agents.replay``'s docstring): the state ring and the frame ring share their field
+and
 function names, and keep the task's reward (``true_reward``) and the reward model's (``learned_reward``) apart:
 sampling reads the one asked for, relabelling writes only the learned one."""
 
@@ -11,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import frame_replay, replay
+from rebel_jax.agents import frame_replay, replay
 
 ENVS, ROWS, LENGTH, FRAME = 2, 12, 6, (8, 8, 3)
 SHARED = ("action", "true_reward", "learned_reward", "terminal", "truncated", "episode_step", "ptr", "size")

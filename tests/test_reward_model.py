@@ -12,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import reward_model as rm
-from rebel_jax import reward_train as rt
-from rebel_jax.queries import Segments
+from rebel_jax.preference import reward_model as rm
+from rebel_jax.preference import reward_train as rt
+from rebel_jax.preference.queries import Segments
 
 OBS, ACT, H = 4, 2, 6
 TRUE_W = np.array([1.0, -0.5, 0.8, 0.3, 0.6, -0.4], np.float32)
@@ -260,7 +260,7 @@ def test_one_bt_loss_reads_the_batchs_rewards_alike_for_state_and_frame_segments
     """``bt_loss`` is one term for both networks: on a batch of state segments and on one of frame segments with
     the same members' per-step rewards it gives the same loss, and that loss is NumPy's soft cross-entropy of the
     (cropped) return differences, each member's weighted mean, summed over members."""
-    from rebel_jax.pixel_reward import PixelRewardConfig, SegmentFrames  # noqa: PLC0415
+    from rebel_jax.preference.pixel_reward import PixelRewardConfig, SegmentFrames  # noqa: PLC0415
 
     rng = np.random.default_rng(3)
     members, pairs, steps = 3, 5, 8

@@ -1,5 +1,5 @@
 """What a method can shape in reward training without copying its loops: the optimiser, a weight per labelled pair,
-and the loss terms' own metrics (rebel_jax.reward_train)."""
+and the loss terms' own metrics (rebel_jax.preference.reward_train)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import optax
 import pytest
 from test_qpa_rune import _labelled_state
 
-from rebel_jax import reward_model, reward_train
-from rebel_jax.reward_model import RewardConfig
+from rebel_jax.preference import reward_model, reward_train
+from rebel_jax.preference.reward_model import RewardConfig
 
 CFG = RewardConfig(ensemble_size=2, hidden=16, depth=2, batch_size=4, lr=1e-2)
 COUNT, LENGTH = 10, 5

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_preference_train import MICRO_PEBBLE
 
-from rebel_jax import pretrain, replay, reward_model
+from rebel_jax.agents import replay
 from rebel_jax.methods.rime import (
     RIME,
     RIMEConfig,
@@ -23,7 +23,8 @@ from rebel_jax.methods.rime import (
     update_stats,
     warmup_factor,
 )
-from rebel_jax.reward_model import PairStore, RewardConfig
+from rebel_jax.preference import pretrain, reward_model
+from rebel_jax.preference.reward_model import PairStore, RewardConfig
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 

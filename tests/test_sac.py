@@ -12,9 +12,8 @@ import numpy as np
 import optax
 import pytest
 
-from rebel_jax.config import SACConfig
-from rebel_jax.networks import MLP, Actor, sample_action
-from rebel_jax.sac import (
+from rebel_jax.agents.networks import MLP, Actor, sample_action
+from rebel_jax.agents.sac import (
     SAC,
     Transition,
     gradient_step,
@@ -23,6 +22,7 @@ from rebel_jax.sac import (
     make_critic_loss,
     update_flops,
 )
+from rebel_jax.config import SACConfig
 
 # One config and one compiled training loop serve all four probes (CPU compiles are slow).
 # The temperature is nearly fixed and tiny, so soft values equal the hard ones to ~1e-4.

@@ -46,7 +46,7 @@ ENTRY %main () -> () {
 }
 
 FileNames
-1 "/src/rebel_jax/sac.py"
+1 "/src/rebel_jax/agents/sac.py"
 2 "/site-packages/optax/_src/update.py"
 3 "/site-packages/optax/_src/transform.py"
 

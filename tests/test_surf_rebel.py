@@ -11,11 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import reward_model as rm
-from rebel_jax import reward_train as rt
 from rebel_jax.methods import rebel as agent_preference
 from rebel_jax.methods import surf
-from rebel_jax.queries import Segments
+from rebel_jax.preference import reward_model as rm
+from rebel_jax.preference import reward_train as rt
+from rebel_jax.preference.queries import Segments
 
 OBS, ACT, H = 3, 2, 6
 TRUE_W = np.array([1.0, -0.5, 0.8, 0.6, -0.4], np.float32)

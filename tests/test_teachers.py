@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax import teachers
-from rebel_jax.queries import Segments
+from rebel_jax.preference import teachers
+from rebel_jax.preference.queries import Segments
 
 N, H = 4000, 10
 MARGIN = 3.0

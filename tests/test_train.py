@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rebel_jax.checkpoint import Checkpointer
-from rebel_jax.cli import parse
 from rebel_jax.config import Config, EnvConfig, SACConfig, TrainConfig
+from rebel_jax.run.checkpoint import Checkpointer
+from rebel_jax.run.cli import parse
 from rebel_jax.train import Trainer, compiled, seed_keys
 
 # Episodes of 20 steps, rounds of 20 vector steps: resets, seeding and learning all happen. The
@@ -174,13 +174,13 @@ SHARDED = textwrap.dedent(
     """
     import sys
     import jax, jax.numpy as jnp, numpy as np
-    from rebel_jax import sweep
+    from rebel_jax.train import placement
     from rebel_jax.train import Trainer, compiled, seed_keys
     from tests.test_train import MICRO, SHARDED_SEEDS, SHARDED_ROUNDS
     assert len(jax.devices()) == SHARDED_SEEDS
-    sharding = sweep.seed_sharding(SHARDED_SEEDS)
+    sharding = placement.seed_sharding(SHARDED_SEEDS)
     init, round_fn, _ = compiled(Trainer(MICRO), sharding)  # as the CLI: each device runs its seeds
-    state = init(sweep.shard_seeds(seed_keys(11, SHARDED_SEEDS), sharding))
+    state = init(placement.shard_seeds(seed_keys(11, SHARDED_SEEDS), sharding))
     for r in range(SHARDED_ROUNDS):
         state, _ = round_fn(state, jnp.int32(r))
     # Every leaf, the zeroed replay buffer included, holds one seed per device.

@@ -1,4 +1,4 @@
-"""Video files and the run-directory config round trip of ``rebel_jax.video``."""
+"""Video files and the run-directory config round trip of ``rebel_jax.run.video``."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ import jax
 import numpy as np
 import pytest
 
-from rebel_jax import render, video
+from rebel_jax.agents.drqv2 import DrQV2, DrQV2Config
 from rebel_jax.config import PRESETS, from_dict, to_dict
-from rebel_jax.drqv2 import DrQV2, DrQV2Config
-from rebel_jax.envs import dmc
+from rebel_jax.envs import dmc, render
 from rebel_jax.envs.pixels import PixelEnv
+from rebel_jax.run import video
 
 
 def test_gif_round_trip(tmp_path):
@@ -74,7 +74,7 @@ def test_a_pixel_policy_s_clip_is_its_episode_seen_by_the_clip_camera():
     np.testing.assert_allclose(total, sum(rewards), rtol=1e-5)
 
 
-# -- python -m rebel_jax.video's inputs: one line, exit status 2, nothing written --------------------------------
+# -- python -m rebel_jax.run.video's inputs: one line, exit status 2, nothing written --------------------------------
 def _run_dir(tmp_path, task: str = "cheetah_run", **meta) -> pathlib.Path:
     """A run directory as the trainer leaves it, but for its checkpoint's content (the checks come first)."""
     run_dir = tmp_path / "run"

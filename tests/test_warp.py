@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from test_envs_quadruped import _batch  # MJX data holding dm_control's physics states
 
-from rebel_jax.cli import parse
 from rebel_jax.envs import dmc, make_env
+from rebel_jax.run.cli import parse
 
 suite = pytest.importorskip("dm_control.suite")
 
@@ -204,7 +204,7 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
     the same command whose round compiles at its first call, as with the JAX step."""
     import json
 
-    from rebel_jax import cli
+    from rebel_jax.run import cli
 
     flags = ["sac", "--preset", "tiny", "--task", "walker_walk", "--impl", "warp", "--seeds", "1",
              "--num-envs", "2", "--episode-length", "20", "--total-steps", "80", "--seed-steps", "20",
@@ -225,10 +225,30 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
     assert ahead == at_first_call
 
 
+def test_unroll_substeps_unrolls_the_control_step_s_substep_loop():
+    """``env.unroll_substeps`` (which the trainer passes on) traces the control step's physics substeps as one
+    loop unrolled ``n_substeps`` times, and the plain step as a loop: read from the step's jaxpr, nothing compiled.
+    That the two land in the same place is the heavy test below (its compile takes about a minute on 2 cores)."""
+    from rebel_jax.config import Config, EnvConfig
+    from rebel_jax.train import Trainer
+
+    cfg = Config(env=EnvConfig(task="walker_walk", num_envs=1, episode_length=20, unroll_substeps=True))
+    assert Trainer(cfg).env.unroll_substeps
+    texts = []
+    for unroll in (False, True):
+        env = make_env("walker_walk", episode_length=20, unroll_substeps=unroll)
+        state = env.reset(jax.random.PRNGKey(0))
+        texts.append(str(jax.make_jaxpr(env.step)(state, jnp.zeros(env.action_size))))
+    substeps = f"unroll={make_env('walker_walk').spec.n_substeps}"
+    assert substeps not in texts[0] and substeps in texts[1]
+
+
+@pytest.mark.heavy
 @pytest.mark.parametrize("impl", ["jax", pytest.param("warp", marks=needs_warp)])
 def test_a_control_step_with_its_substeps_unrolled_lands_where_the_loop_does(impl):
     """``env.unroll_substeps`` (which the trainer passes on): the same 10 physics substeps compiled without their
-    loop give the looped control step's observation and reward to float32 rounding, from 4 random walker states."""
+    loop give the looped control step's observation and reward to float32 rounding, from 4 random walker states.
+    ``make test`` checks the unrolling itself (the test above)."""
     from rebel_jax.config import Config, EnvConfig
     from rebel_jax.train import Trainer
 

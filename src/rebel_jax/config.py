@@ -8,36 +8,33 @@ compiled program; float hyperparameters are plain data.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import os
 import pathlib
 import typing
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 
 from rebel_jax import methods
-from rebel_jax.drqv2 import DrQV2Config, task_config
-from rebel_jax.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
-from rebel_jax.errors import check as _check
+from rebel_jax.agents.drqv2 import DrQV2Config, task_config
+from rebel_jax.agents.sac import MAX_UTD, Precision, SACConfig  # noqa: F401 - re-exported
+from rebel_jax.core.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
+from rebel_jax.core.errors import check as _check
+from rebel_jax.core.ranges import ANY_INTEGER, check_ranges
 from rebel_jax.methods.rebel import AgentPreferenceConfig
 from rebel_jax.methods.surf import SURFConfig
-from rebel_jax.pixel_reward import PixelRewardConfig
-from rebel_jax.pretrain import PretrainConfig
-from rebel_jax.queries import QueryConfig
-from rebel_jax.ranges import ANY_INTEGER, check_ranges
-from rebel_jax.reward_model import RewardConfig
-from rebel_jax.teachers import TeacherConfig
+from rebel_jax.preference.budget import FeedbackConfig  # noqa: F401 - re-exported
+from rebel_jax.preference.pixel_reward import PixelRewardConfig
+from rebel_jax.preference.pretrain import PretrainConfig
+from rebel_jax.preference.queries import QueryConfig
+from rebel_jax.preference.reward_model import RewardConfig
+from rebel_jax.preference.teachers import TeacherConfig
 
 AGENTS = ("sac", "drqv2")
 """The agents alone, on the task's true reward: SAC on state tasks, DrQ-v2 on pixel tasks."""
-Precision = Literal["tf32", "highest", "bf16"]
-
-
-MAX_UTD = 100.0
-"""The largest ``sac.utd`` accepted: 100 updates per transition is far beyond any published setting
-(B-Pref 1, REDQ 20), and a larger value makes a round run for hours with no output."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,8 +86,11 @@ class EnvConfig:
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
         if not_runnable(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {not_runnable(self.task)}")
-        known = self.task in TASKS or self.task in PROBES or self.task in PIXEL_TASKS or self.task in METAWORLD_TASKS
-        _check(known, "env.task", self.task, f"one of {[*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]}")
+        names = [*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]
+        if self.task not in names:
+            close = difflib.get_close_matches(self.task, names, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ConfigError(f"env.task={self.task!r} is invalid{hint}: allowed one of {names}")
         if self.task in METAWORLD_TASKS and self.impl != "jax":
             raise ConfigError(f"env.impl={self.impl!r} is invalid for {self.task}: it runs with impl='jax' only")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
@@ -102,52 +102,6 @@ class EnvConfig:
                 raise ConfigError(str(err)) from None
         _check(self.num_envs >= 1, "env.num_envs", self.num_envs, ">= 1")
         _check(self.episode_length >= 1, "env.episode_length", self.episode_length, ">= 1")
-
-
-@dataclasses.dataclass(frozen=True)
-class SACConfig:
-    """Soft actor-critic (Haarnoja et al. 2018) with B-Pref's settings by default."""
-
-    hidden: int = 1024
-    """Width of each hidden layer of the actor and of each critic."""
-    depth: int = 2
-    """Hidden layers of the actor and of each critic."""
-    batch_size: int = 1024
-    """Transitions per gradient step."""
-    actor_lr: float = 5e-4
-    """Adam learning rate of the actor."""
-    critic_lr: float = 5e-4
-    """Adam learning rate of the twin critic."""
-    alpha_lr: float = 1e-4
-    """Adam learning rate of the log-temperature."""
-    init_temperature: float = 0.1
-    """Initial entropy temperature alpha."""
-    gamma: float = 0.99
-    """Discount factor."""
-    tau: float = 0.005
-    """Polyak rate of the target critic."""
-    target_every: int = 2
-    """Gradient steps between target-critic updates."""
-    log_std_min: float = -5.0
-    """Lower clamp of the actor's log standard deviation."""
-    log_std_max: float = 2.0
-    """Upper clamp of the actor's log standard deviation."""
-    utd: float = 1.0
-    """Gradient updates per collected transition (update-to-data ratio); ``round(utd * num_envs)`` per
-    vector step. B-Pref uses 1; lower values are cheaper (BENCHMARKS.md) and a recorded deviation."""
-    precision: Precision = "tf32"
-    """Matmul precision: ``tf32`` (XLA's default on GPU), ``highest`` (fp32) or ``bf16`` (bf16 compute, fp32 params)."""
-
-    def validate(self) -> None:
-        for name in ("hidden", "depth", "batch_size", "target_every"):
-            _check(getattr(self, name) >= 1, f"sac.{name}", getattr(self, name), ">= 1")
-        for name in ("actor_lr", "critic_lr", "alpha_lr", "init_temperature"):
-            _check(getattr(self, name) > 0, f"sac.{name}", getattr(self, name), "> 0")
-        _check(0 <= self.gamma < 1, "sac.gamma", self.gamma, "[0, 1)")
-        _check(0 < self.tau <= 1, "sac.tau", self.tau, "(0, 1]")
-        _check(self.log_std_min < self.log_std_max, "sac.log_std_min", self.log_std_min, "< log_std_max")
-        _check(0 < self.utd <= MAX_UTD, "sac.utd", self.utd, f"(0, {MAX_UTD:g}] updates per transition")
-        _check(self.precision in ("tf32", "highest", "bf16"), "sac.precision", self.precision, "tf32, highest, bf16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,46 +173,6 @@ class TrainConfig:
     @property
     def num_rounds(self) -> int:
         return math.ceil(self.total_steps / self.steps_per_round)
-
-
-@dataclasses.dataclass(frozen=True)
-class FeedbackConfig:
-    """When the teacher is asked, and how much (B-Pref's schedule).
-
-    The first feedback session comes at env step ``train.seed_steps + pretrain.steps`` (the end of
-    unsupervised pre-training, as B-Pref), then one every ``interval`` steps while the budget
-    lasts; ``budget`` says what it counts.
-    """
-
-    labels: int = 100
-    """Total label budget per seed (pairs; ``budget`` says which)."""
-    per_session: int = 0
-    """Pairs asked per session; 0 means ``labels // 10`` (B-Pref: 10 sessions, e.g. 10 for 100 labels)."""
-    interval: int = 20_000
-    """Environment steps between feedback sessions; a multiple of ``train.steps_per_round``."""
-    budget: Literal["answered", "asked"] = "answered"
-    """What counts against ``labels``. ``asked``, B-Pref's: every pair put to the teacher, skipped or not
-    (``learn_reward``: ``self.total_feedback += self.reward_model.mb_size``; the last session asks what is
-    left, ``set_batch(max_feedback - total_feedback)``), and no session once it is spent (``run``: ``if
-    self.total_feedback < self.cfg.max_feedback``), so ``ceil(labels / queries)`` sessions. ``answered``:
-    only the pairs the teacher answered, so a seed whose teacher skips is asked again until it has
-    ``labels`` answers. The two agree for a teacher that never skips (the oracle)."""
-
-    @property
-    def queries(self) -> int:
-        return self.per_session or max(1, self.labels // 10)
-
-    def validate(self) -> None:
-        _check(self.labels >= 1, "feedback.labels", self.labels, ">= 1")
-        _check(self.per_session >= 0, "feedback.per_session", self.per_session, ">= 0 (0: labels // 10)")
-        _check(self.interval >= 1, "feedback.interval", self.interval, ">= 1")
-        _check(self.budget in ("answered", "asked"), "feedback.budget", self.budget, "answered, asked")
-
-    @property
-    def sessions(self) -> int | None:
-        """Sessions the budget allows: ``ceil(labels / queries)`` when it counts asked pairs, else None
-        (a skipping teacher may need more)."""
-        return -(-self.labels // self.queries) if self.budget == "asked" else None
 
 
 def _check_round_multiple(value: int, field: str, steps_per_round: int) -> None:
@@ -598,6 +512,23 @@ def _surf_pixels(task: str) -> Config:
     )
 
 
+def _paper_metaworld() -> Config:
+    """B-Pref's Meta-World protocol (rll-research/BPref@f3ece2e, ``scripts/button_press/run_sac.sh:2`` and
+    ``scripts/button_press/10000/oracle/run_PEBBLE.sh:2``; sweep_into's scripts are the same): ``paper``'s settings
+    except SAC's 3 hidden layers of 256, batch 512 and learning rates 3e-4, 1M steps, and 10,000 labels, 50 per
+    session every 5,000 steps (``num_interact``) with 10 reward epochs (``reward_update``). Rounds of 5,000 steps so
+    that a session falls on each. The task: drawer-open, the first Meta-World task whose step runs here
+    (docs/tasks.md); ``--task metaworld_<name>`` picks another."""
+    return dataclasses.replace(
+        _PAPER,
+        env=EnvConfig(task="metaworld_drawer-open"),
+        sac=SACConfig(hidden=256, depth=3, batch_size=512, actor_lr=3e-4, critic_lr=3e-4),
+        train=TrainConfig(total_steps=1_000_000, steps_per_round=5_000),
+        feedback=dataclasses.replace(_PAPER.feedback, labels=10_000, per_session=50, interval=5_000),
+        reward=RewardConfig(max_epochs=10),
+    )
+
+
 _QPA = dataclasses.replace(
     _PAPER,
     algo="qpa",
@@ -624,6 +555,7 @@ SAC at 5e-4 and 50 reward epochs are ``paper``'s. cheetah_run: ``--task cheetah_
 PRESETS: dict[str, Config] = {
     "paper": _PAPER,
     "paper_quadruped": _paper_quadruped(),
+    "paper_metaworld": _paper_metaworld(),
     "qpa": _QPA,
     "rime": _RIME,
     "tiny": _tiny(),
@@ -635,6 +567,7 @@ PRESETS: dict[str, Config] = {
 sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its running std of the kNN
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
 ``paper_quadruped``: B-Pref's quadruped_walk settings (``_paper_quadruped``), the default on a quadruped task.
+``paper_metaworld``: B-Pref's Meta-World settings (``_paper_metaworld``), the default on a Meta-World task.
 ``qpa``: QPA's protocol (``_QPA``). ``rime``: RIME's walker_walk protocol (``_RIME``). ``tiny``: CPU tests of the
 CLI. ``demo``: ``make train``, a small preference-learning run that learns on a CPU (``_demo``).
 ``surf_pixels_walker`` and ``surf_pixels_cheetah``: SURF's pixel runs (``_surf_pixels``)."""

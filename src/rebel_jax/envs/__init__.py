@@ -21,7 +21,7 @@ PROBES = {"probe_point": PointProbe, "probe_point_pixels": PixelProbe}
 
 PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t, spec in TASKS.items() if spec.has_pixels)
 """Each state task that the pure-JAX camera can draw, seen through camera 0 (:class:`PixelEnv`):
-``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.render`) draws planes, spheres and capsules only, so
+``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.envs.render`) draws planes, spheres and capsules only, so
 the quadruped (ellipsoid and cylinder geoms) has no pixel version."""
 
 METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED)

@@ -89,7 +89,7 @@ class TaskSpec:
         after dm_control's ``mj_forward``; each observation recomputes the position and velocity sensors at
         the new state, as dm_control's closing ``mj_step1`` does, and keeps the acceleration and force
         sensors of the last physics substep, as dm_control's ``mj_step2`` leaves them.
-      has_pixels: the pure-JAX camera (:mod:`rebel_jax.render`) draws every geom of the model, so the task has
+      has_pixels: the pure-JAX camera (:mod:`rebel_jax.envs.render`) draws every geom of the model, so the task has
         a pixel version (``<task>_pixels``).
       mujoco_frames: collide planes and capsules with MuJoCo's contact frames (``_mjx.mujoco_contact_frames``)
         instead of MJX's, which differ for capsules near the plane's normal: needed in 3-D (the quadruped);
@@ -411,7 +411,7 @@ class DMCEnv(Env):
 
         One step of one world runs in Warp itself on this process's first device, outside any JAX program. A
         first vmapped step would otherwise build the same kernels one after the other inside the first round,
-        after its compile; run from a thread (:func:`rebel_jax.cli.run` does) the build overlaps XLA's compile.
+        after its compile; run from a thread (:func:`rebel_jax.run.cli.run` does) the build overlaps XLA's compile.
         Warp keeps them in its kernel cache (``~/.cache/warp``, or ``WARP_CACHE_PATH``). Finish it before a program
         that steps this environment runs: inside a program Warp's step is captured as a CUDA graph, and CUDA may
         refuse a capture while another thread loads kernels.

@@ -336,7 +336,7 @@ class MetaWorldEnv(Env):
         ``body_pos`` (the reset's draw), and with a time limit ``steps`` and ``truncation``.
 
     Its compiled MuJoCo model is ``mujoco_model`` (not ``mj_model``, which the training command's evaluation clip and
-    ``rebel_jax.video`` look for: drawing Meta-World's scenes is not done yet).
+    ``rebel_jax.run.video`` look for: drawing Meta-World's scenes is not done yet).
 
     Args:
       task: a key of :data:`TASKS`.

@@ -1,7 +1,7 @@
 """Pixel tasks: a state task seen through its camera 0, with action repeat and a frame stack.
 
 ``walker_walk_pixels`` and the others are the state task's physics, reset and reward; the agent
-observes the last ``frames`` RGB frames of camera 0 (:mod:`rebel_jax.render`), stacked on the
+observes the last ``frames`` RGB frames of camera 0 (:mod:`rebel_jax.envs.render`), stacked on the
 channel axis: uint8 ``(size, size, 3 * frames)``, oldest first. Each agent step repeats the
 action ``action_repeat`` times and sums the rewards (SURF's pixel branch and DrQ-v2 use 2 for
 walker and cheetah). ``info["steps"]`` and the episode length stay counted in environment
@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import Env, State
 
-from rebel_jax import render
+from rebel_jax.envs import render
 from rebel_jax.envs.dmc import DMCEnv
 
 SUFFIX = "_pixels"
@@ -43,7 +43,7 @@ class PixelEnv(Env):
       frames: frames in the observation stack (>= 1).
       size: frame height and width in pixels.
       camera: the model camera (id or name).
-      shadows: let the camera cast shadows (see :func:`rebel_jax.render.make_camera`).
+      shadows: let the camera cast shadows (see :func:`rebel_jax.envs.render.make_camera`).
     """
 
     def __init__(

@@ -18,10 +18,10 @@ only what differs from PEBBLE (Lee et al., ICML 2021; rll-research/BPref@f3ece2e
   TensorBoard and the run's summary as ``NAME/KEY``, per seed and as the mean over seeds (NaN in rounds
   without a feedback session, or outside pre-training for :meth:`pretrain_step`'s);
 - **its loss terms** over the label store, one list for state and pixel tasks: :meth:`reward_terms`, each term
-  ``(params, batch, key) -> (loss, metrics)`` over a :class:`rebel_jax.reward_model.PrefBatch` (the pairs and
+  ``(params, batch, key) -> (loss, metrics)`` over a :class:`rebel_jax.preference.reward_model.PrefBatch` (the pairs and
   the members' per-step rewards on them);
 - **its reward training** in a session: :meth:`train_reward` (PEBBLE's early-stopped epochs by default; SURF's
-  fixed iterations), through :mod:`rebel_jax.reward_train`, whose loops take the method's optimiser
+  fixed iterations), through :mod:`rebel_jax.preference.reward_train`, whose loops take the method's optimiser
   (:meth:`reward_optimizer`, any ``optax`` transformation) and a weight per labelled pair (``pair_weight``);
 - **the unsupervised phase**: :meth:`pretrain_step` may update the reward ensemble and the method's state from
   each vector step's minibatches and their intrinsic reward (none by default);
@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from rebel_jax import reward_model, reward_train
+from rebel_jax.preference import reward_model, reward_train
 
 
 class Method:
@@ -117,7 +117,7 @@ class Method:
 
     # -- the reward loss and its schedule ----------------------------------------------------
     def reward_terms(self, trainer: Any, ts: Any, key: jax.Array, agent_step: jax.Array | None) -> list:
-        """The reward loss's terms (:data:`rebel_jax.reward_model.LossTerm`), states and pixels alike: the
+        """The reward loss's terms (:data:`rebel_jax.preference.reward_model.LossTerm`), states and pixels alike: the
         Bradley-Terry loss on the labelled pairs.
 
         Args:

@@ -25,10 +25,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from rebel_jax import replay, reward_model
-from rebel_jax.errors import check
+from rebel_jax.agents import replay
+from rebel_jax.agents.networks import sample_action
+from rebel_jax.core.errors import check
 from rebel_jax.methods.base import Method
-from rebel_jax.networks import sample_action
+from rebel_jax.preference import reward_model
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +87,8 @@ def last_pairs(store: reward_model.PairStore, n: int):
     """The last ``n`` labelled pairs of ``store``, as the first state-action of each segment.
 
     Returns:
-      ``a``, ``b`` (:class:`rebel_jax.reward_model.Steps`, obs (n, obs_size), action (n, act_size)), ``labels``
+      ``a``, ``b`` (:class:`rebel_jax.preference.reward_model.Steps`, obs (n, obs_size), action (n, act_size)),
+      ``labels``
       (n,) ``P(b preferred)`` and ``weight`` (n,) 1 for stored pairs (0 where fewer than ``n`` are).
     """
     n = min(n, store.capacity)
@@ -116,7 +118,7 @@ def outer_loss(sac, rcfg, reward_params, critic_params, batch, value, pairs, lr:
     """MRN's outer loss as a function of the reward ensemble's parameters (differentiate it with respect to them).
 
     Args:
-      sac: the agent (:class:`rebel_jax.sac.SAC`), its networks.
+      sac: the agent (:class:`rebel_jax.agents.sac.SAC`), its networks.
       rcfg: the reward ensemble's settings.
       reward_params: phi, the members' parameters.
       critic_params: theta, the critic's parameters before the inner step.

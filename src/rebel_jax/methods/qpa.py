@@ -23,9 +23,10 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import frame_replay, replay, reward_model, reward_train
-from rebel_jax.errors import check
+from rebel_jax.agents import frame_replay, replay
+from rebel_jax.core.errors import check
 from rebel_jax.methods.base import Method
+from rebel_jax.preference import reward_model, reward_train
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,10 +27,11 @@ from typing import Any, Literal
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import frame_replay, pixel_reward, reward_model
-from rebel_jax.errors import check as _check
+from rebel_jax.agents import frame_replay
+from rebel_jax.core.errors import check as _check
 from rebel_jax.methods.base import Method
-from rebel_jax.reward_model import LossTerm, PairStore, PrefBatch, Steps, mean_reward, predict
+from rebel_jax.preference import pixel_reward, reward_model
+from rebel_jax.preference.reward_model import LossTerm, PairStore, PrefBatch, Steps, mean_reward, predict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -427,7 +428,8 @@ class REBEL(Method):
         """V's trajectories on a pixel task. ``onpolicy``: the first ``rebel.horizon`` agent steps of the last
         complete episodes of ``rebel.episodes`` evaluation environments (the mean action of the DrQ-v2 policy frozen
         at the episode start); ``obs`` are their kept newest frames (N, T, H, W, 3), whose stacks ``predict_fn``
-        rebuilds (:func:`rebel_jax.frame_replay.episode_stacks`). ``replay``: ``rebel.num_segments`` replay segments
+        rebuilds (:func:`rebel_jax.agents.frame_replay.episode_stacks`). ``replay``: ``rebel.num_segments`` replay
+        segments
         of ``rebel.segment_length`` steps from the query pool, actions redrawn once from the current DrQ-v2 policy
         (its exploration noise at ``agent_step``) and held fixed; ``obs`` are their places (N, T, 2) = (row, env),
         whose frames ``predict_fn`` gathers from the replay (``pixel_reward.place_rewards``).

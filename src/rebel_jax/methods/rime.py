@@ -21,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from rebel_jax import reward_model, reward_train
-from rebel_jax.errors import check
+from rebel_jax.core.errors import check
 from rebel_jax.methods.base import Method
-from rebel_jax.reward_model import PairStore
+from rebel_jax.preference import reward_model, reward_train
+from rebel_jax.preference.reward_model import PairStore
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,9 +28,9 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import reward_model
-from rebel_jax.errors import check
+from rebel_jax.core.errors import check
 from rebel_jax.methods.base import Method
+from rebel_jax.preference import reward_model
 
 
 @dataclasses.dataclass(frozen=True)

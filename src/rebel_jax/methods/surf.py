@@ -1,11 +1,12 @@
 """SURF (Park et al., ICLR 2022): pseudo-labels on an unlabelled pool and temporal cropping, on states and pixels.
 
 Segments are stored at length ``L = H + 2 * surf.crop`` and a crop is a 0/1 step mask over them
-(:func:`rebel_jax.reward_model.crop_masks`), so every shape stays static. The labelled pairs train with the
+(:func:`rebel_jax.preference.reward_model.crop_masks`), so every shape stays static. The labelled pairs train with the
 Bradley-Terry term on random crops (``reward_model.bt_loss(cfg, crop)``); the unlabelled pairs of SURF's pool get
 the ensemble's own confident labels (:func:`pseudo_label_term`). A session grows the pool by ``surf.pool_size``
 pairs, then runs a fixed number of steps with no early stop: on states ``ceil(reward_update * labels / batch)``
-minibatch steps (:func:`rebel_jax.reward_train.steps_per_label`, alinlab/SURF@2088ee8:train_PEBBLE_semi_dataaug.py:162),
+minibatch steps (:func:`rebel_jax.preference.reward_train.steps_per_label`,
+alinlab/SURF@2088ee8:train_PEBBLE_semi_dataaug.py:162),
 on pixels ``surf.reward_update`` passes (alinlab/SURF@214bc1d:pixel_train_PEBBLE_semi.py:275-281).
 
 References:
@@ -22,10 +23,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from rebel_jax import pixel_reward, reward_model, reward_train
-from rebel_jax.errors import check as _check
+from rebel_jax.core.errors import check as _check
 from rebel_jax.methods.base import Method
-from rebel_jax.reward_model import (
+from rebel_jax.preference import pixel_reward, reward_model, reward_train
+from rebel_jax.preference.reward_model import (
     LossTerm,
     PairStore,
     PrefBatch,
@@ -115,7 +116,8 @@ def pseudo_label_term(cfg: Any, surf: SURFConfig, pool: PairStore) -> LossTerm:
     ``pool.count`` of the pool uniformly with replacement (SURF walks through a shuffled order of its pool
     instead, which differs only in that a pair may repeat within a pass), for the whole ensemble, keeping
     ``batch.members``' rows. Each member labels them itself from its sums over the central H steps, without
-    gradient (``pseudo_labels``), and is trained on fresh crops of them (:func:`rebel_jax.reward_model.crop_masks`):
+    gradient (``pseudo_labels``), and is trained on fresh crops of them
+    (:func:`rebel_jax.preference.reward_model.crop_masks`):
     ``loss_m = mean over the drawn pairs of CE(cropped logits, label) * confident`` (the mean
     counts the unconfident pairs too, as SURF's ``mean(CE * mask)``); the term is
     ``weight * sum_m loss_m`` (alinlab/SURF@214bc1d:pixel_reward_model_semi.py:291-301 on pixels).

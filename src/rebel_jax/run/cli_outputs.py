@@ -1,0 +1,148 @@
+"""What a command-line run leaves at its end: ``final.json``'s content, the summary table, the learning curve and
+the evaluation clip."""
+
+from __future__ import annotations
+
+import functools
+import pathlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rebel_jax.run import plots, video
+from rebel_jax.run.cli_args import Args
+from rebel_jax.run.human import HumanError
+from rebel_jax.train import Trainer, seed_keys
+
+
+def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
+    return {
+        "status": "diverged" if ever_diverged.any() else "completed",
+        "diverged": [names[i] for i in np.flatnonzero(ever_diverged)],
+        "final_eval_return": final,
+        "mean": float(final.mean()),  # NaN (written as null) if any seed's is: no silent nanmean
+        "std": float(final.std()),
+        "random_return": random,
+        "random_mean": float(random.mean()),
+    }
+
+
+SUMMARY_METRICS = ("labels_used", "reward_correlation", "reward_correlation_return")
+"""Logged per-column metrics whose last finite value the summary table shows (preference methods)."""
+
+
+def last_logged(run_dir: pathlib.Path, columns: int) -> dict[str, np.ndarray]:
+    """Per column, the last finite value of each of :data:`SUMMARY_METRICS` in ``metrics.jsonl`` (NaN if none)."""
+    last = {name: np.full(columns, np.nan) for name in SUMMARY_METRICS}
+    for record in plots.records(run_dir):
+        for name in SUMMARY_METRICS:
+            if name in record:
+                values = np.asarray(plots.per_seed(record[name]), float)
+                last[name] = np.where(np.isfinite(values), values, last[name])
+    return last
+
+
+def method_metrics(run_dir: pathlib.Path, columns: int) -> dict[str, dict]:
+    """The method's own metrics (``NAME/KEY``) for ``final.json``: per column the last finite value in
+    ``metrics.jsonl`` (None if none) and their mean over the columns that have one."""
+    last: dict[str, np.ndarray] = {}
+    for record in plots.records(run_dir):
+        for name, value in record.items():
+            if "/" in name and not name.endswith("_mean"):
+                values = np.asarray(plots.per_seed(value), float)
+                last[name] = np.where(np.isfinite(values), values, last.get(name, np.full(columns, np.nan)))
+    return {
+        name: {
+            "last": [None if np.isnan(v) else float(v) for v in values],
+            "mean": float(np.nanmean(values)) if np.isfinite(values).any() else None,
+        }
+        for name, values in sorted(last.items())
+    }
+
+
+def summary_table(names: list[str], random: np.ndarray, final: np.ndarray, logged: dict[str, np.ndarray]) -> str:
+    """The table printed at the end of a run: one row per column and their mean.
+
+    Columns: the random policy's and the trained policy's evaluation return (the same initial
+    states), the labels used, and the learned reward's Pearson correlation with the true one
+    at the last feedback session, per step and over segment returns (``-`` for ``sac``).
+    """
+    header = ("", "random-policy return", "final return", "labels used", "reward corr. per step", "per segment")
+    rows = [header]
+    cells = [random, final, *(logged[k] for k in SUMMARY_METRICS)]
+    formats = ("{:.1f}", "{:.1f}", "{:.0f}", "{:.2f}", "{:.2f}")
+
+    def fmt(values, i):
+        return [f.format(v[i]) if np.isfinite(v[i]) else "-" for f, v in zip(formats, values, strict=True)]
+
+    rows += [(name, *fmt(cells, i)) for i, name in enumerate(names)]
+    means = [np.array([np.mean(v)]) for v in cells]  # NaN where any column's is undefined
+    rows.append(("mean", *fmt(means, 0)))
+    widths = [max(len(row[j]) for row in rows) for j in range(len(header))]
+    lines = [
+        "  ".join(
+            cell.ljust(w) if j == 0 else cell.rjust(w) for j, (cell, w) in enumerate(zip(row, widths, strict=True))
+        )
+        for row in rows
+    ]
+    return "\n".join(lines)
+
+
+def _eval_clip(args: Args, trainer: Trainer, policy, run_dir: pathlib.Path) -> pathlib.Path | None:
+    """Writes ``eval.gif``: ``args.video_steps`` steps of the first column's deterministic policy; its path.
+
+    ``policy``: ``trainer.policy_params`` of every column, on the host. A pixel run's policy sees its own 84x84
+    frame stacks; the clip is drawn by a camera of its own, as a state run's.
+    """
+    if args.time_limit:
+        # Runs split over time-limited calls have no time budgeted for compiling the clip.
+        print(f"eval.gif skipped under --time-limit; render it with: python -m rebel_jax.run.video {run_dir}")
+        return None
+    try:
+        import imageio  # noqa: F401
+    except ImportError:
+        print(f"eval.gif skipped: imageio is not installed; later: python -m rebel_jax.run.video {run_dir}")
+        return None
+    params = jax.tree.map(lambda x: jnp.asarray(x[0]), policy)
+    key = seed_keys(args.config.train.seed, 1)[0]  # any seed (PRNGKey keeps 32 bits)
+    path = run_dir / "eval.gif"
+    try:
+        act = functools.partial(trainer.mean_action, params)
+        video.policy_video(trainer.env, act, key, path, args.video_steps, 120)
+    except HumanError as err:  # the quadruped's clip needs MuJoCo's renderer, which found no OpenGL context
+        print(f"eval.gif skipped: {err}")
+        return None
+    return path
+
+
+def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path | None:
+    """Writes ``learning_curve.png``: the evaluation return of each group of seeds (lambda, teacher), and random's.
+
+    A failure here is a warning, not the run's: it comes after ``final.json``, and the figure can be drawn again
+    from ``metrics.jsonl`` (``python experiments/curves.py RUN_DIR --name NAME``).
+    """
+    try:
+        return _draw_learning_curve(args, run_dir, random)
+    except Exception as error:  # Any plotting failure: the run's results are already on disk.
+        print(
+            f"warning: learning_curve.png not written ({type(error).__name__}: {error}); final.json and "
+            f"metrics.jsonl are (experiments/curves.py {run_dir} --name NAME draws it)",
+            file=sys.stderr,
+        )
+        return None
+
+
+def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path:
+    """:func:`_learning_curve`'s figure."""
+    cfg = args.config
+    steps, returns = plots.load_runs(run_dir)
+    runs = {}
+    for i in range(0, args.columns, args.seeds):
+        lam, teacher = args.grid()[i]
+        which = ([f"lambda {lam:g}"] if args.lam_grid else []) + ([f"teacher {teacher}"] if teacher else [])
+        runs[", ".join(which) or cfg.algo] = (steps, returns[:, i : i + args.seeds])
+    labels = f", {cfg.feedback.labels} labels" if cfg.preference and not args.host_teacher else ""
+    title = f"{cfg.algo} on {cfg.env.task} ({cfg.env.episode_length}-step episodes{labels})"
+    return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
