@@ -138,6 +138,9 @@ def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp
     out = capsys.readouterr()
     assert "warning: learning_curve.png not written (ValueError: cannot reshape)" in out.err, out.err
     assert "final evaluation return over 2 seed(s)" in out.out  # the summary is still printed
+    final = _final(whole)  # its spread is the sample std (ddof 1), as every results table gives it
+    assert final["std"] == pytest.approx(np.std(final["final_eval_return"], ddof=1))
+    assert f"{np.mean(final['final_eval_return']):.1f} +- {final['std']:.1f} (sample std)" in out.out
     assert not (tmp_path / "run" / "learning_curve.png").exists()
     _same_run(whole, tmp_path / "run")  # final.json and metrics.jsonl as a run without the failure
 

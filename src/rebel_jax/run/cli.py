@@ -73,6 +73,7 @@ from rebel_jax.run.cli_outputs import (  # noqa: F401 - re-exported
     _learning_curve,
     last_logged,
     method_metrics,
+    sample_std,
     summary_table,
 )
 from rebel_jax.run.cli_rundir import (  # noqa: F401 - re-exported
@@ -412,7 +413,8 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
         lam, teacher = grid[i]
         which = ([f"lambda {lam:g}"] if swept_knob(cfg) else []) + ([f"teacher {teacher}"] if teacher else [])
         which = f" ({', '.join(which)})" if which else ""
-        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f} +- {part.std():.1f}")
+        spread = f" +- {sample_std(part):.1f} (sample std)" if part.size > 1 else ""
+        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f}{spread}")
     if ever_diverged.any():
         print(f"warning: diverged during the run: {', '.join(result['diverged'])}", file=sys.stderr)
     print(f"run directory: {run_dir}")

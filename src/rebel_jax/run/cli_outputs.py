@@ -17,13 +17,18 @@ from rebel_jax.run.human import HumanError
 from rebel_jax.train import Trainer, seed_keys
 
 
+def sample_std(values: np.ndarray) -> float:
+    """The sample standard deviation (``ddof=1``), as the results tables give it; NaN for one value."""
+    return float(np.std(values, ddof=1)) if np.size(values) > 1 else float("nan")
+
+
 def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
     return {
         "status": "diverged" if ever_diverged.any() else "completed",
         "diverged": [names[i] for i in np.flatnonzero(ever_diverged)],
         "final_eval_return": final,
         "mean": float(final.mean()),  # NaN (written as null) if any seed's is: no silent nanmean
-        "std": float(final.std()),
+        "std": sample_std(final),  # ddof 1; null for one seed
         "random_return": random,
         "random_mean": float(random.mean()),
     }
