@@ -345,6 +345,9 @@ class MetaWorldEnv(Env):
         code bases (Meta-World's default ``_partially_observable``).
     """
 
+    reports_success = True
+    """Its steps report ``success`` in ``info``: the trainer logs the episodes' success rates."""
+
     def __init__(self, task: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True):
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; valid: {', '.join(TASKS)}")

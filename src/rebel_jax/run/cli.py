@@ -350,6 +350,7 @@ def run(args: Args, run_dir: pathlib.Path, command: str, resuming: bool | None =
             env_steps = (r + 1) * per_round
             if env_steps % cfg.train.eval_every and r + 1 < cfg.train.num_rounds:
                 metrics.pop("eval_return")
+                metrics.pop("eval_success", None)
             diverged = np.asarray(metrics["diverged"], float).reshape(-1) > 0
             extra = {"round": r, "seconds": seconds, "env_steps_per_s": per_round * args.columns / seconds}
             if logger is not None:

@@ -18,32 +18,51 @@ class EpisodeStats:
       running: (num_envs + eval_episodes,) return so far of each environment's episode.
       train_return: () mean return of the last finished training episodes (NaN before any).
       eval_return: () mean return of the last finished evaluation episodes (NaN before any).
+      succeeded: (num_all + ...) whether each environment's episode has succeeded so far, on a task that reports
+        success (Meta-World's); else None, and so are the two below (a run's state keeps its leaves).
+      train_success: () the fraction of the last finished training episodes that succeeded (NaN before any).
+      eval_success: () the same of the evaluation episodes: B-Pref's success rate, an episode succeeding if any of
+        its steps does (rll-research/BPref@f3ece2e:train_PEBBLE.py:92-114, as a fraction instead of a percentage).
     """
 
     running: jax.Array
     train_return: jax.Array
     eval_return: jax.Array
+    succeeded: jax.Array | None = None
+    train_success: jax.Array | None = None
+    eval_success: jax.Array | None = None
 
     @staticmethod
-    def init(num_all: int) -> EpisodeStats:
-        """No return yet for ``num_all`` environments."""
+    def init(num_all: int, success: bool = False) -> EpisodeStats:
+        """No return yet for ``num_all`` environments; with ``success``, no success either."""
         nan = jnp.full((), jnp.nan, jnp.float32)
-        return EpisodeStats(jnp.zeros(num_all), nan, nan)
+        if not success:
+            return EpisodeStats(jnp.zeros(num_all), nan, nan)
+        return EpisodeStats(jnp.zeros(num_all), nan, nan, jnp.zeros(num_all), nan, nan)
 
-    def after_step(self, reward: jax.Array, done: jax.Array, n: int) -> EpisodeStats:
-        """The statistics after one vector step of rewards and done flags, the first ``n`` envs training ones."""
+    def after_step(self, reward: jax.Array, done: jax.Array, n: int, success: jax.Array | None = None) -> EpisodeStats:
+        """The statistics after one vector step of rewards, done flags and (a task that reports it) success flags,
+        the first ``n`` envs training ones."""
         running = self.running + reward
         finished = done > 0
 
-        def finished_mean(part, last):
+        def finished_mean(values, part, last):
             mask = finished[part]
-            mean = jnp.sum(jnp.where(mask, running[part], 0.0)) / jnp.maximum(jnp.sum(mask), 1)
+            mean = jnp.sum(jnp.where(mask, values[part], 0.0)) / jnp.maximum(jnp.sum(mask), 1)
             return jnp.where(jnp.any(mask), mean, last)
 
-        return EpisodeStats(
+        stats = EpisodeStats(
             running=jnp.where(finished, 0.0, running),
-            train_return=finished_mean(slice(0, n), self.train_return),
-            eval_return=finished_mean(slice(n, None), self.eval_return),
+            train_return=finished_mean(running, slice(0, n), self.train_return),
+            eval_return=finished_mean(running, slice(n, None), self.eval_return),
+        )
+        if self.succeeded is None:
+            return stats
+        succeeded = jnp.maximum(self.succeeded, (success > 0).astype(self.succeeded.dtype))
+        return stats.replace(
+            succeeded=jnp.where(finished, 0.0, succeeded),
+            train_success=finished_mean(succeeded, slice(0, n), self.train_success),
+            eval_success=finished_mean(succeeded, slice(n, None), self.eval_success),
         )
 
     def returns_ok(self, before: EpisodeStats) -> jax.Array:

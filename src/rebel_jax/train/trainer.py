@@ -98,6 +98,8 @@ class Trainer:
             worlds=columns * max(self.num_all, 2 * cfg.train.eval_episodes),
         )
         self.episode_length = self.env.episode_length  # agent steps
+        # A task whose steps report ``success`` (Meta-World's): its episodes' success rates are logged too.
+        self.reports_success = bool(getattr(self.env, "reports_success", False))
         env, actions = self.env, self.env.action_size
         self.obs_shape = env.observation_shape if self.pixels else (env.observation_size,)
         self.agent: Agent = (
@@ -154,7 +156,7 @@ class Trainer:
             agent=agent,
             buffer=self._init_buffer(),
             env=self.envs.reset(key_env),
-            episodes=EpisodeStats.init(self.num_all),
+            episodes=EpisodeStats.init(self.num_all, success=self.reports_success),
             key=key,
             eval_policy=self.agent.policy(agent),
         )
@@ -221,7 +223,7 @@ class Trainer:
         else:
             qpos = physics_positions(ts.env.pipeline_state)[:n] if self.host_teacher else None
             step = replay.Step(**fields, episode_step=ts.env.info["steps"][:n], qpos=qpos)
-        episodes = ts.episodes.after_step(nxt.reward, nxt.done, n)
+        episodes = ts.episodes.after_step(nxt.reward, nxt.done, n, nxt.info.get("success"))
         return self.ring.add(ts.buffer, step), episodes
 
     def sample(self, buffer, key: jax.Array, learned_reward: bool):
@@ -430,6 +432,9 @@ class Trainer:
         out = {k: method_mean(v, learning) if "/" in k else jnp.sum(v * weight) for k, v in metrics.items()}
         out["train_return"] = ts.episodes.train_return
         out["eval_return"] = ts.episodes.eval_return
+        if self.reports_success:
+            out["train_success"] = ts.episodes.train_success
+            out["eval_success"] = ts.episodes.eval_success
         if self.preference:
             out.update(self.feedback.round_metrics(ts.buffer))
         out["diverged"] = self._diverged(ts, out, before)
