@@ -25,6 +25,7 @@ from rliable import library as rly  # noqa: E402
 
 from rebel_jax.preference.teachers import PRESETS as TEACHERS  # noqa: E402
 from rebel_jax.preference.teachers import TeacherConfig  # noqa: E402
+from rebel_jax.run import plots  # noqa: E402
 
 ORACLE = dataclasses.asdict(TeacherConfig())
 """The oracle's knobs as a run's ``config.json`` records them."""
@@ -231,6 +232,18 @@ def test_load_runs_counts_seeds_when_the_first_rounds_log_no_evaluation(tmp_path
     steps, returns = analysis.load_runs(run_dir)
     assert steps.tolist() == [20, 30, 40, 50] and returns.shape == (4, 3)
     np.testing.assert_array_equal(returns[1:], np.array(RETURNS[2:], dtype=float))
+
+
+def test_load_runs_reads_the_success_rate_of_a_task_that_reports_it(tmp_path):
+    run_dir = write_run(tmp_path / "run", RETURNS)
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line]
+    success = [[None if v is None else v / 20 for v in r["eval_return"]] for r in records]
+    for record, rate in zip(records, success, strict=True):
+        record["eval_success"] = rate
+    (run_dir / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in records) + "\n")
+    steps, rates = plots.load_runs(run_dir, "eval_success")
+    assert steps.tolist() == [20, 30, 40, 50]
+    np.testing.assert_array_equal(rates[1:], np.array(success[2:], dtype=float))
 
 
 def test_load_runs_keeps_the_last_record_of_a_resumed_round(tmp_path):

@@ -140,9 +140,11 @@ def _learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pa
 
 
 def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) -> pathlib.Path:
-    """:func:`_learning_curve`'s figure."""
+    """:func:`_learning_curve`'s figure: the success rate on a task that reports success (as the papers show
+    Meta-World's), else the return with the random policy's."""
     cfg = args.config
-    steps, returns = plots.load_runs(run_dir)
+    success = any(r.get("eval_success") is not None for r in plots.records(run_dir))
+    steps, returns = plots.load_runs(run_dir, "eval_success" if success else "eval_return")
     runs = {}
     for i in range(0, args.columns, args.seeds):
         lam, teacher = args.grid()[i]
@@ -150,4 +152,6 @@ def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) 
         runs[", ".join(which) or cfg.algo] = (steps, returns[:, i : i + args.seeds])
     labels = f", {cfg.feedback.labels} labels" if cfg.preference and not args.host_teacher else ""
     title = f"{cfg.algo} on {cfg.env.task} ({cfg.env.episode_length}-step episodes{labels})"
+    if success:
+        return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, ylabel="evaluation success rate")
     return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))

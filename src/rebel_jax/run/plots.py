@@ -52,11 +52,12 @@ def per_seed(value) -> list[float]:
     return [math.nan if v is None else float(v) for v in values]
 
 
-def load_runs(run_dir: str | os.PathLike) -> Curve:
+def load_runs(run_dir: str | os.PathLike, metric: str = "eval_return") -> Curve:
     """The per-seed evaluation curves of one run directory.
 
     Args:
       run_dir: a directory written by ``python -m rebel_jax.train`` (``metrics.jsonl``).
+      metric: the logged evaluation measure: ``eval_return``, or ``eval_success`` on a task that reports success.
 
     Returns:
       ``(steps (evals,) int, returns (evals, seeds) float)``: one row per round with an
@@ -64,18 +65,20 @@ def load_runs(run_dir: str | os.PathLike) -> Curve:
       Rounds repeat the last finished evaluation (see ``analysis.distinct_evaluations``).
     """
     rounds = records(pathlib.Path(run_dir))
-    rows = [(r["env_steps"], per_seed(r.get("eval_return"))) for r in rounds]
+    rows = [(r["env_steps"], per_seed(r.get(metric))) for r in rounds]
     rows = [(s, v) for s, v in rows if any(math.isfinite(x) for x in v)]
     # The seed count comes from the rounds that log ``eval_return`` (a list, of nulls before the first
     # evaluation): a pixel run's first rounds log none at all, which read as one seed.
-    logged = [per_seed(r["eval_return"]) for r in rounds if r.get("eval_return") is not None]
+    logged = [per_seed(r[metric]) for r in rounds if r.get(metric) is not None]
     seeds = max((len(v) for v in logged), default=0)
     steps = np.array([s for s, _ in rows], dtype=np.int64)
     returns = np.array([v for _, v in rows], dtype=float).reshape(len(rows), seeds)
     return steps, returns
 
 
-def plot_curves(ax, runs: Mapping[str, Curve], seeds: bool = False) -> None:
+def plot_curves(
+    ax, runs: Mapping[str, Curve], seeds: bool = False, ylabel: str = "evaluation return (true reward)"
+) -> None:
     """Mean +- std over seeds of the evaluation return of each run, one line and band per label.
 
     Args:
@@ -83,6 +86,7 @@ def plot_curves(ax, runs: Mapping[str, Curve], seeds: bool = False) -> None:
       runs: ``{label: (steps (evals,), returns (evals, seeds))}``, e.g. from ``load_runs``.
       seeds: also draw each seed's curve, thin, in its label's colour (a band over few seeds hides a
         seed that failed, as DrQ-v2's walker seeds sometimes do).
+      ylabel: what the curves measure.
     """
     for label, (steps, returns) in runs.items():
         r = np.asarray(returns, dtype=float)
@@ -96,12 +100,16 @@ def plot_curves(ax, runs: Mapping[str, Curve], seeds: bool = False) -> None:
             for j in range(n):
                 ax.plot(np.asarray(steps)[kept[:, j]], r[kept[:, j], j], color=line.get_color(), lw=0.7, alpha=0.6)
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("evaluation return (true reward)")
+    ax.set_ylabel(ylabel)
     ax.legend()
 
 
 def write_learning_curve(
-    path: str | os.PathLike, runs: Mapping[str, Curve], title: str, random_return: float | None = None
+    path: str | os.PathLike,
+    runs: Mapping[str, Curve],
+    title: str,
+    random_return: float | None = None,
+    ylabel: str = "evaluation return (true reward)",
 ) -> pathlib.Path:
     """Draws evaluation curves (mean +- std over seeds, :func:`plot_curves`) to the image ``path`` (PNG).
 
@@ -110,6 +118,7 @@ def write_learning_curve(
       runs: ``{label: (steps (evals,), returns (evals, seeds))}``, e.g. the column groups of one run.
       title: the figure's title.
       random_return: drawn as a dashed horizontal line (the random policy's return), if given and finite.
+      ylabel: what the curves measure.
 
     Returns:
       ``path``.
@@ -121,7 +130,7 @@ def write_learning_curve(
 
     fig, ax = plt.subplots(figsize=(6, 4))
     try:
-        plot_curves(ax, runs)
+        plot_curves(ax, runs, ylabel=ylabel)
         if random_return is not None and math.isfinite(random_return):
             ax.axhline(random_return, color="gray", linestyle="--", label=f"random policy ({random_return:.1f})")
             ax.legend()
