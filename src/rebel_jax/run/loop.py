@@ -33,7 +33,7 @@ from rebel_jax.run import rundir
 from rebel_jax.run.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.run.cli_args import Args, swept_knob
 from rebel_jax.run.cli_outputs import _eval_clip, _final_result, _learning_curve, method_metrics
-from rebel_jax.run.cli_rundir import _record_resume, _write_meta, device_columns, keep_rounds_before
+from rebel_jax.run.cli_rundir import device_columns, start_run_files
 from rebel_jax.run.human import HostTeacher
 from rebel_jax.run.logging import RunLogger, write_json
 from rebel_jax.train import compiled, grow_replay, placement, replay_rows, seed_keys
@@ -205,14 +205,8 @@ class Run:
         start = 0
         if resuming:
             start, state = _restore(run_dir, self.ckpt, state, sharding)
-            if primary:
-                keep_rounds_before(run_dir / "metrics.jsonl", start)
-                _record_resume(run_dir, args, command, start)
-        elif primary:
-            if args.resume:
-                print(f"note: --resume: no run in {run_dir} yet; starting the run from scratch", file=sys.stderr)
-            keep_rounds_before(run_dir / "metrics.jsonl", 0)
-            _write_meta(run_dir, args, command, total)
+        if primary:
+            start_run_files(run_dir, args, command, total, resuming, start)
         self.state, self.start = state, start
         self.names = args.column_names()
         per_round = cfg.train.steps_per_round
