@@ -25,7 +25,7 @@ import pytest
 from test_cli_runs import MICRO_FLAGS as MICRO  # The same compiled round (test_train.MICRO, two seeds).
 from test_cli_runs import ROUNDS, _metrics, _saved_arrays
 
-from rebel_jax.run import cli, cli_outputs, video
+from rebel_jax.run import cli, cli_outputs, loop, video
 from rebel_jax.train import Trainer, seed_keys
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -130,7 +130,7 @@ def test_overwrite_replaces_a_run_and_the_record_is_portable(whole, tmp_path):
 def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp_path, monkeypatch, capsys):
     # The 5-seed DrQ-v2 run of 2026-11-25 ended with a traceback in its plot, 30 minutes in; the figure is a
     # convenience drawn after final.json, so its failure must not fail the run.
-    def broken(run_dir):
+    def broken(run_dir, metric="eval_return"):
         raise ValueError("cannot reshape")
 
     monkeypatch.setattr(cli_outputs.plots, "load_runs", broken)
@@ -249,7 +249,7 @@ def _poison_seed_1_before_round(round_index: int):
 
 
 def test_a_diverged_seed_stops_the_run_naming_it_then_continues_on_request(whole, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(cli, "compiled", _poison_seed_1_before_round(ROUNDS - 1))
+    monkeypatch.setattr(loop, "compiled", _poison_seed_1_before_round(ROUNDS - 1))
     run_dir = tmp_path / "run"
     with pytest.raises(SystemExit) as exit_info:
         _main(run_dir)

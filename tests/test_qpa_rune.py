@@ -36,7 +36,7 @@ from rebel_jax.preference.feedback import StateFeedback
 from rebel_jax.preference.pixel_feedback import PixelFeedback
 from rebel_jax.preference.pixel_reward import PixelRewardConfig
 from rebel_jax.preference.reward_model import PrefBatch, RewardConfig, Steps
-from rebel_jax.run import cli
+from rebel_jax.run import cli, loop
 from rebel_jax.train import Trainer
 
 # A replay of 2 environments with 20-step episodes, 150 rows written of 200: 7 complete episodes per environment
@@ -363,7 +363,7 @@ def test_a_short_run_through_the_cli_traces_its_round_once_and_uses_the_budget(m
         trainer.round = chex.assert_max_traces(trainer.round, n=1)
         return train.compiled(trainer, sharding)
 
-    monkeypatch.setattr(cli, "compiled", traced_once)
+    monkeypatch.setattr(loop, "compiled", traced_once)
     cli.main([*MICRO_FLAGS, *METHOD_FLAGS[method].split(), "--run-dir", str(tmp_path / "run")])
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 5 and all(row["status"] == "ok" for row in rows)

@@ -18,6 +18,7 @@ import pytest
 from test_envs_quadruped import _batch  # MJX data holding dm_control's physics states
 
 from rebel_jax.envs import dmc, make_env
+from rebel_jax.run import loop
 from rebel_jax.run.cli import parse
 
 suite = pytest.importorskip("dm_control.suite")
@@ -219,7 +220,7 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
 
     ahead = logged(tmp_path / "ahead")
     assert "0/80 steps: round 1 of 2\n" in capsys.readouterr().out  # compiled before the first round's line
-    monkeypatch.setattr(cli, "_compiled_beside_kernels", lambda trainer, round_fn, shapes, one: (round_fn, 0.0))
+    monkeypatch.setattr(loop, "_compiled_beside_kernels", lambda trainer, round_fn, shapes, one: (round_fn, 0.0))
     at_first_call = logged(tmp_path / "at_first_call")
     assert len(ahead) == 2
     assert ahead == at_first_call

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rebel_jax.run import plots, video
-from rebel_jax.run.cli_args import Args
+from rebel_jax.run.cli_args import Args, swept_knob
 from rebel_jax.run.human import HumanError
 from rebel_jax.train import Trainer, seed_keys
 
@@ -155,3 +155,28 @@ def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) 
     if success:
         return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, ylabel="evaluation success rate")
     return plots.write_learning_curve(run_dir / "learning_curve.png", runs, title, float(np.mean(random)))
+
+
+def report(args: Args, run_dir: pathlib.Path, result: dict, files: list, final: np.ndarray, random: np.ndarray) -> None:
+    """What a finished run prints: the summary table per column, the files written, each group's final return
+    (mean +- sample std over its seeds) and the seeds that diverged."""
+    cfg = args.config
+    names, grid = args.column_names(), args.grid()
+    print(
+        f"\n{cfg.algo} on {cfg.env.task}: evaluation returns ({cfg.train.eval_episodes} episodes of "
+        f"{cfg.env.episode_length} steps per seed, the same initial states for the random policy)"
+    )
+    print(summary_table(names, random, final, last_logged(run_dir, args.columns)))
+    for path in files:
+        if path is not None:
+            print(f"wrote {path}")
+    for i in range(0, args.columns, args.seeds):
+        part = final[i : i + args.seeds]
+        lam, teacher = grid[i]
+        which = ([f"lambda {lam:g}"] if swept_knob(cfg) else []) + ([f"teacher {teacher}"] if teacher else [])
+        which = f" ({', '.join(which)})" if which else ""
+        spread = f" +- {sample_std(part):.1f} (sample std)" if part.size > 1 else ""
+        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f}{spread}")
+    if result["diverged"]:
+        print(f"warning: diverged during the run: {', '.join(result['diverged'])}", file=sys.stderr)
+    print(f"run directory: {run_dir}")

@@ -235,6 +235,21 @@ def device_columns(run_dir: pathlib.Path, args: Args, devices: int, resuming: bo
     return saved
 
 
+def start_run_files(
+    run_dir: pathlib.Path, args: Args, command: str, device_columns: int, resuming: bool, start: int
+) -> None:
+    """The run directory's files as the rounds start (process 0): ``metrics.jsonl`` kept up to round ``start``,
+    the first to run, and ``meta.json`` written for a new run or the resume recorded in it."""
+    if resuming:
+        keep_rounds_before(run_dir / "metrics.jsonl", start)
+        _record_resume(run_dir, args, command, start)
+        return
+    if args.resume:
+        print(f"note: --resume: no run in {run_dir} yet; starting the run from scratch", file=sys.stderr)
+    keep_rounds_before(run_dir / "metrics.jsonl", 0)
+    _write_meta(run_dir, args, command, device_columns)
+
+
 def _record_resume(run_dir: pathlib.Path, args: Args, command: str, start: int) -> None:
     """Appends this call to meta.json's ``resumed`` list; saves the config (a larger total_steps)."""
     meta = json.loads((run_dir / "meta.json").read_text())
