@@ -65,7 +65,7 @@ def _stats(err: np.ndarray) -> dict:
 def episodes(env: metaworld.MetaWorldEnv, ref: dict):
     """The resets of the recorded episodes, at the draws Meta-World made."""
     draws = ref["episode_draws"]
-    return jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, 1]), _f32(draws[:, 0]))
+    return jax.jit(jax.vmap(env.reset_to))(_f32(draws[:, -1]), _f32(draws[:, 0]))
 
 
 def states_at(env: metaworld.MetaWorldEnv, ref: dict, rows: np.ndarray, resets):
@@ -79,6 +79,7 @@ def states_at(env: metaworld.MetaWorldEnv, ref: dict, rows: np.ndarray, resets):
         _f32(ref["qacc_warmstart"][rows]),
         _f32(ref["obs"][rows - 1, :18]),
         {k: info[k] for k in ("target_pos", "init_tcp", "body_pos", "consts")},
+        _f32(ref["action"][rows]),
     )
 
 
@@ -118,6 +119,8 @@ def measure(task: str, every: int) -> dict:
         "qpos_max_err": float(np.abs(np.asarray(r.pipeline_state.qpos) - ref["qpos"][first]).max()),
     }
     qpos, qvel = hand_reset_in_this_mujoco(task)
+    if env.spec.object_qpos:  # the object's x and y are the reset's draw, not the hand reset's
+        qpos[9:11] = ref["qpos"][first[0], 9:11]
     out["hand_reset_mujoco_3_17"] = {
         "mujoco": mujoco.__version__,
         "qpos_max_diff": float(np.abs(qpos - ref["qpos"][first[0]]).max()),

@@ -4,12 +4,12 @@ Meta-World 3.1.1 pins mujoco==3.3.0 while rebel_jax pins mujoco 3.17.0, so the r
 virtual environment:
 
     python3.11 -m venv /tmp/mwenv && /tmp/mwenv/bin/pip install metaworld==3.1.1 packaging
-    /tmp/mwenv/bin/python tests/data/metaworld/make_reference.py
+    /tmp/mwenv/bin/python tests/data/metaworld/make_reference.py [TASK ...]
 
 (gymnasium 1.4, which metaworld pulls in, imports ``packaging`` without requiring it). It writes
-``tests/data/metaworld/<task>.npz`` for each task of :data:`TASKS`, and the state that Meta-World's reset leaves the
-arm in, ``src/rebel_jax/envs/metaworld_assets/hand_reset.npz`` (the same at every reset: the objects are away from
-the hand's path; the tests check it). Each test file holds:
+``tests/data/metaworld/<task>.npz`` for each task named (all of :data:`TASKS` without names), and the state that
+Meta-World's reset leaves the arm in, ``src/rebel_jax/envs/metaworld_assets/hand_reset.npz`` (the same at every
+reset: the objects are away from the hand's path; the tests check it; the other tasks' states are kept). Each test file holds:
 
 - ``reset_*``: :data:`RESETS` independent resets (Meta-World's ``_last_rand_vec``, ``_target_pos``,
   ``obj_init_pos``), for the KS tests of the reset distribution;
@@ -31,6 +31,7 @@ too.
 from __future__ import annotations
 
 import pathlib
+import sys
 
 import metaworld
 import mujoco
@@ -43,6 +44,9 @@ TASKS = {
     "door-open": policies.SawyerDoorOpenV3Policy,
     "button-press": policies.SawyerButtonPressV3Policy,
     "sweep-into": policies.SawyerSweepIntoV3Policy,
+    "window-open": policies.SawyerWindowOpenV3Policy,
+    "door-unlock": policies.SawyerDoorUnlockV3Policy,
+    "hammer": policies.SawyerHammerV3Policy,
 }
 RESETS = 1000
 EPISODES = 4  # 2 random, 2 scripted: 4 x 501 states
@@ -108,7 +112,7 @@ def record(task: str) -> dict[str, np.ndarray]:
         rows = [
             dict(
                 state(env),
-                obs=obs,
+                obs=obs.copy(),
                 action=np.zeros(4),
                 reward=np.nan,
                 episode=e,
@@ -120,8 +124,18 @@ def record(task: str) -> dict[str, np.ndarray]:
             a = policy.get_action(obs) if scripted else rng.uniform(-1, 1, 4)
             a = np.asarray(a, np.float32)
             obs, reward, _, _, info = env.step(a)
+            # A copy: some scripted policies shift the observation they are given in place (door-open's moves the
+            # handle's x by -0.05, metaworld@3.1.1:metaworld/policies/sawyer_door_open_v3_policy.py:37-39).
             rows.append(
-                dict(state(env), obs=obs, action=a, reward=reward, episode=e, t=t, **{k: info[k] for k in INFO_KEYS})
+                dict(
+                    state(env),
+                    obs=obs.copy(),
+                    action=a,
+                    reward=reward,
+                    episode=e,
+                    t=t,
+                    **{k: info[k] for k in INFO_KEYS},
+                )
             )
         for row in rows:
             for k, v in row.items():
@@ -133,10 +147,12 @@ def record(task: str) -> dict[str, np.ndarray]:
     return data
 
 
-def main() -> None:
+def main(tasks: list[str]) -> None:
     here = pathlib.Path(__file__).parent
-    resets = {}
-    for task in TASKS:
+    package = here.parents[2] / "src" / "rebel_jax" / "envs" / "metaworld_assets"
+    with np.load(package / "hand_reset.npz") as kept:  # the other tasks' reset states stay as they are
+        resets = {k: kept[k] for k in kept.files if k.split("/")[0] not in tasks}
+    for task in tasks:
         data = record(task)
         resets.update({f"{task}/{k}": v for k, v in data.pop("hand_reset").items()})
         np.savez_compressed(here / f"{task}.npz", **data)
@@ -146,9 +162,8 @@ def main() -> None:
             "success rate of scripted steps:",
             float(np.nanmean(data["success"][len(data["success"]) // 2 :])),
         )
-    package = here.parents[2] / "src" / "rebel_jax" / "envs" / "metaworld_assets"
     np.savez(package / "hand_reset.npz", **resets)
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:] or list(TASKS))
