@@ -19,7 +19,7 @@ from rebel_jax.config import ConfigError, EnvConfig
 from rebel_jax.envs import METAWORLD_TASKS, make_env, metaworld
 
 DATA = pathlib.Path(__file__).parent / "data" / "metaworld"
-TASKS = ["drawer-open", "button-press", "door-open", "sweep-into"]
+TASKS = ["drawer-open", "button-press", "door-open", "sweep-into", "window-open"]
 STEPPED = ["drawer-open", "sweep-into"]  # the tasks whose physics step runs (metaworld.STEP_REFUSED)
 INFO_KEYS = ("near_object", "grasp_success", "grasp_reward", "in_place_reward", "obj_to_target")
 # Info flags read from contact forces (sweep-into's grasp_success: both pads push on the object). MJX collides the

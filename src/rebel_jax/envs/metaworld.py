@@ -171,6 +171,9 @@ class TaskSpec:
       extra: ``model ids -> (mjx.Data -> (k,))``: what else of the state the reward reads (``Context.extra``).
       contacts: the reward's info reads contact forces, so observing a stepped state runs ``mjx.forward`` (contacts
         and constraint forces) instead of only the kinematics.
+      shown_consts: ``model ids -> (mjx.Data -> (k,))``: episode constants that Meta-World's ``reset_model`` reads
+        from MuJoCo's stale kinematics (those its reset observation shows; tasks without ``reset_forward``),
+        appended to ``consts``.
     """
 
     name: str
@@ -191,6 +194,7 @@ class TaskSpec:
     accept: Callable[[jax.Array], jax.Array] | None = None
     extra: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
     contacts: bool = False
+    shown_consts: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
 
 
 def _body(model: mujoco.MjModel, name: str) -> int:
@@ -468,6 +472,69 @@ def _sweep_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     return reward, info
 
 
+# window-open: metaworld@3.1.1:metaworld/envs/sawyer_window_open_v3.py
+WINDOW_TARGET_RADIUS = 0.05  # sawyer_window_open_v3.py:27
+WINDOW_HANDLE_RADIUS = 0.02  # :156
+
+
+def _window_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_window_open_v3.py:117-119: the goal 20 cm right of the window's draw."""
+        del d
+        return rand_vec + jnp.array([0.2, 0.0, 0.0]), jnp.zeros(0)
+
+    return goal
+
+
+def _site_object(name: str):
+    """The object of a task that observes one site's position and no orientation (zeros; window-open's
+    ``handleOpenStart``, sawyer_window_open_v3.py:104-108)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        site = _site(model, name)
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.site_xpos[site], jnp.zeros(4, d.site_xpos.dtype)
+
+        return objects
+
+    return factory
+
+
+def _site_position(name: str):
+    """``shown_consts``: one site's position (window-open's ``window_handle_pos_init``, sawyer_window_open_v3.py:122,
+    read before any ``mj_forward``)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        site = _site(model, name)
+        return lambda d: d.site_xpos[site]
+
+    return factory
+
+
+def _window_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_window_open_v3.py:131-171 (reward version v2) and its ``evaluate_state`` (:76-102)."""
+    obj = obs[4:7]  # the site handleOpenStart (_get_pos_objects), never clipped (unbounded)
+    handle_init = c.consts[0:3]
+    target_to_obj = jnp.abs(obj[0] - c.target_pos[0])
+    obj_init_x = c.target_pos[0] - 0.2  # obj_init_pos[0]: the draw
+    target_to_obj_init = jnp.abs(obj_init_x - c.target_pos[0])
+    in_place = tolerance(target_to_obj, 0.0, WINDOW_TARGET_RADIUS, jnp.abs(target_to_obj_init - WINDOW_TARGET_RADIUS))
+    tcp_to_obj = jnp.linalg.norm(obj - c.tcp)
+    tcp_to_obj_init = jnp.linalg.norm(handle_init - c.init_tcp)
+    reach = tolerance(tcp_to_obj, 0.0, WINDOW_HANDLE_RADIUS, jnp.abs(tcp_to_obj_init - WINDOW_HANDLE_RADIUS))
+    reward = 10.0 * hamacher_product(reach, in_place)
+    info = _flags(
+        success=target_to_obj <= WINDOW_TARGET_RADIUS,
+        near_object=tcp_to_obj <= 0.05,
+        grasp_success=jnp.ones((), bool),
+        grasp_reward=reach,
+        in_place_reward=in_place,
+        obj_to_target=target_to_obj,
+    )
+    return reward, info
+
+
 TASKS: dict[str, TaskSpec] = {
     "drawer-open": TaskSpec(
         name="drawer-open",
@@ -534,6 +601,21 @@ TASKS: dict[str, TaskSpec] = {
         extra=_pads_and_touching,
         contacts=True,
     ),
+    "window-open": TaskSpec(  # sawyer_window_open_v3.py:38-70
+        name="window-open",
+        xml="sawyer_window_horizontal.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        reset_low=(-0.1, 0.7, 0.16),
+        reset_high=(0.1, 0.9, 0.16),
+        hand_init_pos=(0.0, 0.4, 0.2),
+        moved_body="window",
+        reset_forward=False,  # :112-127: no set_state, the observation shows the stale kinematics
+        goal=_window_goal,
+        objects=_site_object("handleOpenStart"),
+        reward=_window_reward,
+        shown_consts=_site_position("handleOpenStart"),
+    ),
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
 
@@ -542,6 +624,8 @@ STEP_REFUSED = {
     "not wired into the Meta-World tasks yet",
     "door-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders (the door's handle) with boxes, and MuJoCo "
     "Warp's step is not wired into the Meta-World tasks yet",
+    "window-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
+    "not wired into the Meta-World tasks yet",
 }
 """Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
 
@@ -855,6 +939,8 @@ class MetaWorldEnv(Env):
         if not self.spec.reset_forward:
             stale = d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype))
             shown = mjx.kinematics(self.model(shown_vec), stale)
+            if self.spec.shown_consts is not None:
+                info["consts"] = jnp.concatenate([consts, self.spec.shown_consts(self.mujoco_model)(shown)])
         return self._observe(d, m, None, info, zero, jnp.zeros(4), shown=shown, current=True)
 
     def step(self, state: State, action: jax.Array) -> State:
