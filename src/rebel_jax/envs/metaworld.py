@@ -535,6 +535,71 @@ def _window_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     return reward, info
 
 
+# door-unlock: metaworld@3.1.1:metaworld/envs/sawyer_door_unlock_v3.py
+UNLOCK_LOCK_LENGTH = 0.1  # sawyer_door_unlock_v3.py:50 (_lock_length)
+
+
+def _unlock_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    lock = _body(model, "lock_link")
+
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_door_unlock_v3.py:111-120: the goal 10 cm right of and 4 cm in front of the lock's body, after the
+        reset turned the lock to 1.5708 rad (``set_state``: kinematics current)."""
+        del rand_vec
+        return d.xpos[lock] + jnp.array([0.1, -0.04, 0.0]), jnp.zeros(0)
+
+    return goal
+
+
+def _body_position(name: str):
+    """``extra``: one body's current position (door-unlock's ``obj_init_pos``, which Meta-World takes as the view
+    ``data.body("lock_link").xpos``, sawyer_door_unlock_v3.py:115, so it follows the lock at every step)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        body = _body(model, name)
+        return lambda d: d.xpos[body]
+
+    return factory
+
+
+def _body_object(name: str):
+    """The object of a task that observes a site's position and a body's quaternion (door-unlock: the site
+    ``lockStartUnlock`` and the body ``door_link``, sawyer_door_unlock_v3.py:98-102)."""
+    site_name, body_name = name.split(":")
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        site, body = _site(model, site_name), _body(model, body_name)
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.site_xpos[site], d.xquat[body]
+
+        return objects
+
+    return factory
+
+
+def _unlock_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_door_unlock_v3.py:122-165 (reward version v2) and its ``evaluate_state`` (:62-83)."""
+    gripper, lock = obs[:3], obs[4:7]
+    offset = jnp.array([0.0, 0.055, 0.07])  # the gripper's shoulder rather than its fingers
+    scale = jnp.array([0.25, 1.0, 0.5])
+    shoulder_to_lock = jnp.linalg.norm((gripper + offset - lock) * scale)
+    shoulder_to_lock_init = jnp.linalg.norm((c.init_tcp + offset - c.extra[0:3]) * scale)
+    ready_to_push = tolerance(shoulder_to_lock, 0.0, 0.02, shoulder_to_lock_init)
+    obj_to_target = jnp.abs(c.target_pos[0] - lock[0])
+    pushed = tolerance(obj_to_target, 0.0, 0.005, UNLOCK_LOCK_LENGTH)
+    reward = 2.0 * ready_to_push + 8.0 * pushed
+    info = _flags(
+        success=obj_to_target <= 0.02,
+        near_object=shoulder_to_lock <= 0.05,
+        grasp_success=obs[3] > 0,
+        grasp_reward=ready_to_push,
+        in_place_reward=pushed,
+        obj_to_target=obj_to_target,
+    )
+    return reward, info
+
+
 TASKS: dict[str, TaskSpec] = {
     "drawer-open": TaskSpec(
         name="drawer-open",
@@ -616,6 +681,23 @@ TASKS: dict[str, TaskSpec] = {
         reward=_window_reward,
         shown_consts=_site_position("handleOpenStart"),
     ),
+    "door-unlock": TaskSpec(  # sawyer_door_unlock_v3.py:25-56
+        name="door-unlock",
+        xml="sawyer_door_lock.xml",
+        hand_low=(-0.5, 0.40, -0.15),
+        hand_high=(0.5, 1.0, 0.5),
+        goal_low=(0.0, 0.64, 0.2100),
+        goal_high=(0.2, 0.7, 0.2111),
+        reset_low=(-0.1, 0.8, 0.15),
+        reset_high=(0.1, 0.85, 0.15),
+        hand_init_pos=(0.0, 0.6, 0.2),
+        moved_body="door",
+        reset_forward=True,  # :113 (_set_obj_xyz ends with set_state)
+        goal=_unlock_goal,
+        objects=_body_object("lockStartUnlock:door_link"),
+        reward=_unlock_reward,
+        extra=_body_position("lock_link"),
+    ),
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
 
@@ -626,6 +708,7 @@ STEP_REFUSED = {
     "Warp's step is not wired into the Meta-World tasks yet",
     "window-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
     "not wired into the Meta-World tasks yet",
+    "door-unlock": "MJX's JAX step builds its model, but one step of it has not been compared with Meta-World's yet",
 }
 """Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
 
