@@ -412,7 +412,7 @@ def _pads_and_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]
     obj, pads = geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
     # MJX's contacts are a fixed set of candidates whose constraint rows are fixed (the first: an elliptic contact's
     # normal); the collision fills in their geoms.
-    address = np.asarray(mjx.make_data(mjx.put_model(model))._impl.contact.efc_address)
+    address = np.asarray(mjx.make_data(model)._impl.contact.efc_address)
 
     def pushes(d: mjx.Data, pad: int) -> jax.Array:
         pair = d._impl.contact.geom
