@@ -161,7 +161,7 @@ class TaskSpec:
       reset_forward: the task's ``reset_model`` ends with ``set_state`` (which runs ``mj_forward``), so the reset's
         observation shows the state the episode starts from; otherwise it shows MuJoCo's stale kinematics
         (:meth:`MetaWorldEnv.reset`).
-      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (1,))``.
+      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (k,))``.
       objects: ``model ids -> (mjx.Data -> (position (3,), quaternion (4,)))`` of the task's object.
       reward: ``(obs, Context) -> (reward, info)`` with ``success`` among the info.
       object_qpos: the reset puts the free object's x and y (``qpos[9:11]``) at the draw's first two numbers, its
