@@ -73,6 +73,55 @@ def hamacher_product(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.where(denominator > 0, a * b / jnp.where(denominator > 0, denominator, 1.0), 0.0)
 
 
+def tolerance(x: jax.Array, lower: float, upper: float, margin: jax.Array) -> jax.Array:
+    """Meta-World's ``reward_utils.tolerance(x, bounds=(lower, upper), margin, sigmoid='long_tail')`` for any ``x``
+    and ``margin >= 0`` (metaworld@3.1.1:metaworld/utils/reward_utils.py:97-150); ``margin`` may be traced.
+
+    Args:
+      x: the input.
+      lower, upper: the target interval's bounds (inclusive).
+      margin: where the output falls to 0.1; 0: the output is 0 outside the bounds.
+
+    Returns:
+      1 within ``[lower, upper]``, else ``1 / ((d * scale)^2 + 1)`` of the distance to the nearest bound over
+      ``margin`` (0 where ``margin`` is 0).
+    """
+    scale = np.sqrt(1.0 / VALUE_AT_MARGIN - 1.0)
+    inside = (lower <= x) & (x <= upper)
+    safe = jnp.where(margin == 0, 1.0, margin)
+    d = jnp.where(x < lower, lower - x, x - upper) / safe
+    return jnp.where(inside, 1.0, jnp.where(margin == 0, 0.0, 1.0 / ((d * scale) ** 2 + 1.0)))
+
+
+def scipy_quat(xmat: jax.Array) -> jax.Array:
+    """``scipy.spatial.transform.Rotation.from_matrix(xmat.reshape(3, 3)).as_quat()`` for a rotation matrix, as
+    Meta-World's tasks that observe a geom's orientation compute it (scalar last, scipy's sign): the largest of the
+    diagonal and the trace picks the formula (scipy@1.17.1:scipy/spatial/transform/_rotation_xp.py:86-161,
+    ``_from_matrix_orthogonal``; NumPy input runs the same formulas in scipy's Cython backend).
+
+    Args:
+      xmat: a rotation matrix, flat (9,) as MuJoCo's ``geom_xmat`` or (3, 3).
+
+    Returns:
+      The unit quaternion ``(x, y, z, w)``.
+    """
+    m = xmat.reshape(3, 3)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    choice = jnp.argmax(jnp.array([m[0, 0], m[1, 1], m[2, 2], trace]))
+    cases = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q = [None] * 4
+        q[i] = 1.0 - trace + 2.0 * m[i, i]
+        q[j] = m[j, i] + m[i, j]
+        q[k] = m[k, i] + m[i, k]
+        q[3] = m[k, j] - m[j, k]
+        cases.append(jnp.stack(q))
+    cases.append(jnp.stack([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1.0 + trace]))
+    q = jnp.stack(cases)[choice]
+    return q / jnp.linalg.norm(q)
+
+
 @dataclasses.dataclass(frozen=True)
 class Context:
     """What a task's reward reads besides the observation.
@@ -81,13 +130,17 @@ class Context:
       tcp: the fingertips' centre now (``tcp_center``).
       target_pos: the episode's goal (``_target_pos``).
       init_tcp: the fingertips' centre after the reset (``init_tcp``).
-      consts: the episode's other constants of the reset (task-specific; ``(1,)``).
+      consts: the episode's other constants of the reset (task-specific, ``(k,)``).
+      action: the action of the step that led here (zeros at a reset).
+      extra: what else of the state the reward reads (``TaskSpec.extra``; ``(0,)`` for none).
     """
 
     tcp: jax.Array
     target_pos: jax.Array
     init_tcp: jax.Array
     consts: jax.Array
+    action: jax.Array
+    extra: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,17 +151,29 @@ class TaskSpec:
       name: Meta-World's name without the version (``drawer-open``).
       xml: the model file, relative to ``metaworld_assets/sawyer_xyz``.
       hand_low, hand_high: the mocap's bounds (Meta-World's ``hand_low``/``hand_high``; its ``mocap_low``/``high``
-        default to them) and the goal's clipping bounds (``goal_space``).
+        default to them).
+      goal_low, goal_high: the goal's bounds (``goal_space``), to which the observation's goal is clipped; None:
+        ``hand_low``/``hand_high`` (drawer-open's and button-press's ``goal_space``).
       reset_low, reset_high: the uniform reset draw (``_random_reset_space``).
       hand_init_pos: where the hand is driven at reset.
       moved_body: the body whose model position the reset sets to the draw (Meta-World writes
-        ``model.body(...).pos``).
+        ``model.body(...).pos``); None where the reset moves a free object's joint instead (``object_qpos``).
       reset_forward: the task's ``reset_model`` ends with ``set_state`` (which runs ``mj_forward``), so the reset's
         observation shows the state the episode starts from; otherwise it shows MuJoCo's stale kinematics
         (:meth:`MetaWorldEnv.reset`).
-      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (1,))``.
+      goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (k,))``.
       objects: ``model ids -> (mjx.Data -> (position (3,), quaternion (4,)))`` of the task's object.
-      reward: ``(model ids) -> ((obs, Context) -> (reward, info))`` with ``success`` among the info.
+      reward: ``(obs, Context) -> (reward, info)`` with ``success`` among the info.
+      object_qpos: the reset puts the free object's x and y (``qpos[9:11]``) at the draw's first two numbers, its
+        height and orientation as the hand's reset left them (Meta-World's ``_set_obj_xyz``,
+        metaworld@3.1.1:metaworld/sawyer_xyz_env.py:351-361).
+      accept: ``rand_vec -> bool``: the reset draws again until it holds (Meta-World's rejection loops); None: once.
+      extra: ``model ids -> (mjx.Data -> (k,))``: what else of the state the reward reads (``Context.extra``).
+      contacts: the reward's info reads contact forces, so observing a stepped state runs ``mjx.forward`` (contacts
+        and constraint forces) instead of only the kinematics.
+      shown_consts: ``model ids -> (mjx.Data -> (k,))``: episode constants that Meta-World's ``reset_model`` reads
+        from MuJoCo's stale kinematics (those its reset observation shows; tasks without ``reset_forward``),
+        appended to ``consts``.
     """
 
     name: str
@@ -123,6 +188,13 @@ class TaskSpec:
     goal: Callable[[mujoco.MjModel], Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]]
     objects: Callable[[mujoco.MjModel], Callable[[mjx.Data], tuple[jax.Array, jax.Array]]]
     reward: Callable[[jax.Array, Context], tuple[jax.Array, dict[str, jax.Array]]]
+    goal_low: tuple[float, float, float] | None = None
+    goal_high: tuple[float, float, float] | None = None
+    object_qpos: bool = False
+    accept: Callable[[jax.Array], jax.Array] | None = None
+    extra: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
+    contacts: bool = False
+    shown_consts: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
 
 
 def _body(model: mujoco.MjModel, name: str) -> int:
@@ -225,6 +297,309 @@ def _button_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     return reward, info
 
 
+# door-open: metaworld@3.1.1:metaworld/envs/sawyer_door_v3.py
+DOOR_GOAL_OFFSET = (-0.3, -0.45, 0.0)  # sawyer_door_v3.py:117
+
+
+def _door_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_door_v3.py:116-117: the goal 30 cm left of and 45 cm in front of the door's hinge body."""
+        del d
+        return rand_vec + jnp.array(DOOR_GOAL_OFFSET), jnp.zeros(1)
+
+    return goal
+
+
+def _geom_object(name: str):
+    """The object of a task that observes one geom: its position and scipy's quaternion of its orientation
+    (door-open's ``handle``, sawyer_door_v3.py:97-103; sweep-into's ``objGeom`` orientation,
+    sawyer_sweep_into_goal_v3.py:94-96, see :func:`_sweep_objects`)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.geom_xpos[geom], scipy_quat(d.geom_xmat[geom])
+
+        return objects
+
+    return factory
+
+
+def _joint_angle(name: str):
+    """``extra``: the angle of one hinge (door-open's ``doorjoint``, sawyer_door_v3.py:187)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        adr = int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)])
+
+        def extra(d: mjx.Data) -> jax.Array:
+            return d.qpos[adr : adr + 1]
+
+        return extra
+
+    return factory
+
+
+def _door_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_door_v3.py:130-205 (reward version v2) and its ``evaluate_state`` (:67-91)."""
+    theta = c.extra[0]
+    grab = (jnp.clip(c.action[3], -1.0, 1.0) + 1.0) / 2.0  # :130-132 (_reward_grab_effort)
+    # :134-178 (_reward_pos)
+    hand = obs[:3]
+    door = obs[4:7] + jnp.array([-0.05, 0.0, 0.0])
+    threshold = 0.12
+    radius = jnp.linalg.norm(hand[:2] - door[:2])
+    floor = jnp.where(radius <= threshold, 0.0, 0.04 * jnp.log(jnp.maximum(radius - threshold, 1e-30)) + 0.4)
+    above_floor = jnp.where(hand[2] >= floor, 1.0, tolerance(floor - hand[2], 0.0, 0.01, jnp.maximum(floor / 2.0, 0.0)))
+    in_place = tolerance(jnp.linalg.norm(hand - door - jnp.array([0.05, 0.03, -0.01])), 0.0, threshold / 2.0, 0.5)
+    ready_to_open = hamacher_product(above_floor, in_place)
+    door_angle = -theta
+    opened = 0.2 * (theta < -np.pi / 90.0) + 0.8 * tolerance(
+        np.pi / 2.0 + np.pi / 6 - door_angle, 0.0, 0.5, np.pi / 3.0
+    )
+    success = jnp.abs(obs[4] - c.target_pos[0]) <= 0.08  # :79, :200
+    reward = jnp.where(success, 10.0, 2.0 * hamacher_product(ready_to_open, grab) + 8.0 * opened)
+    info = _flags(
+        success=success,
+        near_object=ready_to_open,
+        grasp_success=grab >= 0.5,
+        grasp_reward=grab,
+        in_place_reward=opened,
+        obj_to_target=jnp.zeros(()),
+    )
+    return reward, info
+
+
+# sweep-into: metaworld@3.1.1:metaworld/envs/sawyer_sweep_into_goal_v3.py
+SWEEP_GOAL = (0.0, 0.84, 0.02)  # sawyer_sweep_into_goal_v3.py:51 (goal)
+SWEEP_OBJ_RADIUS = 0.02  # :17
+SWEEP_TARGET_RADIUS = 0.05  # :224
+
+
+def _sweep_accept(rand_vec: jax.Array) -> jax.Array:
+    """sawyer_sweep_into_goal_v3.py:108-110: the object's draw at least 15 cm (in x and y) from the goal."""
+    return jnp.linalg.norm(rand_vec[:2] - jnp.array(SWEEP_GOAL[:2])) >= 0.15
+
+
+def _sweep_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_sweep_into_goal_v3.py:101-121: the goal is fixed (the hole); the episode's constant is the
+        object's start (``obj_init_pos``: the draw's x and y, the height the hand's reset left the object at)."""
+        del rand_vec
+        return jnp.array(SWEEP_GOAL), d.qpos[9:12]
+
+    return goal
+
+
+def _sweep_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+    """sawyer_sweep_into_goal_v3.py:94-99: the body ``obj``'s position, its geom's orientation (scipy's quaternion)."""
+    body = _body(model, "obj")
+    geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "objGeom")
+
+    def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        return d.xpos[body], scipy_quat(d.geom_xmat[geom])
+
+    return objects
+
+
+def _pads_and_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+    """``extra`` of sweep-into: the pads' body positions (6; ``get_body_com``) and whether both pads push on the
+    object (1; ``touching_main_object``, metaworld@3.1.1:metaworld/sawyer_xyz_env.py:393-440: each pad's summed
+    normal contact force with ``objGeom`` is positive). Reads the contacts and constraint forces of the last
+    ``mjx.forward`` (zeros in a state that has not run one, such as the reset's)."""
+    left, right = _body(model, "leftpad"), _body(model, "rightpad")
+    geom = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
+    obj, pads = geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
+    # MJX's contacts are a fixed set of candidates whose constraint rows are fixed (the first: an elliptic contact's
+    # normal); the collision fills in their geoms.
+    address = np.asarray(mjx.make_data(model)._impl.contact.efc_address)
+
+    def pushes(d: mjx.Data, pad: int) -> jax.Array:
+        pair = d._impl.contact.geom
+        mine = ((pair[:, 0] == pad) & (pair[:, 1] == obj)) | ((pair[:, 0] == obj) & (pair[:, 1] == pad))
+        return jnp.where(mine, d._impl.efc_force[address], 0.0).sum() > 0
+
+    def extra(d: mjx.Data) -> jax.Array:
+        touching = pushes(d, pads[0]) & pushes(d, pads[1])
+        return jnp.concatenate([d.xpos[left], d.xpos[right], touching.astype(d.xpos.dtype)[None]])
+
+    return extra
+
+
+def _sweep_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_sweep_into_goal_v3.py:219-257 (reward version v2), its ``_gripper_caging_reward`` (:123-217) and its
+    ``evaluate_state`` (:67-92).
+
+    Meta-World's ``init_left_pad``/``init_right_pad`` are views of the pads' current positions (gymnasium's
+    ``get_body_com`` returns ``data.body(name).xpos`` itself, read once in ``SawyerXYZEnv.__init__``), so the caging
+    margins read the pads where they are now, as here.
+    """
+    tcp, obj = c.tcp, obs[4:7]
+    left_pad, right_pad, touching = c.extra[0:3], c.extra[3:6], c.extra[6] > 0
+    obj_init = c.consts
+    target = jnp.array([c.target_pos[0], c.target_pos[1], obj[2]])
+    obj_to_target = jnp.linalg.norm(obj - target)
+    tcp_to_obj = jnp.linalg.norm(obj - tcp)
+    in_place = tolerance(obj_to_target, 0.0, SWEEP_TARGET_RADIUS, jnp.linalg.norm(obj_init - target))
+    # _gripper_caging_reward (:135-217)
+    pad_margin, grip_margin, xz_margin = 0.05, SWEEP_OBJ_RADIUS + 0.005, 0.01
+    dy_left, dy_right = left_pad[1] - obj[1], obj[1] - right_pad[1]
+    right_margin = jnp.abs(jnp.abs(obj[1] - right_pad[1]) - pad_margin)
+    left_margin = jnp.abs(jnp.abs(obj[1] - left_pad[1]) - pad_margin)
+    right_caging = tolerance(dy_right, SWEEP_OBJ_RADIUS, pad_margin, right_margin)
+    left_caging = tolerance(dy_left, SWEEP_OBJ_RADIUS, pad_margin, left_margin)
+    right_gripping = tolerance(dy_right, SWEEP_OBJ_RADIUS, grip_margin, right_margin)
+    left_gripping = tolerance(dy_left, SWEEP_OBJ_RADIUS, grip_margin, left_margin)
+    y_caging = hamacher_product(right_caging, left_caging)
+    y_gripping = hamacher_product(right_gripping, left_gripping)
+    xz = jnp.array([1.0, 0.0, 1.0])
+    tcp_obj_xz = jnp.linalg.norm((tcp - obj) * xz)
+    xz_caging_margin = jnp.linalg.norm((obj_init - c.init_tcp) * xz) - xz_margin
+    xz_caging = tolerance(tcp_obj_xz, 0.0, xz_margin, xz_caging_margin)
+    caging = hamacher_product(y_caging, xz_caging)
+    gripping = jnp.where(caging > 0.95, y_gripping, 0.0)
+    grasped = (caging + gripping) / 2.0
+    reward = 2.0 * grasped + 6.0 * hamacher_product(grasped, in_place)
+    reward = jnp.where(obj_to_target < SWEEP_TARGET_RADIUS, 10.0, reward)
+    info = _flags(
+        success=obj_to_target <= SWEEP_TARGET_RADIUS,
+        near_object=tcp_to_obj <= 0.03,
+        grasp_success=touching & (obs[3] > 0),
+        grasp_reward=grasped,
+        in_place_reward=in_place,
+        obj_to_target=obj_to_target,
+    )
+    return reward, info
+
+
+# window-open: metaworld@3.1.1:metaworld/envs/sawyer_window_open_v3.py
+WINDOW_TARGET_RADIUS = 0.05  # sawyer_window_open_v3.py:27
+WINDOW_HANDLE_RADIUS = 0.02  # :156
+
+
+def _window_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_window_open_v3.py:117-119: the goal 20 cm right of the window's draw."""
+        del d
+        return rand_vec + jnp.array([0.2, 0.0, 0.0]), jnp.zeros(0)
+
+    return goal
+
+
+def _site_object(name: str):
+    """The object of a task that observes one site's position and no orientation (zeros; window-open's
+    ``handleOpenStart``, sawyer_window_open_v3.py:104-108)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        site = _site(model, name)
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.site_xpos[site], jnp.zeros(4, d.site_xpos.dtype)
+
+        return objects
+
+    return factory
+
+
+def _site_position(name: str):
+    """``shown_consts``: one site's position (window-open's ``window_handle_pos_init``, sawyer_window_open_v3.py:122,
+    read before any ``mj_forward``)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        site = _site(model, name)
+        return lambda d: d.site_xpos[site]
+
+    return factory
+
+
+def _window_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_window_open_v3.py:131-171 (reward version v2) and its ``evaluate_state`` (:76-102)."""
+    obj = obs[4:7]  # the site handleOpenStart (_get_pos_objects), never clipped (unbounded)
+    handle_init = c.consts[0:3]
+    target_to_obj = jnp.abs(obj[0] - c.target_pos[0])
+    obj_init_x = c.target_pos[0] - 0.2  # obj_init_pos[0]: the draw
+    target_to_obj_init = jnp.abs(obj_init_x - c.target_pos[0])
+    in_place = tolerance(target_to_obj, 0.0, WINDOW_TARGET_RADIUS, jnp.abs(target_to_obj_init - WINDOW_TARGET_RADIUS))
+    tcp_to_obj = jnp.linalg.norm(obj - c.tcp)
+    tcp_to_obj_init = jnp.linalg.norm(handle_init - c.init_tcp)
+    reach = tolerance(tcp_to_obj, 0.0, WINDOW_HANDLE_RADIUS, jnp.abs(tcp_to_obj_init - WINDOW_HANDLE_RADIUS))
+    reward = 10.0 * hamacher_product(reach, in_place)
+    info = _flags(
+        success=target_to_obj <= WINDOW_TARGET_RADIUS,
+        near_object=tcp_to_obj <= 0.05,
+        grasp_success=jnp.ones((), bool),
+        grasp_reward=reach,
+        in_place_reward=in_place,
+        obj_to_target=target_to_obj,
+    )
+    return reward, info
+
+
+# door-unlock: metaworld@3.1.1:metaworld/envs/sawyer_door_unlock_v3.py
+UNLOCK_LOCK_LENGTH = 0.1  # sawyer_door_unlock_v3.py:50 (_lock_length)
+
+
+def _unlock_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    lock = _body(model, "lock_link")
+
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_door_unlock_v3.py:111-120: the goal 10 cm right of and 4 cm in front of the lock's body, after the
+        reset turned the lock to 1.5708 rad (``set_state``: kinematics current)."""
+        del rand_vec
+        return d.xpos[lock] + jnp.array([0.1, -0.04, 0.0]), jnp.zeros(0)
+
+    return goal
+
+
+def _body_position(name: str):
+    """``extra``: one body's current position (door-unlock's ``obj_init_pos``, which Meta-World takes as the view
+    ``data.body("lock_link").xpos``, sawyer_door_unlock_v3.py:115, so it follows the lock at every step)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        body = _body(model, name)
+        return lambda d: d.xpos[body]
+
+    return factory
+
+
+def _body_object(name: str):
+    """The object of a task that observes a site's position and a body's quaternion (door-unlock: the site
+    ``lockStartUnlock`` and the body ``door_link``, sawyer_door_unlock_v3.py:98-102)."""
+    site_name, body_name = name.split(":")
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        site, body = _site(model, site_name), _body(model, body_name)
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.site_xpos[site], d.xquat[body]
+
+        return objects
+
+    return factory
+
+
+def _unlock_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_door_unlock_v3.py:122-165 (reward version v2) and its ``evaluate_state`` (:62-83)."""
+    gripper, lock = obs[:3], obs[4:7]
+    offset = jnp.array([0.0, 0.055, 0.07])  # the gripper's shoulder rather than its fingers
+    scale = jnp.array([0.25, 1.0, 0.5])
+    shoulder_to_lock = jnp.linalg.norm((gripper + offset - lock) * scale)
+    shoulder_to_lock_init = jnp.linalg.norm((c.init_tcp + offset - c.extra[0:3]) * scale)
+    ready_to_push = tolerance(shoulder_to_lock, 0.0, 0.02, shoulder_to_lock_init)
+    obj_to_target = jnp.abs(c.target_pos[0] - lock[0])
+    pushed = tolerance(obj_to_target, 0.0, 0.005, UNLOCK_LOCK_LENGTH)
+    reward = 2.0 * ready_to_push + 8.0 * pushed
+    info = _flags(
+        success=obj_to_target <= 0.02,
+        near_object=shoulder_to_lock <= 0.05,
+        grasp_success=obs[3] > 0,
+        grasp_reward=ready_to_push,
+        in_place_reward=pushed,
+        obj_to_target=obj_to_target,
+    )
+    return reward, info
+
+
 TASKS: dict[str, TaskSpec] = {
     "drawer-open": TaskSpec(
         name="drawer-open",
@@ -254,12 +629,86 @@ TASKS: dict[str, TaskSpec] = {
         objects=_offset_body("button", (0.0, -0.193, 0.0)),
         reward=_button_reward,
     ),
+    "door-open": TaskSpec(  # sawyer_door_v3.py:26-61
+        name="door-open",
+        xml="sawyer_door_pull.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        goal_low=(-0.3, 0.4, 0.1499),
+        goal_high=(-0.2, 0.5, 0.1501),
+        reset_low=(0.0, 0.85, 0.15),
+        reset_high=(0.1, 0.95, 0.15),
+        hand_init_pos=(0.0, 0.6, 0.2),
+        moved_body="door",
+        reset_forward=True,  # :121 (_set_obj_xyz ends with set_state)
+        goal=_door_goal,
+        objects=_geom_object("handle"),
+        reward=_door_reward,
+        extra=_joint_angle("doorjoint"),
+    ),
+    "sweep-into": TaskSpec(  # sawyer_sweep_into_goal_v3.py:28-61
+        name="sweep-into",
+        xml="sawyer_table_with_hole.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        goal_low=(-0.001, 0.8399, 0.0199),
+        goal_high=(0.001, 0.8401, 0.0201),
+        reset_low=(-0.1, 0.6, 0.02, -0.001, 0.8399, 0.0199),
+        reset_high=(0.1, 0.7, 0.02, 0.001, 0.8401, 0.0201),
+        hand_init_pos=(0.0, 0.6, 0.2),
+        moved_body=None,
+        reset_forward=True,  # :114 (_set_obj_xyz ends with set_state)
+        goal=_sweep_goal,
+        objects=_sweep_objects,
+        reward=_sweep_reward,
+        object_qpos=True,
+        accept=_sweep_accept,
+        extra=_pads_and_touching,
+        contacts=True,
+    ),
+    "window-open": TaskSpec(  # sawyer_window_open_v3.py:38-70
+        name="window-open",
+        xml="sawyer_window_horizontal.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        reset_low=(-0.1, 0.7, 0.16),
+        reset_high=(0.1, 0.9, 0.16),
+        hand_init_pos=(0.0, 0.4, 0.2),
+        moved_body="window",
+        reset_forward=False,  # :112-127: no set_state, the observation shows the stale kinematics
+        goal=_window_goal,
+        objects=_site_object("handleOpenStart"),
+        reward=_window_reward,
+        shown_consts=_site_position("handleOpenStart"),
+    ),
+    "door-unlock": TaskSpec(  # sawyer_door_unlock_v3.py:25-56
+        name="door-unlock",
+        xml="sawyer_door_lock.xml",
+        hand_low=(-0.5, 0.40, -0.15),
+        hand_high=(0.5, 1.0, 0.5),
+        goal_low=(0.0, 0.64, 0.2100),
+        goal_high=(0.2, 0.7, 0.2111),
+        reset_low=(-0.1, 0.8, 0.15),
+        reset_high=(0.1, 0.85, 0.15),
+        hand_init_pos=(0.0, 0.6, 0.2),
+        moved_body="door",
+        reset_forward=True,  # :113 (_set_obj_xyz ends with set_state)
+        goal=_unlock_goal,
+        objects=_body_object("lockStartUnlock:door_link"),
+        reward=_unlock_reward,
+        extra=_body_position("lock_link"),
+    ),
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
 
 STEP_REFUSED = {
     "button-press": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
     "not wired into the Meta-World tasks yet",
+    "door-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders (the door's handle) with boxes, and MuJoCo "
+    "Warp's step is not wired into the Meta-World tasks yet",
+    "window-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
+    "not wired into the Meta-World tasks yet",
+    "door-unlock": "MJX's JAX step builds its model, but one step of it has not been compared with Meta-World's yet",
 }
 """Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
 
@@ -323,6 +772,12 @@ def hand_reset(task: str, model: mujoco.MjModel) -> HandReset:
     return HandReset(**fields, shown_qpos=shown)
 
 
+def _cpu_cholesky() -> contextlib.AbstractContextManager:
+    """``_mjx.plain_cholesky`` on the CPU (MJX's factorizations in plain JAX operations, as
+    :class:`~rebel_jax.envs.dmc.DMCEnv` runs them), nothing elsewhere."""
+    return plain_cholesky() if jax.default_backend() == "cpu" else contextlib.nullcontext()
+
+
 class MetaWorldEnv(Env):
     """A Meta-World task on MJX, a ``brax.envs.Env``.
 
@@ -381,6 +836,7 @@ class MetaWorldEnv(Env):
         )
         self._objects = self.spec.objects(m)
         self._goal = self.spec.goal(m)
+        self._extra = self.spec.extra(m) if self.spec.extra else (lambda d: jnp.zeros(0))
         name = lambda kind, n: mujoco.mj_name2id(m, kind, n)  # noqa: E731
         self._hand = name(mujoco.mjtObj.mjOBJ_BODY, "hand")
         self._claws = (name(mujoco.mjtObj.mjOBJ_BODY, "rightclaw"), name(mujoco.mjtObj.mjOBJ_BODY, "leftclaw"))
@@ -388,11 +844,20 @@ class MetaWorldEnv(Env):
             name(mujoco.mjtObj.mjOBJ_SITE, "rightEndEffector"),
             name(mujoco.mjtObj.mjOBJ_SITE, "leftEndEffector"),
         )
-        self._moved_body = name(mujoco.mjtObj.mjOBJ_BODY, self.spec.moved_body)
+        moved = self.spec.moved_body
+        self._moved_body = None if moved is None else name(mujoco.mjtObj.mjOBJ_BODY, moved)
+        # init_tcp: the fingertips' centre where the reset's kinematics are (HandReset.shown_qpos), the same at every
+        # reset (the arm's chain moves with no draw); float64 MuJoCo, once.
+        shown = mujoco.MjData(m)
+        shown.qpos[:] = self.hand_reset.shown_qpos
+        mujoco.mj_kinematics(m, shown)
+        self._init_tcp = ((shown.site_xpos[self._pads[0]] + shown.site_xpos[self._pads[1]]) / 2.0).astype(np.float32)
         low = np.concatenate([HAND_SPACE[0], [-1.0], np.full(OBJ_PADDED, -np.inf)])
         high = np.concatenate([HAND_SPACE[1], [1.0], np.full(OBJ_PADDED, np.inf)])
-        self._obs_low = np.concatenate([low, low, self.spec.hand_low]).astype(np.float32)
-        self._obs_high = np.concatenate([high, high, self.spec.hand_high]).astype(np.float32)
+        goal_low = self.spec.hand_low if self.spec.goal_low is None else self.spec.goal_low
+        goal_high = self.spec.hand_high if self.spec.goal_high is None else self.spec.goal_high
+        self._obs_low = np.concatenate([low, low, goal_low]).astype(np.float32)
+        self._obs_high = np.concatenate([high, high, goal_high]).astype(np.float32)
 
     # brax's Env properties.
     @property
@@ -416,7 +881,10 @@ class MetaWorldEnv(Env):
         return self
 
     def model(self, body_pos: jax.Array) -> mjx.Model:
-        """The MJX model with the reset's moved body at ``body_pos`` (Meta-World moves it in the model)."""
+        """The MJX model with the reset's moved body at ``body_pos`` (Meta-World moves it in the model); the model
+        itself for a task whose reset moves no body (``TaskSpec.moved_body`` None)."""
+        if self._moved_body is None:
+            return self.sys
         return self.sys.replace(body_pos=self.sys.body_pos.at[self._moved_body].set(body_pos))
 
     def current(self, d: mjx.Data) -> jax.Array:
@@ -447,14 +915,30 @@ class MetaWorldEnv(Env):
         return jnp.clip(obs, low, high)
 
     def _observe(
-        self, d: mjx.Data, m: mjx.Model, previous: jax.Array | None, info: dict, done: jax.Array, shown=None
+        self,
+        d: mjx.Data,
+        m: mjx.Model,
+        previous: jax.Array | None,
+        info: dict,
+        done: jax.Array,
+        action: jax.Array,
+        shown=None,
+        current: bool = False,
     ) -> State:
-        d = mjx.kinematics(m, d)
+        # After a step Meta-World runs mj_forward; the kinematics suffice unless the reward's info reads contacts.
+        contacts = self.spec.contacts and previous is not None and not self.step_refused
+        if contacts:
+            with _cpu_cholesky():
+                d = mjx.forward(m, d)
+        elif not current:  # ``current``: the caller has run the kinematics
+            d = mjx.kinematics(m, d)
         current = self.current(d if shown is None else shown)
         clip = previous is not None
         obs = self.observation(current, current if previous is None else previous, info["target_pos"], clip)
         # The reward reads the goal itself, not the observation's (zeros when the goal is hidden).
-        context = Context(self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"])
+        context = Context(
+            self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"], action, self._extra(d)
+        )
         reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), context)
         if previous is None:  # Meta-World's reset returns no reward
             reward = jnp.zeros(())
@@ -471,6 +955,7 @@ class MetaWorldEnv(Env):
         qacc_warmstart: jax.Array,
         previous: jax.Array,
         episode: dict[str, jax.Array],
+        action: jax.Array,
     ) -> State:
         """The ``State`` at a given MuJoCo state of an episode (as after a ``step``), for comparisons with Meta-World.
 
@@ -478,6 +963,7 @@ class MetaWorldEnv(Env):
           qpos, qvel, mocap_pos, mocap_quat, qacc_warmstart: the MuJoCo state.
           previous: the previous observation's first 18 numbers.
           episode: the episode's reset's ``info`` (``body_pos``, ``target_pos``, ``init_tcp``, ``consts``).
+          action: the action of the step that led there (door-open's reward reads it).
 
         Returns:
           The state, with the observation, reward and success Meta-World's ``step`` returns there.
@@ -488,12 +974,31 @@ class MetaWorldEnv(Env):
         zero = jnp.zeros(())
         if self.episode_length is not None:
             info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
-        return self._observe(d, self.model(info["body_pos"]), previous, info, zero)
+        return self._observe(d, self.model(info["body_pos"]), previous, info, zero, action)
 
     def draw(self, rng: jax.Array) -> jax.Array:
-        """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719)."""
+        """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719), drawn
+        again until ``TaskSpec.accept`` holds where the task has such a loop."""
         low, high = np.asarray(self.spec.reset_low), np.asarray(self.spec.reset_high)
-        return low + jax.random.uniform(rng, low.shape) * (high - low)
+        uniform = lambda key: low + jax.random.uniform(key, low.shape) * (high - low)  # noqa: E731
+        if self.spec.accept is None:
+            return uniform(rng)
+        accept = self.spec.accept
+
+        def again(carry: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+            key, sub = jax.random.split(carry[0])
+            return key, uniform(sub)
+
+        key, sub = jax.random.split(rng)
+        return jax.lax.while_loop(lambda c: ~accept(c[1]), again, (key, uniform(sub)))[1]
+
+    def start(self, rand_vec: jax.Array) -> mjx.Data:
+        """The reset's MuJoCo state for the draw ``rand_vec``: the hand's reset state (:class:`HandReset`), with a
+        free object's x and y at the draw where the task places it so (``TaskSpec.object_qpos``)."""
+        d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
+        if self.spec.object_qpos:
+            d = d.replace(qpos=d.qpos.at[9:11].set(rand_vec[:2].astype(d.qpos.dtype)))
+        return d
 
     def reset(self, rng: jax.Array) -> State:
         """Draws the object (and goal) uniformly in the task's reset space, the hand at its reset state.
@@ -509,15 +1014,20 @@ class MetaWorldEnv(Env):
     def reset_to(self, rand_vec: jax.Array, shown_vec: jax.Array) -> State:
         """The reset state of the draw ``rand_vec``, its observation showing the object at ``shown_vec``."""
         m = self.model(rand_vec)
-        d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
-        target, consts = self._goal(rand_vec, mjx.kinematics(m, d))
-        stale = d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype))
-        seen = mjx.kinematics(self.model(shown_vec), stale)
-        info = {"target_pos": target, "init_tcp": self.tcp_center(seen), "body_pos": rand_vec, "consts": consts}
+        d = mjx.kinematics(m, self.start(rand_vec))
+        target, consts = self._goal(rand_vec, d)
+        init_tcp = jnp.asarray(self._init_tcp)
+        info = {"target_pos": target, "init_tcp": init_tcp, "body_pos": rand_vec, "consts": consts}
         zero = jnp.zeros(())
         if self.episode_length is not None:
             info.update(steps=jnp.zeros((), jnp.int32), truncation=zero)
-        return self._observe(d, m, None, info, zero, shown=None if self.spec.reset_forward else seen)
+        shown = None
+        if not self.spec.reset_forward:
+            stale = d.replace(qpos=jnp.asarray(self.hand_reset.shown_qpos, d.qpos.dtype))
+            shown = mjx.kinematics(self.model(shown_vec), stale)
+            if self.spec.shown_consts is not None:
+                info["consts"] = jnp.concatenate([consts, self.spec.shown_consts(self.mujoco_model)(shown)])
+        return self._observe(d, m, None, info, zero, jnp.zeros(4), shown=shown, current=True)
 
     def step(self, state: State, action: jax.Array) -> State:
         """Moves the mocap by ``action[:3]`` cm (clipped to [-1, 1] and to the hand's bounds), sets the gripper to
@@ -537,7 +1047,7 @@ class MetaWorldEnv(Env):
             mocap_quat=jnp.array([MOCAP_QUAT], d.mocap_quat.dtype),
             ctrl=jnp.stack([action[3], -action[3]]).astype(d.ctrl.dtype),
         )
-        with plain_cholesky() if jax.default_backend() == "cpu" else contextlib.nullcontext():
+        with _cpu_cholesky():
             d = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
         info = dict(state.info)
         done = jnp.zeros_like(state.done)
@@ -545,7 +1055,7 @@ class MetaWorldEnv(Env):
             info["steps"] = state.info["steps"] + 1
             done = (info["steps"] >= self.episode_length).astype(jnp.float32)
             info["truncation"] = done
-        return self._observe(d, m, state.obs[:18], info, done)
+        return self._observe(d, m, state.obs[:18], info, done, action)
 
 
 def make_env(name: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True) -> MetaWorldEnv:
