@@ -9,6 +9,7 @@ import math
 import pytest
 
 from rebel_jax.config import PRESETS
+from rebel_jax.envs import metaworld
 from rebel_jax.run.cli_args import default_preset
 
 BPREF_PEBBLE_METAWORLD = (
@@ -68,6 +69,11 @@ def test_paper_metaworld_is_bprefs_command(key):
 
 def test_every_numeric_setting_of_the_command_is_checked():
     assert set(bpref_settings(BPREF_PEBBLE_METAWORLD)) - {"seed"} == set(FIELDS)
+
+
+def test_paper_metaworld_runs_meta_world_s_episodes():
+    # B-Pref's make_metaworld_env wraps the env in TimeLimit(..., env.max_path_length), 500 steps.
+    assert PRESETS["paper_metaworld"].env.episode_length == metaworld.EPISODE_LENGTH == 500
 
 
 def test_a_metaworld_task_defaults_to_the_metaworld_preset():

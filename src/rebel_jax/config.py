@@ -515,13 +515,13 @@ def _surf_pixels(task: str) -> Config:
 def _paper_metaworld() -> Config:
     """B-Pref's Meta-World protocol (rll-research/BPref@f3ece2e, ``scripts/button_press/run_sac.sh:2`` and
     ``scripts/button_press/10000/oracle/run_PEBBLE.sh:2``; sweep_into's scripts are the same): ``paper``'s settings
-    except SAC's 3 hidden layers of 256, batch 512 and learning rates 3e-4, 1M steps, and 10,000 labels, 50 per
-    session every 5,000 steps (``num_interact``) with 10 reward epochs (``reward_update``). Rounds of 5,000 steps so
-    that a session falls on each. The task: drawer-open, the first Meta-World task whose step runs here
-    (docs/tasks.md); ``--task metaworld_<name>`` picks another."""
+    except Meta-World's 500-step episodes, SAC's 3 hidden layers of 256, batch 512 and learning rates 3e-4, 1M steps,
+    and 10,000 labels, 50 per session every 5,000 steps (``num_interact``) with 10 reward epochs (``reward_update``).
+    Rounds of 5,000 steps so that a session falls on each. The task: drawer-open (sweep-into, B-Pref's second, also
+    runs here; docs/tasks.md); ``--task metaworld_<name>`` picks another."""
     return dataclasses.replace(
         _PAPER,
-        env=EnvConfig(task="metaworld_drawer-open"),
+        env=EnvConfig(task="metaworld_drawer-open", episode_length=500),  # Meta-World's max_path_length
         sac=SACConfig(hidden=256, depth=3, batch_size=512, actor_lr=3e-4, critic_lr=3e-4),
         train=TrainConfig(total_steps=1_000_000, steps_per_round=5_000),
         feedback=dataclasses.replace(_PAPER.feedback, labels=10_000, per_session=50, interval=5_000),
