@@ -4,11 +4,12 @@ task."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 
-from rebel_jax.config import PRESETS
+from rebel_jax.config import PRESETS, ConfigError, EnvConfig
 from rebel_jax.envs import metaworld
 from rebel_jax.run.cli_args import default_preset
 
@@ -79,3 +80,8 @@ def test_paper_metaworld_runs_meta_world_s_episodes():
 def test_a_metaworld_task_defaults_to_the_metaworld_preset():
     assert default_preset("metaworld_drawer-open") == "paper_metaworld"
     assert default_preset("walker_walk") == "paper"
+
+
+def test_a_meta_world_episode_longer_than_meta_world_s_is_refused():
+    with pytest.raises(ConfigError, match="Meta-World ends its episodes at 500 steps"):
+        dataclasses.replace(PRESETS["paper"], env=EnvConfig(task="metaworld_drawer-open")).validate()

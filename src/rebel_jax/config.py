@@ -81,6 +81,7 @@ class EnvConfig:
             not_runnable,
         )
         from rebel_jax.envs.dmc import check_impl
+        from rebel_jax.envs.metaworld import EPISODE_LENGTH
 
         if no_pixel_version(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
@@ -91,6 +92,11 @@ class EnvConfig:
             close = difflib.get_close_matches(self.task, names, n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
             raise ConfigError(f"env.task={self.task!r} is invalid{hint}: allowed one of {names}")
+        if self.task in METAWORLD_TASKS and self.episode_length > EPISODE_LENGTH:
+            raise ConfigError(
+                f"env.episode_length={self.episode_length} is invalid for {self.task}: Meta-World ends its episodes "
+                f"at {EPISODE_LENGTH} steps (--preset paper_metaworld sets it)"
+            )
         if self.task in METAWORLD_TASKS and self.impl != "jax":
             raise ConfigError(f"env.impl={self.impl!r} is invalid for {self.task}: it runs with impl='jax' only")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
