@@ -86,6 +86,9 @@ def test_no_compile_cache_writes_nothing_and_computes_the_same(first_run, tmp_pa
     assert _metrics(tmp_path / "run") == _metrics(run_dir)  # compiled here: the cached programs compute the same
 
 
+# make test-heavy: two more runs through the command line (about 20 s each on 2 cores); make test checks the same
+# order of choice without running anything (test_choose_orders_the_flags_then_jax_then_the_default).
+@pytest.mark.heavy
 def test_a_users_jax_compilation_cache_dir_wins_over_the_default(tmp_path):
     ours, theirs = tmp_path / "ours", tmp_path / "theirs"
     env = _user_env(REBEL_JAX_CACHE_DIR=str(ours), JAX_COMPILATION_CACHE_DIR=str(theirs))
@@ -95,6 +98,7 @@ def test_a_users_jax_compilation_cache_dir_wins_over_the_default(tmp_path):
     assert _meta_cache(tmp_path / "run") == str(theirs)
 
 
+@pytest.mark.heavy  # as the test above
 def test_compile_cache_flag_moves_the_cache_over_the_users_variables(tmp_path):
     flag, theirs = tmp_path / "flag", tmp_path / "theirs"
     env = _user_env(REBEL_JAX_CACHE_DIR=str(theirs), JAX_COMPILATION_CACHE_DIR=str(theirs))

@@ -54,7 +54,17 @@ def test_the_check_sees_what_mjx_ties_to_a_device():
     assert any(tie.startswith("constant") for tie in _device_ties(closed_over))
 
 
-@pytest.mark.parametrize("task", ["walker_walk", "cheetah_run", "quadruped_walk", "probe_point", "walker_walk_pixels"])
+@pytest.mark.parametrize(
+    "task",
+    # quadruped_walk in make test-heavy (its compile); its reset and step are DMCEnv's, as walker's and cheetah's
+    [
+        "walker_walk",
+        "cheetah_run",
+        pytest.param("quadruped_walk", marks=pytest.mark.heavy),
+        "probe_point",
+        "walker_walk_pixels",
+    ],
+)
 def test_reset_and_step_are_tied_to_no_device(task):
     env = make_env(task, episode_length=10)
     key = jax.random.PRNGKey(0)

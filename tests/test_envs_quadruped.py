@@ -313,6 +313,7 @@ def test_one_control_step_matches_dm_control(compiled_env, states, solver, mean_
         np.testing.assert_allclose(_parts(obs, STATE_PARTS), _parts(ref, STATE_PARTS), rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.heavy  # make test-heavy: the batched compile; make test checks the same wrappers on walker (test_envs.py)
 def test_batched_episode_bookkeeping_and_finite_values(compiled_env):
     """The default solver's batched reset and step: documented shapes, finite values, rewards in [0, 1], the time
     limit at 1000 steps."""

@@ -600,6 +600,7 @@ def _session_loop(config: Config, loop: bool) -> Config:
     return dataclasses.replace(config, pixel_reward=dataclasses.replace(config.pixel_reward, session_loop=loop))
 
 
+@pytest.mark.heavy  # make test-heavy: a layout of the compiled session (its compile); make test runs the session
 def test_session_loop_leaves_no_convolution_grouped_over_the_columns():
     """``pixel_reward.session_loop``: the seed-vmapped session (select, teach, train the ensemble, relabel, reset
     the critic), batched, groups the reward members' convolutions over the columns (``feature_group_count`` a
