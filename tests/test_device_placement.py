@@ -85,7 +85,8 @@ def test_tasks_build_on_this_process_s_devices(monkeypatch):
 @pytest.mark.parametrize(
     ("algo", "task"),
     [
-        ("sac", "walker_walk"),
+        # make test-heavy: SAC's programs alone; PEBBLE's below hold SAC's update and the same env programs
+        pytest.param("sac", "walker_walk", marks=pytest.mark.heavy),
         ("pebble", "walker_walk"),
         # make test-heavy: the pixel programs' trace; the pixel task's reset and step are checked above
         pytest.param("drqv2", "walker_walk_pixels", marks=pytest.mark.heavy),

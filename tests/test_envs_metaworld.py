@@ -47,10 +47,21 @@ def envs():
     return {task: metaworld.MetaWorldEnv(task) for task in TASKS}
 
 
+class _Resets(dict):
+    """Each task's recorded episodes' resets, compiled at the first test that asks for the task's."""
+
+    def __init__(self, envs, reference):
+        super().__init__()
+        self.envs, self.reference = envs, reference
+
+    def __missing__(self, task):
+        self[task] = _episodes(self.envs[task], self.reference[task])
+        return self[task]
+
+
 @pytest.fixture(scope="module")
 def resets(envs, reference):
-    """Each task's recorded episodes' resets (compiled once per task)."""
-    return {task: _episodes(envs[task], reference[task]) for task in TASKS}
+    return _Resets(envs, reference)
 
 
 def _episodes(env, ref):
@@ -100,8 +111,8 @@ def _compare_at_states(env, ref, rows, resets):
 
 # sweep-into's states run MJX's collision and solver for the contact forces its info reads: their compile (about a
 # minute on 2 cores) puts it in make test-heavy; make test checks its reset, its reset distribution and its hand here.
-# The tasks whose step is refused (their observation, reward and success only) likewise: make test compares drawer-open
-# here, and every task's reset at the same draws below.
+# The other tasks likewise (a reset compile each): make test compares drawer-open's states and reset here, and every
+# task's reset distribution and hand reset below; make test-heavy compares every task.
 AT_STATES = [t if t == "drawer-open" else pytest.param(t, marks=pytest.mark.heavy) for t in TASKS]
 
 
@@ -123,7 +134,7 @@ def test_observation_reward_success_equal_metaworld_on_all_recorded_states(envs,
     _compare_at_states(envs[task], ref, np.where(ref["t"] > 0)[0], resets[task])
 
 
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", AT_STATES)  # each task's reset compile: drawer-open's in make test, all in -heavy
 def test_reset_equals_metaworlds_at_the_same_draws(reference, resets, task):
     """The reset's state, observation (drawer-open: the hand one physics step back, the object at Meta-World's first
     draw), goal and fingertip centre, at the draws Meta-World made in each recorded reset."""

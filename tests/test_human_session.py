@@ -361,6 +361,9 @@ def _label_session(page, round_index: int, steps, finish: tuple[str, str]) -> No
     page.wait_for_function(f"document.body.dataset.session !== '{round_index}'", timeout=60_000)
 
 
+# make test-heavy: a whole CLI run driven through Chromium (about 45 s on 2 cores); make test drives the same sessions
+# through the page's HTTP API (the tests above) and the page in Chromium (test_the_page_says_when_...).
+@pytest.mark.heavy
 @pytest.mark.browser
 def test_a_person_labels_a_cli_run_in_the_browser(human_run, tmp_path):
     """The README's ``--teacher human`` command, labelled by keys and clicks in Debian's Chromium."""
