@@ -201,7 +201,7 @@ def test_a_warp_run_compiled_beside_its_kernel_build_learns_as_one_compiled_at_i
     tmp_path, monkeypatch, capsys
 ):
     """With ``--impl warp`` the command builds Warp's kernels in a thread while the round compiles ahead of its
-    first call (``cli._compiled_beside_kernels``). Its logged metrics must equal, bit for bit on the CPU, those of
+    first call (``loop._compiled_beside_kernels``). Its logged metrics must equal, bit for bit on the CPU, those of
     the same command whose round compiles at its first call, as with the JAX step."""
     import json
 

@@ -80,17 +80,14 @@ from rebel_jax.run.cli_rundir import (  # noqa: F401 - re-exported
 from rebel_jax.run.human import HumanError
 from rebel_jax.run.loop import (  # noqa: F401 - re-exported: the run's parts, as callers import them
     EXIT_DIVERGED,
-    FINAL_FLAGS,
-    STATE_FLAGS,
     Run,
     _compiled_beside_kernels,
     _final_evaluation,
     _restore,
-    _slow_checkpoint_note,
     column_keys,
     initial_state,
 )
-from rebel_jax.train import compiled, grow_replay, placement, replay_rows, seed_keys  # noqa: F401 - re-exported
+from rebel_jax.train import compiled, placement, seed_keys  # noqa: F401 - re-exported
 
 EXIT_USAGE = rundir.EXIT_USAGE
 NO_CPU_DEADLOCK = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
