@@ -583,3 +583,65 @@ def plot_iqm(
     ax.set_ylim(len(stats) - 0.5, -0.5)
     ax.set_xlabel(f"IQM ({confidence:.0%} bootstrap CI)")
     return stats
+
+
+# -- runs compared by key ----------------------------------------------------------------
+def keyed_run(run_dir: str | os.PathLike, last: int = 10) -> dict:
+    """One run's final return per seed by both measures, with each seed's PRNG key ``(train.seed, seed index)``.
+
+    Keys: ``keys``, ``end_of_run`` (``final.json``'s frozen-policy evaluation at the last step), ``last10`` (per seed
+    the mean of its last ``last`` evaluations, :func:`final_returns`), and the run's ``device``, ``date``, ``jax``,
+    ``commit`` and ``command`` from its ``meta.json``."""
+    run_dir = pathlib.Path(run_dir)
+    cfg = json.loads((run_dir / "config.json").read_text())
+    meta = json.loads((run_dir / "meta.json").read_text())
+    _, returns = load_runs(run_dir)
+    end = json.loads((run_dir / "final.json").read_text())["final_eval_return"]
+    return {
+        "keys": [[cfg["train"]["seed"], i] for i in range(len(end))],
+        "end_of_run": [round(float(v), 2) for v in end],
+        "last10": [round(float(v), 2) for v in final_returns(returns, last)],
+        "device": ", ".join(meta["devices"]),
+        "date": meta["started"][:10],
+        "jax": meta["jax"],
+        "commit": meta.get("git_commit"),
+        "command": meta["command"],
+    }
+
+
+def measured(values: ArrayLike) -> dict:
+    """Mean, sample std and IQM with its 95% bootstrap interval of per-seed scores (``std`` null for one seed)."""
+    x = np.asarray(values, dtype=float)
+    low, high = bootstrap_ci(x, iqm)
+    std = sample_std(x) if x.size > 1 else math.nan
+    return {
+        "seeds": int(x.size),
+        "mean": round(float(x.mean()), 2),
+        "std": _json_float(round(std, 2)),
+        "iqm": round(float(iqm(x)), 2),
+        "iqm_ci": [_json_float(round(low, 2)), _json_float(round(high, 2))],
+    }
+
+
+def paired_difference(a: dict, b: dict, measure: str) -> dict:
+    """``a`` minus ``b`` (two :func:`keyed_run` results) over the keys both have, by ``measure`` (``end_of_run``
+    or ``last10``): the differences, their mean with its 95% percentile-bootstrap interval, how many are positive
+    with the sign test's p, and the signed-rank test's p."""
+    va = {tuple(k): v for k, v in zip(a["keys"], a[measure], strict=True)}
+    vb = {tuple(k): v for k, v in zip(b["keys"], b[measure], strict=True)}
+    keys = sorted(va.keys() & vb.keys())
+    d = np.asarray([va[k] - vb[k] for k in keys], dtype=float)
+    low, high = bootstrap_ci(d, np.mean)
+    positive = int((d > 0).sum())
+    nonzero = int((d != 0).sum())
+    return {
+        "measure": measure,
+        "keys": [list(k) for k in keys],
+        "differences": [round(float(v), 2) for v in d],
+        "mean": round(float(d.mean()), 2),
+        "mean_ci": [_json_float(round(low, 2)), _json_float(round(high, 2))],
+        "positive": positive,
+        "pairs": nonzero,
+        "sign_test_p": round(sign_test_p(positive, nonzero), 4) if nonzero else None,
+        "signed_rank_p": _json_float(round(signed_rank_p(d[d != 0]), 4)) if nonzero else None,
+    }

@@ -35,6 +35,13 @@ run experiments/quadruped.py
 # QPA and RUNE beside the five above: results/qpa_rune.json and results/qpa_rune_<task>.png.
 run experiments/qpa_rune.py
 
+# PEBBLE's walker_walk row at today's code and the running std's effect: results/headline.json and
+# results/headline_walker_walk.png.
+run experiments/headline.py
+
+# MRN (and RIME) against PEBBLE on the same keys: results/rime_mrn.json and results/rime_mrn_walker_walk.png.
+run experiments/rime_mrn.py
+
 # REBEL's first runs on B-Pref's protocol, stopped at 140k, against the baselines cut there.
 run experiments/compare.py $B/pebble_walker_100_utd1 $B/pebble_walker_100_utd1_bf16_seed1 $B/surf_walker_100_utd1_bf16 \
   $E/rebel_walker_100_lams_0.1_-0.1_bf16_stopped140k $E/rebel_walker_100_lams_0.01_-0.01_bf16_stopped140k \

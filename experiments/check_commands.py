@@ -25,8 +25,10 @@ import pathlib
 import re
 import shlex
 import sys
+from unittest import mock
 
 from rebel_jax.config import Config, to_dict
+from rebel_jax.envs import dmc
 from rebel_jax.run import cli
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -70,10 +72,17 @@ def blocks(text: str) -> list[tuple[list[str], list[list[str]]]]:
     return out
 
 
+def _impl_named(impl: str, check=dmc.check_impl) -> None:
+    """``dmc.check_impl`` without its installed-package check: a command is checked for its settings, not for
+    whether this machine has MuJoCo Warp to run it."""
+    check("jax" if impl == "warp" else impl)
+
+
 @functools.cache
 def _parsed(flags: tuple[str, ...]):
     """``cli.parse`` of one program's flags, once: a block's programs are compared with each of its runs."""
-    return cli.parse([*flags, "--run-dir", "unused"])
+    with mock.patch.object(dmc, "check_impl", _impl_named):
+        return cli.parse([*flags, "--run-dir", "unused"])
 
 
 def mismatches(run_dir: pathlib.Path, programs: list[list[str]]) -> list[str]:

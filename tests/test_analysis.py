@@ -1132,3 +1132,49 @@ def test_sample_std_is_numpys_with_one_degree_of_freedom_and_undefined_for_one_v
     x = np.random.default_rng(3).normal(size=5)
     assert analysis.sample_std(x) == pytest.approx(np.sqrt(np.sum((x - x.mean()) ** 2) / (x.size - 1)))
     assert math.isnan(analysis.sample_std([1.0]))
+
+
+# -- runs compared by key ----------------------------------------------------------------
+def _keyed(tmp_path, name: str, seed: int, end: list[float]) -> dict:
+    run_dir = write_run(tmp_path / name, RETURNS)
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps(config | {"train": {"seed": seed, "eval_episodes": 10}}))
+    (run_dir / "final.json").write_text(json.dumps({"final_eval_return": end}))
+    return analysis.keyed_run(run_dir, last=2)
+
+
+def test_keyed_run_reads_both_measures_with_each_seeds_key(tmp_path):
+    run = _keyed(tmp_path, "run", 3, [7.0, 8.0, 9.0])
+    assert run["keys"] == [[3, 0], [3, 1], [3, 2]]
+    assert run["end_of_run"] == [7.0, 8.0, 9.0]
+    # The last 2 evaluations of each seed, from RETURNS by hand: (4 + 5) / 2, (8 + 10) / 2, (12 + 15) / 2.
+    assert run["last10"] == [4.5, 9.0, 13.5]
+    assert run["command"].endswith("--seeds 3") and run["date"] == "2026-11-23"
+
+
+def test_paired_difference_takes_the_shared_keys_against_a_loop(tmp_path):
+    a = {"keys": [[0, 0], [0, 1], [0, 2], [1, 0]], "end_of_run": [10.0, 4.0, 9.0, 50.0]}
+    b = {"keys": [[0, 2], [0, 1], [0, 0]], "end_of_run": [3.0, 6.0, 1.0]}
+    out = analysis.paired_difference(a, b, "end_of_run")
+    expected = {}
+    for key, value in zip(
+        a["keys"], a["end_of_run"], strict=True
+    ):  # the loop: a's keys that b has, b's value for the key
+        for other_key, other in zip(b["keys"], b["end_of_run"], strict=True):
+            if key == other_key:
+                expected[tuple(key)] = value - other
+    assert out["keys"] == [list(k) for k in sorted(expected)]
+    assert out["differences"] == [expected[k] for k in sorted(expected)]  # 9, -2, 6
+    assert out["mean"] == pytest.approx(np.mean(list(expected.values())), abs=0.01)
+    assert out["positive"] == 2 and out["pairs"] == 3
+    assert out["sign_test_p"] == pytest.approx(analysis.sign_test_p(2, 3))
+    low, high = out["mean_ci"]
+    assert min(expected.values()) <= low <= out["mean"] <= high <= max(expected.values())
+
+
+def test_measured_gives_the_sample_std_and_none_for_one_seed():
+    x = [1.0, 2.0, 4.0, 8.0]
+    out = analysis.measured(x)
+    assert out["std"] == pytest.approx(np.std(x, ddof=1), abs=0.01) and out["mean"] == 3.75 and out["seeds"] == 4
+    assert out["iqm"] == pytest.approx(trimmed_mean_reference(x), abs=0.01)
+    assert analysis.measured([5.0])["std"] is None
