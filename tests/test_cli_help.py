@@ -118,9 +118,14 @@ def test_help_without_a_method_lists_the_methods_one_line_each(capsys):
         cli.parse(["--help"])
     assert end.value.code == 0
     lines = capsys.readouterr().out.splitlines()
+    said = {}
     for name in (*AGENTS, *methods.REGISTRY):
         [line] = [line for line in lines if line.split()[:1] == [name]]
         assert len(line.split()) > 3, line
+        said[name] = line.removeprefix(f"  {name}").strip()
+    # Each its own: a method without a line of its own would show the line it inherits from its parent's docstring.
+    assert len(set(said.values())) == len(said), said
+    assert not any("``" in line for line in said.values()), said
 
 
 @pytest.mark.parametrize(

@@ -147,7 +147,7 @@ def outer_loss(sac, rcfg, reward_params, critic_params, batch, value, pairs, lr:
 
 
 class MRN(Method):
-    """PEBBLE with MRN's bilevel reward step every ``mrn.meta_period`` environment steps while labels remain."""
+    """PEBBLE with MRN's bilevel reward step, every --mrn.meta-period env steps while labels remain."""
 
     name = "mrn"
     config = MRNConfig

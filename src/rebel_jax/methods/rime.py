@@ -161,6 +161,8 @@ def entropy_target(ent: jax.Array, mean, std, ent_min, ent_max) -> jax.Array:
 
 
 class RIME(Method):
+    """PEBBLE with RIME's robust reward epochs: pairs trusted below a dynamic bound, labels flipped above one."""
+
     name = "rime"
     config = RIMEConfig
     pixels = False
