@@ -108,9 +108,8 @@ def test_evaluate_refuses_a_success_rate_on_a_task_without_success():
         Trainer(MICRO).evaluate(None, jax.random.PRNGKey(0), success=True)
 
 
-# A CLI run of one round whose evaluation episodes succeed where the point comes within REACHED of the goal: some do,
-# some do not (asserted below).
-REACHED = 0.5
+# A CLI run of one round whose steps succeed where the point is at positive x, at odd steps only (a success that does
+# not last, as a Meta-World object can slip out of place): some episodes succeed, some do not (asserted below).
 CLI_FLAGS = (
     "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 10 --sac.hidden 16 --sac.batch-size 16"
     " --sac.utd 0.5 --total-steps 20 --seed-steps 10 --steps-per-round 20 --eval-every 20 --eval-episodes 4"
@@ -136,7 +135,7 @@ def test_final_json_gives_the_success_rate_of_the_final_evaluation(monkeypatch, 
     from rebel_jax.run import cli, loop
 
     def reached(state):
-        return (jnp.linalg.norm(state.obs[:2]) < REACHED).astype(jnp.float32)
+        return ((state.obs[0] > 0) & (state.info["steps"] % 2 == 1)).astype(jnp.float32)
 
     monkeypatch.setattr(trainer_module, "make_env", lambda *a, **k: SucceedingProbe(make_env(*a, **k), reached))
     seen = {}
