@@ -127,6 +127,12 @@ def test_overwrite_replaces_a_run_and_the_record_is_portable(whole, tmp_path):
     assert command.startswith("python -m rebel_jax.train --preset tiny") and command.endswith("--overwrite")
 
 
+def test_a_task_without_success_keeps_final_json_s_keys(whole):
+    # Only a task that reports success (Meta-World's) adds final_eval_success and success_mean.
+    keys = ["status", "diverged", "final_eval_return", "mean", "std", "random_return", "random_mean"]
+    assert list(_final(whole)) == keys
+
+
 def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp_path, monkeypatch, capsys):
     # The 5-seed DrQ-v2 run of 2026-11-25 ended with a traceback in its plot, 30 minutes in; the figure is a
     # convenience drawn after final.json, so its failure must not fail the run.
@@ -141,6 +147,7 @@ def test_a_failing_learning_curve_is_a_warning_after_the_runs_results(whole, tmp
     final = _final(whole)  # its spread is the sample std (ddof 1), as every results table gives it
     assert final["std"] == pytest.approx(np.std(final["final_eval_return"], ddof=1))
     assert f"{np.mean(final['final_eval_return']):.1f} +- {final['std']:.1f} (sample std)" in out.out
+    assert "success rate" not in out.out  # the task reports no success
     assert not (tmp_path / "run" / "learning_curve.png").exists()
     _same_run(whole, tmp_path / "run")  # final.json and metrics.jsonl as a run without the failure
 

@@ -137,7 +137,9 @@ def test_random_policy_evaluation_matches_a_step_loop_on_the_same_initial_states
     np.testing.assert_allclose(both, np.stack([policy, random], axis=1), rtol=1e-5, atol=1e-5)
     # A run compiles that program from the shapes while its first round runs: the same numbers.
     ahead = _final_evaluation(evaluate, trainer, jax.eval_shape(jax.vmap(trainer.init), keys), keys)
-    np.testing.assert_array_equal(np.asarray(ahead(params)), both)
+    returns, success = ahead(params)
+    np.testing.assert_array_equal(np.asarray(returns), both)
+    assert success is None  # the probe reports no success
     for i in range(2):
         one = jax.tree.map(lambda x, i=i: x[i], params)
         np.testing.assert_allclose(policy[i], _loop_return(trainer, one, keys[i], False), rtol=1e-4, atol=1e-4)

@@ -5,6 +5,7 @@ of its steps does and the rate the fraction of the last finished episodes that d
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -100,3 +101,72 @@ def test_a_task_without_success_logs_no_success_rate():
     assert not trainer.reports_success
     shapes = jax.eval_shape(trainer.round, jax.eval_shape(trainer.init, jax.random.PRNGKey(0)), jnp.int32(0))[1]
     assert "eval_success" not in shapes and "eval_return" in shapes
+
+
+def test_evaluate_refuses_a_success_rate_on_a_task_without_success():
+    with pytest.raises(ValueError, match="does not report success"):
+        Trainer(MICRO).evaluate(None, jax.random.PRNGKey(0), success=True)
+
+
+# A CLI run of one round whose steps succeed where the point is at positive x, at odd steps only (a success that does
+# not last, as a Meta-World object can slip out of place): some episodes succeed, some do not (asserted below).
+CLI_FLAGS = (
+    "--preset tiny --algo sac --task probe_point --num-envs 2 --episode-length 10 --sac.hidden 16 --sac.batch-size 16"
+    " --sac.utd 0.5 --total-steps 20 --seed-steps 10 --steps-per-round 20 --eval-every 20 --eval-episodes 4"
+    " --seeds 2 --seed 7 --no-tensorboard --no-progress"
+).split()
+
+
+def _loop_flags(trainer: Trainer, params, key: jax.Array) -> np.ndarray:
+    """(steps, episodes) success flags of the policy's evaluation episodes stepped one by one in Python, on
+    ``Trainer.evaluate``'s initial states (the reference)."""
+    key_reset, _ = jax.random.split(key)
+    reset, step = jax.jit(trainer.env.reset), jax.jit(trainer.env.step)
+    act = jax.jit(trainer.mean_action)
+    states = [reset(k) for k in jax.random.split(key_reset, trainer.cfg.train.eval_episodes)]
+    flags = []
+    for _ in range(trainer.episode_length):
+        states = [step(s, act(params, s.obs[None])[0]) for s in states]
+        flags.append([float(s.info["success"]) for s in states])
+    return np.array(flags)
+
+
+def test_final_json_gives_the_success_rate_of_the_final_evaluation(monkeypatch, tmp_path, capsys):
+    from rebel_jax.run import cli, loop
+
+    def reached(state):
+        return ((state.obs[0] > 0) & (state.info["steps"] % 2 == 1)).astype(jnp.float32)
+
+    monkeypatch.setattr(trainer_module, "make_env", lambda *a, **k: SucceedingProbe(make_env(*a, **k), reached))
+    seen = {}
+    final_evaluation = loop._final_evaluation
+
+    def spy(evaluate, trainer, shapes, keys):  # the final policy and the keys of its episodes, for the reference
+        run = final_evaluation(evaluate, trainer, shapes, keys)
+
+        def evaluated(policy):
+            seen.update(trainer=trainer, policy=policy, keys=keys)
+            return run(policy)
+
+        return evaluated
+
+    monkeypatch.setattr(loop, "_final_evaluation", spy)
+    run_dir = tmp_path / "run"
+    final = cli.main([*CLI_FLAGS, "--run-dir", str(run_dir)])
+    written = json.loads((run_dir / "final.json").read_text())
+    assert written["final_eval_success"] == pytest.approx(final["final_eval_success"].tolist())
+    # The reference: B-Pref's rule (rll-research/BPref@f3ece2e:train_PEBBLE.py:92-114) by a loop over the
+    # episodes' steps, an episode succeeding if any step does, the rate the fraction of the episodes that did.
+    trainer, policy, keys = seen["trainer"], seen["policy"], seen["keys"]
+    expected = []
+    for c in range(2):
+        flags = _loop_flags(trainer, jax.tree.map(lambda x, c=c: x[c], policy), keys[c])
+        episode_success = np.zeros(flags.shape[1])
+        for s in flags:
+            episode_success = np.maximum(episode_success, s)
+        expected.append(float(np.mean(episode_success)))
+    np.testing.assert_array_equal(written["final_eval_success"], expected)
+    assert written["success_mean"] == pytest.approx(np.mean(expected))
+    assert any(0 < e < 1 for e in expected)  # some episodes succeed and some do not
+    line = f"success rate {np.mean(expected):.2f} +- {np.std(expected, ddof=1):.2f} (sample std)"
+    assert line in capsys.readouterr().out

@@ -22,8 +22,16 @@ def sample_std(values: np.ndarray) -> float:
     return float(np.std(values, ddof=1)) if np.size(values) > 1 else float("nan")
 
 
-def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarray, names: list[str]) -> dict:
-    return {
+def _final_result(
+    final: np.ndarray,
+    random: np.ndarray,
+    ever_diverged: np.ndarray,
+    names: list[str],
+    success: np.ndarray | None = None,
+) -> dict:
+    """``final.json``'s content: the status, the policy's and random actions' returns per column and their means,
+    and on a task that reports success (``success``: the policy's success rate per column) that rate and its mean."""
+    result = {
         "status": "diverged" if ever_diverged.any() else "completed",
         "diverged": [names[i] for i in np.flatnonzero(ever_diverged)],
         "final_eval_return": final,
@@ -32,6 +40,10 @@ def _final_result(final: np.ndarray, random: np.ndarray, ever_diverged: np.ndarr
         "random_return": random,
         "random_mean": float(random.mean()),
     }
+    if success is not None:  # the fraction of each column's evaluation episodes that succeeded
+        result["final_eval_success"] = success
+        result["success_mean"] = float(success.mean())
+    return result
 
 
 SUMMARY_METRICS = ("labels_used", "reward_correlation", "reward_correlation_return")
@@ -159,8 +171,11 @@ def _draw_learning_curve(args: Args, run_dir: pathlib.Path, random: np.ndarray) 
 
 def report(args: Args, run_dir: pathlib.Path, result: dict, files: list, final: np.ndarray, random: np.ndarray) -> None:
     """What a finished run prints: the summary table per column, the files written, each group's final return
-    (mean +- sample std over its seeds) and the seeds that diverged."""
+    (mean +- sample std over its seeds; on a task that reports success, its success rate too) and the seeds that
+    diverged."""
     cfg = args.config
+    success = result.get("final_eval_success")
+    success = None if success is None else np.asarray(success, float)
     names, grid = args.column_names(), args.grid()
     print(
         f"\n{cfg.algo} on {cfg.env.task}: evaluation returns ({cfg.train.eval_episodes} episodes of "
@@ -176,7 +191,12 @@ def report(args: Args, run_dir: pathlib.Path, result: dict, files: list, final: 
         which = ([f"lambda {lam:g}"] if swept_knob(cfg) else []) + ([f"teacher {teacher}"] if teacher else [])
         which = f" ({', '.join(which)})" if which else ""
         spread = f" +- {sample_std(part):.1f} (sample std)" if part.size > 1 else ""
-        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f}{spread}")
+        rate = ""
+        if success is not None:  # a task that reports success: the rate, as the return
+            rates = success[i : i + args.seeds]
+            rate = f", success rate {rates.mean():.2f}"
+            rate += f" +- {sample_std(rates):.2f} (sample std)" if rates.size > 1 else ""
+        print(f"final evaluation return over {args.seeds} seed(s){which}: {part.mean():.1f}{spread}{rate}")
     if result["diverged"]:
         print(f"warning: diverged during the run: {', '.join(result['diverged'])}", file=sys.stderr)
     print(f"run directory: {run_dir}")

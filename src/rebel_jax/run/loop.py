@@ -154,13 +154,22 @@ FINAL_FLAGS = (False, True)
 
 
 def _final_evaluation(evaluate: Callable, trainer, shapes, keys: jax.Array) -> Callable:
-    """The final evaluation as a function of the policy. On one device its program is compiled here: called while
-    the first round runs on an accelerator (dispatched, not yet waited for), the compile is hidden behind the
-    round instead of adding to the job's end (on a GPU, seconds). Several devices compile at the call."""
+    """The final evaluation as a function of the policy: (returns, success rates), each (columns, 2) in the order of
+    :data:`FINAL_FLAGS`, the success rates None on a task that does not report success (``Trainer.evaluate``).
+
+    On one device its program is compiled here: called while the first round runs on an accelerator (dispatched,
+    not yet waited for), the compile is hidden behind the round instead of adding to the job's end (on a GPU,
+    seconds). Several devices compile at the call."""
+    success = trainer.reports_success
+    options = {"success": True} if success else {}  # a task without success: its program as before
+
+    def split(out):
+        return out if success else (out, None)
+
     if not hasattr(evaluate, "compile_ahead"):
-        return lambda policy: evaluate(policy, keys, FINAL_FLAGS)
-    program = evaluate.compile_ahead(jax.eval_shape(trainer.policy_params, shapes), keys, FINAL_FLAGS)
-    return lambda policy: program(policy, keys)
+        return lambda policy: split(evaluate(policy, keys, FINAL_FLAGS, **options))
+    program = evaluate.compile_ahead(jax.eval_shape(trainer.policy_params, shapes), keys, FINAL_FLAGS, **options)
+    return lambda policy: split(program(policy, keys))
 
 
 class Run:
@@ -223,7 +232,7 @@ class Run:
             )
         self.final_evaluation = functools.cache(lambda: _final_evaluation(evaluate, trainer, shapes, keys))
         self.ever_diverged = np.zeros(args.columns, bool)
-        self.final = self.random = None
+        self.final = self.random = self.success = None
 
     def __enter__(self) -> Run:
         return self
@@ -291,7 +300,8 @@ class Run:
         self.ever_diverged |= diverged
         if self.args.on_divergence == "stop":
             nan = np.full(self.args.columns, np.nan)
-            result = {**_final_result(nan, nan, self.ever_diverged, self.names), "round": r}
+            success = nan if self.trainer.reports_success else None
+            result = {**_final_result(nan, nan, self.ever_diverged, self.names, success), "round": r}
             if self.primary:
                 write_json(self.run_dir / "final.json", result)
             last = self.ckpt.latest() if self.ckpt is not None else None
@@ -309,11 +319,14 @@ class Run:
     def finish(self) -> tuple[dict, list[pathlib.Path | None]]:
         """The final evaluation (the policy's and random actions' episodes on the same initial states) and what the
         run leaves: ``final.json`` (returned), the learning curve and the clip (their paths; None where one was
-        not written). Sets :attr:`final` and :attr:`random`, the two returns per column."""
+        not written). Sets :attr:`final` and :attr:`random`, the two returns per column, and :attr:`success`, the
+        policy's success rate per column on a task that reports success (else None)."""
         args, run_dir = self.args, self.run_dir
         policy = self.trainer.policy_params(self.state)
-        self.final, self.random = self.real_columns(np.asarray(placement.to_host(self.final_evaluation()(policy)))).T
-        result = _final_result(self.final, self.random, self.ever_diverged, self.names)
+        returns, success = self.real_columns(placement.to_host(self.final_evaluation()(policy)))
+        self.final, self.random = np.asarray(returns).T
+        self.success = None if success is None else np.asarray(success)[:, FINAL_FLAGS.index(False)]
+        result = _final_result(self.final, self.random, self.ever_diverged, self.names, self.success)
         files = []
         if self.primary:
             own = method_metrics(run_dir, args.columns)

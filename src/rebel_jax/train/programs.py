@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import jax
@@ -19,9 +20,11 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     The round donates its input state so the replay buffer is updated in place. ``random_actions``
     (unbatched, default False) evaluates uniform random actions on the same initial states instead; a sequence
     of flags, e.g. ``(False, True)``, evaluates each of them in one program, as one batch of episodes (an
-    episode's physics takes about as long at twice the batch), and returns one column per flag. On one device,
-    ``evaluate.compile_ahead(policy, keys, random_actions)`` compiles its program for those arguments' shapes (while
-    a round runs, say) and returns it as a function of ``(policy, keys)``.
+    episode's physics takes about as long at twice the batch), and returns one column per flag. On a task that
+    reports success, ``evaluate(..., success=True)`` returns (returns, success rates) of those shapes
+    (``Trainer.evaluate``). On one device, ``evaluate.compile_ahead(policy, keys, random_actions, success=False)``
+    compiles its program for those arguments' shapes (while a round runs, say) and returns it as a function of
+    ``(policy, keys)``.
 
     Args:
       trainer: the run's trainer.
@@ -33,29 +36,34 @@ def compiled(trainer: Trainer, sharding: NamedSharding | None = None) -> tuple[C
     """
     init = jax.vmap(trainer.init)
     round_fn = jax.vmap(trainer.round, in_axes=(0, None))
-    evaluate_one = jax.vmap(trainer.evaluate, in_axes=(0, 0, None))  # one flag: (seeds,)
-    evaluate_each = jax.vmap(jax.vmap(trainer.evaluate, in_axes=(None, None, 0)), in_axes=(0, 0, None))  # (seeds, n)
     if sharding is None:
         init, round_fn = jax.jit(init), jax.jit(round_fn, donate_argnums=0)
-        evaluate_one, evaluate_each = jax.jit(evaluate_one), jax.jit(evaluate_each)
     else:
         init = placement.per_device(init, sharding, batched=(True,))
         round_fn = placement.per_device(round_fn, sharding, batched=(True, False), donate_argnums=(0,))
-        evaluate_one, evaluate_each = (
-            placement.per_device(f, sharding, batched=(True, True, False)) for f in (evaluate_one, evaluate_each)
-        )
 
-    def program(random_actions: bool | Sequence[bool]) -> tuple[Callable, jax.Array]:
+    @functools.cache  # each program built when first asked for
+    def evaluation(success: bool, each: bool) -> Callable:
+        """The seed-vmapped evaluation: of one flag, (seeds,); of each of several flags, (seeds, n)."""
+        one = functools.partial(trainer.evaluate, success=True) if success else trainer.evaluate
+        fn = jax.vmap(jax.vmap(one, in_axes=(None, None, 0)) if each else one, in_axes=(0, 0, None))
+        if sharding is None:
+            return jax.jit(fn)
+        return placement.per_device(fn, sharding, batched=(True, True, False))
+
+    def program(random_actions: bool | Sequence[bool], success: bool) -> tuple[Callable, jax.Array]:
         flags = jnp.asarray(random_actions, bool)
-        return (evaluate_each if flags.ndim else evaluate_one), flags
+        return evaluation(bool(success), bool(flags.ndim)), flags
 
-    def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> jax.Array:
-        run, flags = program(random_actions)
+    def evaluate(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False, success: bool = False):
+        run, flags = program(random_actions, success)
         return run(policy, keys, flags)
 
-    def compile_ahead(policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False) -> Callable:
+    def compile_ahead(
+        policy, keys: jax.Array, random_actions: bool | Sequence[bool] = False, success: bool = False
+    ) -> Callable:
         """``evaluate``'s program for these arguments (or their shapes) compiled now: ``f(policy, keys)``."""
-        run, flags = program(random_actions)
+        run, flags = program(random_actions, success)
         executable = run.lower(policy, keys, flags).compile()
         return lambda policy, keys: executable(policy, keys, flags)
 

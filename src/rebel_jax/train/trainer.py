@@ -449,7 +449,9 @@ class Trainer:
         return 1.0 - (finite & ts.episodes.returns_ok(before)).astype(jnp.float32)
 
     # -- frozen-policy evaluation ----------------------------------------------------------
-    def evaluate(self, policy, key: jax.Array, random_actions: bool | jax.Array = False) -> jax.Array:
+    def evaluate(
+        self, policy, key: jax.Array, random_actions: bool | jax.Array = False, success: bool = False
+    ) -> jax.Array | tuple[jax.Array, jax.Array]:
         """Mean true return of ``eval_episodes`` episodes of a frozen deterministic policy or of random actions.
 
         Args:
@@ -457,20 +459,42 @@ class Trainer:
           key: fixes the episodes' initial states, the same for both kinds of actions, and the random actions.
           random_actions: act uniformly at random in [-1, 1] instead (the random-policy baseline). A traced
             value: both kinds share one compiled program.
+          success: also the episodes' success rate, on a task that reports success (:attr:`reports_success`).
+
+        Returns:
+          The mean return; with ``success``, (mean return, success rate): the fraction of the episodes that
+          succeeded, the round's ``eval_success`` rule (:meth:`EpisodeStats.after_step`: an episode succeeds if
+          any of its steps does).
         """
+        if success and not self.reports_success:
+            raise ValueError(f"evaluate(success=True): the task {self.cfg.env.task!r} does not report success")
         key_reset, key_actions = jax.random.split(key)
         state = self.eval_envs.reset(key_reset)
 
-        def body(carry, key):
-            state, total = carry
+        def act(state, key):
             uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
             action = jnp.where(random_actions, uniform, self.mean_action(policy, state.obs))
-            state = self.eval_envs.step(state, action)
+            return self.eval_envs.step(state, action)
+
+        def body(carry, key):
+            state, total = carry
+            state = act(state, key)
             return (state, total + state.reward), None
 
+        def body_success(carry, key):  # the episodes' returns and success flags, every episode an evaluation one
+            state, total, stats = carry
+            state = act(state, key)
+            stats = stats.after_step(state.reward, state.done, 0, state.info["success"])
+            return (state, total + state.reward, stats), None
+
         keys = jax.random.split(key_actions, self.episode_length)
-        (_, total), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape)), keys)
-        return total.mean()
+        total = jnp.zeros(state.reward.shape)
+        if not success:
+            (_, total), _ = jax.lax.scan(body, (state, total), keys)
+            return total.mean()
+        stats = EpisodeStats.init(state.reward.shape[0], success=True)
+        (_, total, stats), _ = jax.lax.scan(body_success, (state, total, stats), keys)
+        return total.mean(), stats.eval_success
 
     # -- columns of a sweep --------------------------------------------------------------------
     def with_knobs(
