@@ -125,8 +125,10 @@ def measure(task: str, every: int, step: bool = True) -> dict:
         "qpos_max_err": float(np.abs(np.asarray(r.pipeline_state.qpos) - ref["qpos"][first]).max()),
     }
     qpos, qvel = hand_reset_in_this_mujoco(task)
-    if env.spec.object_qpos:  # the object's x and y are the reset's draw, not the hand reset's
-        qpos[9:11] = ref["qpos"][first[0], 9:11]
+    n = env.spec.object_qpos  # the object's position (sweep-into: x and y) is the reset's draw, not the hand reset's
+    qpos[9 : 9 + n] = ref["qpos"][first[0], 9 : 9 + n]
+    if n:  # and the reset zeroes its velocity (sawyer_xyz_env.py:351-361, sawyer_hammer_v3.py:101-106)
+        qvel[9:15] = 0.0
     out["hand_reset_mujoco_3_17"] = {
         "mujoco": mujoco.__version__,
         "qpos_max_diff": float(np.abs(qpos - ref["qpos"][first[0]]).max()),

@@ -11,15 +11,17 @@ from __future__ import annotations
 import pathlib
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from mujoco import mjx
 from scipy import stats
 
 from rebel_jax.config import ConfigError, EnvConfig
 from rebel_jax.envs import METAWORLD_TASKS, make_env, metaworld
 
 DATA = pathlib.Path(__file__).parent / "data" / "metaworld"
-TASKS = ["drawer-open", "button-press", "door-open", "sweep-into", "window-open", "door-unlock"]
+TASKS = ["drawer-open", "button-press", "door-open", "sweep-into", "window-open", "door-unlock", "hammer"]
 STEPPED = ["drawer-open", "sweep-into"]  # the tasks whose physics step runs (metaworld.STEP_REFUSED)
 INFO_KEYS = ("near_object", "grasp_success", "grasp_reward", "in_place_reward", "obj_to_target")
 # Info flags read from contact forces (sweep-into's grasp_success: both pads push on the object). MJX collides the
@@ -166,8 +168,9 @@ def test_reset_distribution_matches_metaworlds(envs, reference, task):
     if task == "door-unlock":  # its obj_init_pos is the lock's position (checked through the goal at the draws)
         return
     placed = theirs[:, :3].copy()  # Meta-World's object is at the draw
-    if env.spec.object_qpos:  # sweep-into: at the draw's x and y, at the height where the hand's reset left it
-        placed[:, 2] = env.hand_reset.qpos[11]
+    n = env.spec.object_qpos  # a free object at the draw's first n numbers (sweep-into: its x and y, at the height
+    if n:  # where the hand's reset left it; hammer: its x, y and z)
+        placed[:, n:] = env.hand_reset.qpos[9 + n : 12]
     np.testing.assert_allclose(ref["reset_obj_init_pos"], placed)
 
 
@@ -179,8 +182,9 @@ def test_hand_reset_is_the_same_in_every_recorded_reset(envs, reference, task):
     env = envs[task]
     for field in ("qpos", "qvel", "mocap_pos", "mocap_quat"):
         theirs, ours = ref[field][rows], np.broadcast_to(getattr(env.hand_reset, field), ref[field][rows].shape).copy()
-        if field == "qpos" and env.spec.object_qpos:  # the object's x and y are the draw's
-            ours[:, 9:11] = theirs[:, 9:11]
+        n = env.spec.object_qpos
+        if field == "qpos" and n:  # the object's position is the draw's (sweep-into: x and y; hammer: x, y, z)
+            ours[:, 9 : 9 + n] = theirs[:, 9 : 9 + n]
         np.testing.assert_array_equal(theirs, ours)
 
 
@@ -202,6 +206,17 @@ def test_task_names_pixels_and_impl_refused_in_one_line():
     with pytest.raises(ConfigError, match="metaworld_drawer-open"):
         EnvConfig(task="metaworld_drawer-opne").validate()
     EnvConfig(task="metaworld_drawer-open", episode_length=500).validate()
+
+
+@pytest.mark.parametrize("task", [t for t, why in metaworld.STEP_REFUSED.items() if "with boxes" in why])
+def test_step_refused_where_mjx_lacks_the_models_collisions(envs, task):
+    """The tasks whose step is refused for MJX's missing cylinder-box collision: MJX's JAX step cannot build their
+    model, and their step stops in one line."""
+    with pytest.raises(NotImplementedError, match=r"mjGEOM_CYLINDER, \S*mjGEOM_BOX\) collisions not implemented"):
+        mjx.put_model(metaworld.mj_model(task))
+    with pytest.raises(ValueError, match=f"metaworld_{task} cannot step: MJX's JAX step") as refused:
+        envs[task].step(None, jnp.zeros(4))
+    assert "\n" not in str(refused.value)
 
 
 def test_spaces_and_time_step(envs):

@@ -162,11 +162,13 @@ class TaskSpec:
         observation shows the state the episode starts from; otherwise it shows MuJoCo's stale kinematics
         (:meth:`MetaWorldEnv.reset`).
       goal: ``(model ids, rand_vec, data after the reset, kinematics current) -> (target_pos, consts (k,))``.
-      objects: ``model ids -> (mjx.Data -> (position (3,), quaternion (4,)))`` of the task's object.
+      objects: ``model ids -> (mjx.Data -> (positions (3k,), quaternions (4k,)))`` of the task's k objects (one,
+        or hammer's two; Meta-World's ``_get_pos_objects`` and ``_get_quat_objects``).
       reward: ``(obs, Context) -> (reward, info)`` with ``success`` among the info.
-      object_qpos: the reset puts the free object's x and y (``qpos[9:11]``) at the draw's first two numbers, its
-        height and orientation as the hand's reset left them (Meta-World's ``_set_obj_xyz``,
-        metaworld@3.1.1:metaworld/sawyer_xyz_env.py:351-361).
+      object_qpos: how many of the free object's position numbers (``qpos[9:9 + n]``) the reset sets to the draw's
+        first ``n``, the rest of its pose as the hand's reset left it (Meta-World's ``_set_obj_xyz``,
+        metaworld@3.1.1:metaworld/sawyer_xyz_env.py:351-361, and hammer's ``_set_hammer_xyz``): sweep-into 2 (x and
+        y), hammer 3; 0: none.
       accept: ``rand_vec -> bool``: the reset draws again until it holds (Meta-World's rejection loops); None: once.
       extra: ``model ids -> (mjx.Data -> (k,))``: what else of the state the reward reads (``Context.extra``).
       contacts: the reward's info reads contact forces, so observing a stepped state runs ``mjx.forward`` (contacts
@@ -190,7 +192,7 @@ class TaskSpec:
     reward: Callable[[jax.Array, Context], tuple[jax.Array, dict[str, jax.Array]]]
     goal_low: tuple[float, float, float] | None = None
     goal_high: tuple[float, float, float] | None = None
-    object_qpos: bool = False
+    object_qpos: int = 0
     accept: Callable[[jax.Array], jax.Array] | None = None
     extra: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
     contacts: bool = False
@@ -600,6 +602,123 @@ def _unlock_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
     return reward, info
 
 
+# hammer: metaworld@3.1.1:metaworld/envs/sawyer_hammer_v3.py
+HAMMER_HANDLE_LENGTH = 0.14  # sawyer_hammer_v3.py:16
+HAMMER_HEAD_OFFSET = (0.16, 0.06, 0.0)  # :175: the head's point the reward drives to the goal, from the body hammer
+HAMMER_NAIL_IN = 0.09  # :204: success, the nail's slide joint driven in beyond 9 cm
+
+
+def _hammer_goal(model: mujoco.MjModel) -> Callable[[jax.Array, mjx.Data], tuple[jax.Array, jax.Array]]:
+    goal_site = _site(model, "goal")
+
+    def goal(rand_vec: jax.Array, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """sawyer_hammer_v3.py:108-120: the goal is the site ``goal`` on the nail's box (which the reset writes at its
+        XML position, :112, so the goal is fixed); the episode's constant is the hammer's start (``obj_init_pos``:
+        the draw, :117-119), which the gripper's caging reward reads."""
+        return d.site_xpos[goal_site], rand_vec[:3]
+
+    return goal
+
+
+def _bodies(*names: str):
+    """The objects of a task that observes bodies' positions and quaternions (hammer: the bodies ``hammer`` and
+    ``nail_link``, sawyer_hammer_v3.py:91-99; ``get_body_com`` is ``data.body(name).xpos``)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Array, jax.Array]]:
+        bodies = np.array([_body(model, n) for n in names])
+
+        def objects(d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            return d.xpos[bodies].reshape(-1), d.xquat[bodies].reshape(-1)
+
+        return objects
+
+    return factory
+
+
+def _pads_and_joint(name: str):
+    """``extra`` of hammer: the pads' body positions (6; ``get_body_com("leftpad")``, ``("rightpad")``, which the
+    gripper's caging reward reads, sawyer_xyz_env.py:761-762) and one joint's position (1; the nail's
+    ``NailSlideJoint``, which success reads, sawyer_hammer_v3.py:204)."""
+
+    def factory(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+        left, right = _body(model, "leftpad"), _body(model, "rightpad")
+        adr = int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)])
+
+        def extra(d: mjx.Data) -> jax.Array:
+            return jnp.concatenate([d.xpos[left], d.xpos[right], d.qpos[adr : adr + 1].astype(d.xpos.dtype)])
+
+        return extra
+
+    return factory
+
+
+def _gripper_caging(
+    obj: jax.Array,
+    c: Context,
+    left_pad: jax.Array,
+    right_pad: jax.Array,
+    obj_radius: float,
+    pad_success_thresh: float,
+    xz_thresh: float,
+) -> jax.Array:
+    """Meta-World's ``SawyerXYZEnv._gripper_caging_reward`` with ``high_density=True`` and
+    ``desired_gripper_effort=1`` (metaworld@3.1.1:metaworld/sawyer_xyz_env.py:721-858; sweep-into overrides it, see
+    :func:`_sweep_reward`).
+
+    Args:
+      obj: the object's position as the task passes it.
+      c: the context (``tcp``, ``init_tcp``, ``consts[:3]``: ``obj_init_pos``; ``action``).
+      left_pad, right_pad: the pads' body positions now.
+      obj_radius, pad_success_thresh, xz_thresh: the task's arguments.
+
+    Returns:
+      The caging reward in [0, 1].
+    """
+    obj_init = c.consts[:3]
+    pad_y = jnp.stack([left_pad[1], right_pad[1]])  # :765-769
+    pad_to_obj = jnp.abs(pad_y - obj[1])
+    pad_to_obj_init = jnp.abs(pad_y - obj_init[1])
+    caging_margin = jnp.abs(pad_to_obj_init - pad_success_thresh)  # :801-810
+    left = tolerance(pad_to_obj[0], obj_radius, pad_success_thresh, caging_margin[0])
+    right = tolerance(pad_to_obj[1], obj_radius, pad_success_thresh, caging_margin[1])
+    caging_y = hamacher_product(left, right)
+    xz = jnp.array([1.0, 0.0, 1.0])  # :814-828
+    xz_margin = jnp.linalg.norm((obj_init - c.init_tcp) * xz) - xz_thresh
+    caging_xz = tolerance(jnp.linalg.norm((c.tcp - obj) * xz), 0.0, xz_thresh, xz_margin)
+    closed = jnp.clip(c.action[3], 0.0, 1.0)  # :831-833
+    caging = hamacher_product(caging_y, caging_xz)  # :836-841
+    gripping = jnp.where(caging > 0.97, closed, 0.0)
+    return (hamacher_product(caging, gripping) + caging) / 2.0
+
+
+def _hammer_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
+    """sawyer_hammer_v3.py:169-214 (reward version v2), its ``_reward_quat`` (:145-151), ``_reward_pos``
+    (:153-167) and ``evaluate_state`` (:64-86)."""
+    hand, hammer = obs[:3], obs[4:7]
+    head = hammer + jnp.array(HAMMER_HEAD_OFFSET)
+    # :182-185: the handle is no sphere, so within half its length in x the caging reward sees it under the hand.
+    near_in_x = jnp.abs(hammer[0] - hand[0]) < HAMMER_HANDLE_LENGTH / 2.0
+    threshed = hammer.at[0].set(jnp.where(near_in_x, hand[0], hammer[0]))
+    laid_down = jnp.maximum(1.0 - jnp.linalg.norm(obs[7:11] - jnp.array([1.0, 0.0, 0.0, 0.0])) / 0.4, 0.0)
+    left_pad, right_pad, nail = c.extra[0:3], c.extra[3:6], c.extra[6]
+    grab = _gripper_caging(threshed, c, left_pad, right_pad, obj_radius=0.015, pad_success_thresh=0.02, xz_thresh=0.01)
+    lifted = head[2] > 0.02
+    hit = long_tail_tolerance(jnp.linalg.norm(c.target_pos - head), 0.02, 0.2)
+    in_place = 0.1 * lifted + 0.9 * hit
+    reward = (2.0 * grab + 6.0 * in_place) * laid_down
+    success = nail > HAMMER_NAIL_IN
+    reward = jnp.where(success & (reward > 5.0), 10.0, reward)  # :205-206
+    info = _flags(
+        success=success,
+        near_object=laid_down,  # Meta-World's info names reward_quat so (:78)
+        grasp_success=grab >= 0.5,
+        grasp_reward=grab,
+        in_place_reward=in_place,
+        obj_to_target=jnp.zeros(()),
+    )
+    return reward, info
+
+
 TASKS: dict[str, TaskSpec] = {
     "drawer-open": TaskSpec(
         name="drawer-open",
@@ -661,7 +780,7 @@ TASKS: dict[str, TaskSpec] = {
         goal=_sweep_goal,
         objects=_sweep_objects,
         reward=_sweep_reward,
-        object_qpos=True,
+        object_qpos=2,  # :112-114: the draw's x and y, the height where the hand's reset left the puck
         accept=_sweep_accept,
         extra=_pads_and_touching,
         contacts=True,
@@ -698,6 +817,24 @@ TASKS: dict[str, TaskSpec] = {
         reward=_unlock_reward,
         extra=_body_position("lock_link"),
     ),
+    "hammer": TaskSpec(  # sawyer_hammer_v3.py:18-58
+        name="hammer",
+        xml="sawyer_hammer.xml",
+        hand_low=(-0.5, 0.40, 0.05),
+        hand_high=(0.5, 1.0, 0.5),
+        goal_low=(0.2399, 0.7399, 0.109),
+        goal_high=(0.2401, 0.7401, 0.111),
+        reset_low=(-0.1, 0.4, 0.0),
+        reset_high=(0.1, 0.5, 0.0),
+        hand_init_pos=(0.0, 0.4, 0.2),
+        moved_body=None,  # :112 writes the box's body at its XML position: nothing moves
+        reset_forward=True,  # :101-106, :120 (_set_hammer_xyz ends with set_state)
+        goal=_hammer_goal,
+        objects=_bodies("hammer", "nail_link"),
+        reward=_hammer_reward,
+        object_qpos=3,  # :104: the hammer's free joint at the draw's x, y and z
+        extra=_pads_and_joint("NailSlideJoint"),
+    ),
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
 
@@ -709,6 +846,8 @@ STEP_REFUSED = {
     "window-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
     "not wired into the Meta-World tasks yet",
     "door-unlock": "MJX's JAX step builds its model, but one step of it has not been compared with Meta-World's yet",
+    "hammer": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders (the hammer's head, the nail) with boxes, and "
+    "MuJoCo Warp's step is not wired into the Meta-World tasks yet",
 }
 """Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
 
@@ -893,8 +1032,10 @@ class MetaWorldEnv(Env):
         right, left = self._claws
         opening = jnp.clip(jnp.linalg.norm(d.xpos[right] - d.xpos[left]) / 0.1, 0.0, 1.0)
         pos, quat = self._objects(d)
-        padding = jnp.zeros(OBJ_PADDED - 7)
-        return jnp.concatenate([d.xpos[self._hand], opening[None], pos, quat, padding])
+        k = pos.shape[0] // 3  # each object's position, then its quaternion (sawyer_xyz_env.py:500-510)
+        poses = [x for i in range(k) for x in (pos[3 * i : 3 * i + 3], quat[4 * i : 4 * i + 4])]
+        padding = jnp.zeros(OBJ_PADDED - 7 * k)
+        return jnp.concatenate([d.xpos[self._hand], opening[None], *poses, padding])
 
     def tcp_center(self, d: mjx.Data) -> jax.Array:
         """The fingertips' centre (``tcp_center``, sawyer_xyz_env.py:71-81)."""
@@ -994,10 +1135,12 @@ class MetaWorldEnv(Env):
 
     def start(self, rand_vec: jax.Array) -> mjx.Data:
         """The reset's MuJoCo state for the draw ``rand_vec``: the hand's reset state (:class:`HandReset`), with a
-        free object's x and y at the draw where the task places it so (``TaskSpec.object_qpos``)."""
+        free object's position at the draw where the task places it so (``TaskSpec.object_qpos``: sweep-into's x and
+        y, hammer's x, y and z)."""
         d = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, self._data0)
-        if self.spec.object_qpos:
-            d = d.replace(qpos=d.qpos.at[9:11].set(rand_vec[:2].astype(d.qpos.dtype)))
+        n = self.spec.object_qpos
+        if n:
+            d = d.replace(qpos=d.qpos.at[9 : 9 + n].set(rand_vec[:n].astype(d.qpos.dtype)))
         return d
 
     def reset(self, rng: jax.Array) -> State:
