@@ -205,6 +205,15 @@ def sign_test_p(positive: int, pairs: int) -> float:
     return min(1.0, 2 * sum(math.comb(pairs, k) for k in range(rare + 1)) / 2**pairs)
 
 
+def sign_counted(entry: dict) -> dict:
+    """``entry`` with how many of its non-zero ``differences`` are positive (``positive`` of ``pairs``) and
+    :func:`sign_test_p` (null without a non-zero difference)."""
+    nonzero = [d for d in entry["differences"] if d != 0]
+    positive = int(sum(d > 0 for d in nonzero))
+    p = round(sign_test_p(positive, len(nonzero)), 4) if nonzero else None
+    return entry | {"positive": positive, "pairs": len(nonzero), "sign_test_p": p}
+
+
 def signed_rank_p(differences: ArrayLike) -> float | None:
     """Two-sided Wilcoxon signed-rank p-value of non-zero paired ``differences``: the share of the sign patterns
     of their ranks (ties at mid-ranks) whose signed-rank sum lies as far from its mean as the observed one.
@@ -632,16 +641,13 @@ def paired_difference(a: dict, b: dict, measure: str) -> dict:
     keys = sorted(va.keys() & vb.keys())
     d = np.asarray([va[k] - vb[k] for k in keys], dtype=float)
     low, high = bootstrap_ci(d, np.mean)
-    positive = int((d > 0).sum())
-    nonzero = int((d != 0).sum())
-    return {
+    entry = {
         "measure": measure,
         "keys": [list(k) for k in keys],
         "differences": [round(float(v), 2) for v in d],
         "mean": round(float(d.mean()), 2),
         "mean_ci": [_json_float(round(low, 2)), _json_float(round(high, 2))],
-        "positive": positive,
-        "pairs": nonzero,
-        "sign_test_p": round(sign_test_p(positive, nonzero), 4) if nonzero else None,
-        "signed_rank_p": _json_float(round(signed_rank_p(d[d != 0]), 4)) if nonzero else None,
     }
+    nonzero = d[d != 0]
+    signed_rank = _json_float(round(signed_rank_p(nonzero), 4)) if nonzero.size else None
+    return sign_counted(entry) | {"signed_rank_p": signed_rank}

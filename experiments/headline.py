@@ -31,7 +31,8 @@ def main() -> None:
     runs = {name: keyed_run(RESULTS / "runs" / log) for name, log in RUNS.items()}
     for name, log in RUNS.items():
         cfg = json.loads((RESULTS / "runs" / log / "config.json").read_text())
-        assert cfg["pretrain"]["running_std"] == name, f"{log}: running_std {cfg['pretrain']['running_std']}"
+        if cfg["pretrain"]["running_std"] != name:
+            raise ValueError(f"{log}: running_std {cfg['pretrain']['running_std']!r}, not {name!r}")
     bpref = runs["bpref"]
     table = {
         "pebble": {

@@ -24,9 +24,9 @@ import json
 import pathlib
 
 import numpy as np
-from analysis import curve_figure, final_returns, sample_std
+from analysis import curve_figure, final_returns, sample_std, sign_counted
 from compare import gather, methods
-from rebel import PEBBLE, RESULTS, rows, sign_counted
+from rebel import PEBBLE, RESULTS, rows
 
 RUNS = {  # task -> run directories under results/runs
     "walker_walk": [
@@ -92,7 +92,7 @@ def keyed_returns(run_dirs: list[pathlib.Path], label: str) -> dict[tuple[int, i
 
 
 def paired(mine: dict, pebble: dict) -> dict:
-    """The method minus PEBBLE over the keys both have, with the sign test (:func:`rebel.sign_counted`)."""
+    """The method minus PEBBLE over the keys both have, with the sign test (:func:`analysis.sign_counted`)."""
     keys = sorted(set(mine) & set(pebble))
     return sign_counted({"keys": [list(k) for k in keys], "differences": [round(mine[k] - pebble[k], 2) for k in keys]})
 

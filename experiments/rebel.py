@@ -66,7 +66,7 @@ from analysis import (
     mean_curve,
     sample_efficiency_ratio,
     sample_efficiency_ratio_ci,
-    sign_test_p,
+    sign_counted,
     steps_to_reach,
 )
 from compare import compare, gather, methods
@@ -294,15 +294,6 @@ def chosen_lambda(rows: list[dict], steps: int = 500_000) -> dict | None:
 def _differences(a: dict, b: dict) -> list[float]:
     """Per seed ``a``'s final return minus ``b``'s (rows whose seed i shares its key)."""
     return [round(float(x) - float(y), 2) for x, y in zip(a["final_returns"], b["final_returns"], strict=True)]
-
-
-def sign_counted(entry: dict) -> dict:
-    """``entry`` with how many of its non-zero ``differences`` are positive (``positive`` of ``pairs``) and
-    :func:`sign_test_p` (null without a non-zero difference)."""
-    nonzero = [d for d in entry["differences"] if d != 0]
-    positive = int(sum(d > 0 for d in nonzero))
-    p = round(sign_test_p(positive, len(nonzero)), 4) if nonzero else None
-    return entry | {"positive": positive, "pairs": len(nonzero), "sign_test_p": p}
 
 
 def _sign_tested(entries: list[dict]) -> list[dict]:

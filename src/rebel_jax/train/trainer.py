@@ -471,30 +471,19 @@ class Trainer:
         key_reset, key_actions = jax.random.split(key)
         state = self.eval_envs.reset(key_reset)
 
-        def act(state, key):
+        def body(carry, key):
+            state, total, stats = carry
             uniform = jax.random.uniform(key, (state.obs.shape[0], self.env.action_size), minval=-1.0, maxval=1.0)
             action = jnp.where(random_actions, uniform, self.mean_action(policy, state.obs))
-            return self.eval_envs.step(state, action)
-
-        def body(carry, key):
-            state, total = carry
-            state = act(state, key)
-            return (state, total + state.reward), None
-
-        def body_success(carry, key):  # the episodes' returns and success flags, every episode an evaluation one
-            state, total, stats = carry
-            state = act(state, key)
-            stats = stats.after_step(state.reward, state.done, 0, state.info["success"])
+            state = self.eval_envs.step(state, action)
+            if stats is not None:  # the episodes' success flags, every episode an evaluation one
+                stats = stats.after_step(state.reward, state.done, 0, state.info["success"])
             return (state, total + state.reward, stats), None
 
         keys = jax.random.split(key_actions, self.episode_length)
-        total = jnp.zeros(state.reward.shape)
-        if not success:
-            (_, total), _ = jax.lax.scan(body, (state, total), keys)
-            return total.mean()
-        stats = EpisodeStats.init(state.reward.shape[0], success=True)
-        (_, total, stats), _ = jax.lax.scan(body_success, (state, total, stats), keys)
-        return total.mean(), stats.eval_success
+        stats = EpisodeStats.init(state.reward.shape[0], success=True) if success else None
+        (_, total, stats), _ = jax.lax.scan(body, (state, jnp.zeros(state.reward.shape), stats), keys)
+        return (total.mean(), stats.eval_success) if success else total.mean()
 
     # -- columns of a sweep --------------------------------------------------------------------
     def with_knobs(
