@@ -8,9 +8,10 @@ Each measurement is one jitted call: a ``lax.scan`` of ``--steps`` vector steps 
 ``VmapWrapper``, as the trainer steps them) under uniformly random actions in [-1, 1]^4. As in the trainer
 (``rebel_jax.train.trainer.Trainer.vector_step``), every environment is reset together under ``lax.cond`` at each
 episode boundary, so with ``--steps`` a multiple of ``--episode-length`` (Meta-World: 500) a call runs whole episodes
-and the resets are counted in the time. The call is compiled ahead of time (``compile_s``: tracing, lowering and
-XLA's compile), run once as a warm-up (``first_call_s``), then timed ``--repeats`` times after
-``block_until_ready``; ``env_steps_per_s`` is ``batch * steps`` over the median.
+and the resets are counted in the time. The call is traced and lowered (``lower_s``) and compiled by
+XLA ahead of time (``compile_s``; a task's batch sizes compile ``--compile-workers`` at once, each program's own
+seconds, ``compiled_at_once`` saying how many shared the host), run once as a warm-up (``first_call_s``), then timed
+``--repeats`` times after ``block_until_ready``; ``env_steps_per_s`` is ``batch * steps`` over the median.
 
 A (task, impl) pairing the project refuses (a task of ``rebel_jax.envs.metaworld.STEP_REFUSED``, Meta-World with
 ``impl='warp'``, or ``warp`` without the ``warp-lang`` package) is skipped: its one-line reason is printed and kept
@@ -23,6 +24,7 @@ measurement of the same setting).
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import importlib.util
 import json
 import pathlib
@@ -93,14 +95,33 @@ def rollout(env, batch: int, steps: int):
     return envs, run
 
 
-def measure(env, batch: int, steps: int, repeats: int) -> dict:
-    """Compile seconds, first-call seconds and the median seconds of a ``steps``-step call of ``batch`` envs."""
+def lower(env, batch: int, steps: int) -> dict:
+    """Traces and lowers the ``steps``-step call of ``batch`` environments; resets them (jitted)."""
     envs, run = rollout(env, batch, steps)
     states = jax.block_until_ready(jax.jit(envs.reset)(jax.random.PRNGKey(0)))
     t = jnp.zeros((), jnp.int32)
     start = time.perf_counter()
-    compiled = jax.jit(run).lower(states, t, jax.random.PRNGKey(1)).compile()
-    compile_s = time.perf_counter() - start
+    lowered = jax.jit(run).lower(states, t, jax.random.PRNGKey(1))
+    return {"lowered": lowered, "states": states, "t": t, "lower_s": time.perf_counter() - start}
+
+
+def compile_timed(lowered) -> tuple[object, float]:
+    """XLA's compile of ``lowered`` and its seconds."""
+    start = time.perf_counter()
+    compiled = lowered.compile()
+    return compiled, time.perf_counter() - start
+
+
+def compile_all(lowered: list, workers: int) -> list[tuple[object, float]]:
+    """Compiles each of ``lowered``, ``workers`` at once (XLA's compile releases Python's lock)."""
+    if workers <= 1:
+        return [compile_timed(low) for low in lowered]
+    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(compile_timed, lowered))
+
+
+def measure(compiled, states, t, batch: int, steps: int, repeats: int) -> dict:
+    """First-call seconds and the median seconds of ``compiled``, a ``steps``-step call of ``batch`` envs."""
     start = time.perf_counter()
     states, t = jax.block_until_ready(compiled(states, t, jax.random.PRNGKey(2)))
     first = time.perf_counter() - start
@@ -115,7 +136,6 @@ def measure(env, batch: int, steps: int, repeats: int) -> dict:
         "ms_per_vector_step": seconds / steps * 1e3,
         "call_s": seconds,
         "call_s_all": times,
-        "compile_s": compile_s,
         "first_call_s": first,
     }
 
@@ -139,12 +159,18 @@ def rows(args):
                 print(f"{task} {impl}: skipped: {why}", flush=True)
                 yield {**common, "batch": None, "refused": why}
                 continue
-            for batch in args.batches:
-                r = measure(env, batch, args.steps, args.repeats)
+            lowered = [lower(env, batch, args.steps) for batch in args.batches]
+            workers = min(args.compile_workers, len(lowered))
+            start = time.perf_counter()
+            compiled = compile_all([low["lowered"] for low in lowered], workers)
+            print(f"{task} {impl}: compiled {len(lowered)} programs in {time.perf_counter() - start:.1f} s", flush=True)
+            for batch, low, (program, compile_s) in zip(args.batches, lowered, compiled, strict=True):
+                r = measure(program, low["states"], low["t"], batch, args.steps, args.repeats)
+                r = {**r, "lower_s": low["lower_s"], "compile_s": compile_s, "compiled_at_once": workers}
                 print(
                     f"{task} {impl} batch {batch}: {r['env_steps_per_s']:,.0f} env steps/s "
-                    f"({r['ms_per_vector_step']:.2f} ms/vector step; compile {r['compile_s']:.1f} s, "
-                    f"first call {r['first_call_s']:.1f} s)",
+                    f"({r['ms_per_vector_step']:.2f} ms/vector step; lower {r['lower_s']:.1f} s, compile "
+                    f"{compile_s:.1f} s ({workers} at once), first call {r['first_call_s']:.1f} s)",
                     flush=True,
                 )
                 yield {**common, "batch": batch, **r}
@@ -189,6 +215,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=metaworld.EPISODE_LENGTH, help="vector steps per timed call")
     p.add_argument("--episode-length", type=int, default=metaworld.EPISODE_LENGTH, help="steps between resets")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per measurement (median)")
+    p.add_argument(
+        "--compile-workers",
+        type=int,
+        default=3,
+        help="a task's programs (one per batch size) compiled at once (default: %(default)s)",
+    )
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     add_xla_flags_argument(p)
     return p
@@ -197,8 +229,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> None:
     p = parser()
     args = p.parse_args(argv)
-    if min(args.steps, args.episode_length, args.repeats) < 1:
-        p.error("--steps, --episode-length and --repeats must be >= 1")
+    if min(args.steps, args.episode_length, args.repeats, args.compile_workers) < 1:
+        p.error("--steps, --episode-length, --repeats and --compile-workers must be >= 1")
     use_xla_flags(args.xla_flags)
     print(f"device: {jax.devices()[0].device_kind}, JAX {jax.__version__}", flush=True)
     merge_rows(args.out, rows(args), FIELDS)
