@@ -1,7 +1,7 @@
-"""``results/rime_mrn.json``: MRN (and RIME, as its runs land) against PEBBLE on the same keys.
+"""``results/rime_mrn.json``: MRN and RIME, each against PEBBLE on the same keys and protocol.
 
 Usage:
-  python experiments/rime_mrn.py      # writes results/rime_mrn.json, results/rime_mrn_walker_walk.png
+  python experiments/rime_mrn.py      # writes results/rime_mrn.json and one figure per protocol (FIGURES)
 
 Each entry of ``RUNS`` pairs a method's run with the PEBBLE run of the same protocol (task, labels, teacher, steps,
 precision: checked on their ``config.json``). Per entry: both final-return measures of each
@@ -22,7 +22,19 @@ RUNS = [  # (name, method run, PEBBLE run of the same protocol), under results/r
         "rime_mrn/mrn_walker_100_500k_bf16",
         "headline/pebble_walker_100_bf16_10seeds",
     ),
+    (
+        "RIME, walker_walk, 1,000 labels, mistake teacher 0.3, 300k",
+        "rime_mrn/rime_walker_mistake_300k_bf16",
+        "rime_mrn/pebble_walker_mistake_300k_bf16",
+    ),
 ]
+FIGURES = {  # PEBBLE run -> (figure under results/, title)
+    "headline/pebble_walker_100_bf16_10seeds": ("rime_mrn_walker_walk.png", "walker_walk, 100 labels, oracle teacher"),
+    "rime_mrn/pebble_walker_mistake_300k_bf16": (
+        "rime_walker_walk_mistake.png",
+        "walker_walk, 1,000 labels, mistake teacher (eps 0.3)",
+    ),
+}
 SAME = (("env", "task"), ("feedback", "labels"), ("teacher", None), ("train", "total_steps"), ("sac", "precision"))
 """The settings a method's run and its PEBBLE run must share."""
 
@@ -36,7 +48,7 @@ def _check_protocol(method_log: str, pebble_log: str) -> None:
 
 
 def main() -> None:
-    table, curves = [], {}
+    table, curves = [], {log: {} for log in FIGURES}
     for name, method_log, pebble_log in RUNS:
         _check_protocol(method_log, pebble_log)
         method, pebble = keyed_run(RESULTS / "runs" / method_log), keyed_run(RESULTS / "runs" / pebble_log)
@@ -51,10 +63,11 @@ def main() -> None:
                 "minus_pebble": [paired_difference(method, pebble, m) for m in ("end_of_run", "last10")],
             }
         )
-        curves[name.split(",")[0]] = load_runs(RESULTS / "runs" / method_log)
-        curves.setdefault("PEBBLE", load_runs(RESULTS / "runs" / pebble_log))
+        curves[pebble_log][name.split(",")[0]] = load_runs(RESULTS / "runs" / method_log)
+        curves[pebble_log].setdefault("PEBBLE", load_runs(RESULTS / "runs" / pebble_log))
     (RESULTS / "rime_mrn.json").write_text(json.dumps({"rows": table}, indent=1) + "\n")
-    curve_figure(curves, RESULTS / "rime_mrn_walker_walk.png", "walker_walk, 100 labels, oracle teacher")
+    for pebble_log, (figure, title) in FIGURES.items():
+        curve_figure(curves[pebble_log], RESULTS / figure, title)
     for row in table:
         m, p = row["method"]["end_of_run"], row["pebble"]["end_of_run"]
         print(
