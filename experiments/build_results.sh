@@ -39,7 +39,8 @@ run experiments/qpa_rune.py
 # results/headline_walker_walk.png.
 run experiments/headline.py
 
-# MRN (and RIME) against PEBBLE on the same keys: results/rime_mrn.json and results/rime_mrn_walker_walk.png.
+# MRN and RIME against PEBBLE on the same keys: results/rime_mrn.json, results/rime_mrn_walker_walk.png and
+# results/rime_walker_walk_mistake.png.
 run experiments/rime_mrn.py
 
 # REBEL's first runs on B-Pref's protocol, stopped at 140k, against the baselines cut there.
