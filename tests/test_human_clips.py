@@ -1,4 +1,4 @@
-"""Clips for the labelling page: the probe's plot, the frame sheet, and MuJoCo's renderer on the MJX tasks."""
+"""Clips for the labelling page: the probe's plot, the frame sheet, and MuJoCo's renderer on the MJX and Meta-World tasks."""
 
 from __future__ import annotations
 
