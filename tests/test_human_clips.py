@@ -1,4 +1,5 @@
-"""Clips for the labelling page: the probe's plot, the frame sheet, and MuJoCo's renderer on the MJX and Meta-World tasks."""
+"""Clips for the labelling page: the probe's plot, the frame sheet, and MuJoCo's renderer on the MJX and Meta-World
+tasks."""
 
 from __future__ import annotations
 
@@ -242,6 +243,13 @@ def test_metaworld_frame_state_equals_mujocos_of_metaworlds_recorded_state(task)
     spec = metaworld.TASKS[task]
     if spec.moved_body is not None or task in GOAL_SITE_WRITTEN - {"sweep-into"}:  # sweep-into's goal: its XML's
         assert stale > 1e-2  # without the scene, the moved body or the goal would be drawn centimetres away
+
+
+def test_metaworld_renderer_names_the_valid_tasks_and_cameras():
+    with pytest.raises(clips.ClipError, match="valid: drawer-open, button-press"):
+        clips.make_renderer("metaworld_drawer-close", 64)
+    with pytest.raises(clips.ClipError, match="no camera 'side'; valid: topview, corner, corner2"):
+        clips.MetaWorldRenderer("metaworld_drawer-open", 64, camera="side")
 
 
 def test_metaworld_pose_refuses_a_scene_of_another_size():

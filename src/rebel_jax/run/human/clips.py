@@ -217,7 +217,11 @@ class MetaWorldRenderer:
         self.fps = 1.0 / (float(self.model.opt.timestep) * metaworld.FRAME_SKIP)
         self.size = size
         self.camera = METAWORLD_CAMERA if camera is None else camera
-        self._camera_id = self.model.camera(self.camera).id
+        try:
+            self._camera_id = self.model.camera(self.camera).id
+        except (KeyError, IndexError) as err:
+            names = ", ".join(self.model.camera(i).name for i in range(self.model.ncam))
+            raise ClipError(f"metaworld_{name} has no camera {self.camera!r}; valid: {names}") from err
         self.renderer = open_renderer(self.model, size)
 
     def upside_down(self) -> bool:
@@ -247,6 +251,8 @@ def make_renderer(task: str, size: int = 256) -> ProbeRenderer | MujocoRenderer 
         raise ClipError(f"clip size {size} is too small: allowed >= 16")
     if task == "probe_point":
         return ProbeRenderer(size)
-    if task.startswith("metaworld_"):
+    from rebel_jax.envs.metaworld import PREFIX
+
+    if task.startswith(PREFIX):
         return MetaWorldRenderer(task, size)
     return MujocoRenderer(task, size)
