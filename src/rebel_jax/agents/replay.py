@@ -64,6 +64,8 @@ class Step:
         episode_step: (E,) int32 step index of ``obs`` within its episode.
         learned_reward: (E,) learned reward, or None to store zeros (relabel later).
         qpos: (E, nq) physics positions at ``obs``, or None (stored only by a buffer made with ``qpos_size``).
+        scene: (E, k) what a clip's frame of ``obs`` needs beyond ``qpos`` (a Meta-World task's mocap, moved body and
+            goal site: ``MetaWorldEnv.scene``), or None (stored only by a buffer made with ``scene_size``).
     """
 
     obs: jax.Array
@@ -75,6 +77,7 @@ class Step:
     episode_step: jax.Array
     learned_reward: jax.Array | None = None
     qpos: jax.Array | None = None
+    scene: jax.Array | None = None
 
 
 @flax.struct.dataclass
@@ -92,6 +95,8 @@ class Buffer:
         size: () int32 rows filled (at most T).
         qpos: (T, E, nq) physics positions at ``obs`` (what clips for a human are rendered from), or None
             when not stored (the default: only the human teacher needs them).
+        scene: (T, E, k) what a clip's frame of ``obs`` needs beyond ``qpos`` (see :class:`Step`), or None when not
+            stored (the default; the tasks whose ``qpos`` is all a frame needs).
     """
 
     obs: jax.Array
@@ -105,6 +110,7 @@ class Buffer:
     ptr: jax.Array
     size: jax.Array
     qpos: jax.Array | None = None
+    scene: jax.Array | None = None
 
     @property
     def rows(self) -> int:
@@ -117,7 +123,9 @@ class Buffer:
         return self.true_reward.shape[1]
 
 
-def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_size: int = 0) -> Buffer:
+def init(
+    capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_size: int = 0, scene_size: int = 0
+) -> Buffer:
     """An empty buffer of ``capacity // num_envs`` rows.
 
     Args:
@@ -125,6 +133,7 @@ def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_siz
         num_envs: environments per row.
         obs_size, action_size: problem sizes.
         qpos_size: physics positions stored per transition; 0 stores none (``qpos`` is None).
+        scene_size: numbers of a frame's scene stored per transition; 0 stores none (``scene`` is None).
 
     Returns:
         A zero-filled :class:`Buffer` with ``ptr = size = 0``.
@@ -148,6 +157,7 @@ def init(capacity: int, num_envs: int, obs_size: int, action_size: int, qpos_siz
         ptr=jnp.zeros((), jnp.int32),
         size=jnp.zeros((), jnp.int32),
         qpos=zeros(qpos_size) if qpos_size else None,
+        scene=zeros(scene_size) if scene_size else None,
     )
 
 
@@ -176,6 +186,10 @@ def add(buffer: Buffer, step: Step) -> Buffer:
         raise ValueError("a buffer stores qpos exactly when its steps carry them (replay.init's qpos_size)")
     if buffer.qpos is not None:
         values["qpos"] = step.qpos
+    if (buffer.scene is None) != (step.scene is None):
+        raise ValueError("a buffer stores scenes exactly when its steps carry them (replay.init's scene_size)")
+    if buffer.scene is not None:
+        values["scene"] = step.scene
 
     def write(name: str, value: jax.Array) -> jax.Array:
         field = getattr(buffer, name)

@@ -176,6 +176,9 @@ class TaskSpec:
       shown_consts: ``model ids -> (mjx.Data -> (k,))``: episode constants that Meta-World's ``reset_model`` reads
         from MuJoCo's stale kinematics (those its reset observation shows; tasks without ``reset_forward``),
         appended to ``consts``.
+      goal_site: the reset writes the site ``goal`` at the goal (Meta-World's ``model.site("goal").pos =
+        self._target_pos``), so that Meta-World draws it there; False: the site (if any) stays where the model puts
+        it. It changes no physics: only the clips draw it (:func:`scene`).
     """
 
     name: str
@@ -197,6 +200,7 @@ class TaskSpec:
     extra: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
     contacts: bool = False
     shown_consts: Callable[[mujoco.MjModel], Callable[[mjx.Data], jax.Array]] | None = None
+    goal_site: bool = False
 
 
 def _body(model: mujoco.MjModel, name: str) -> int:
@@ -733,6 +737,7 @@ TASKS: dict[str, TaskSpec] = {
         goal=_drawer_goal,
         objects=_offset_body("drawer_link", (0.0, -0.16, 0.0)),
         reward=_drawer_reward,
+        goal_site=True,  # sawyer_drawer_open_v3.py:112
     ),
     "button-press": TaskSpec(
         name="button-press",
@@ -764,6 +769,7 @@ TASKS: dict[str, TaskSpec] = {
         objects=_geom_object("handle"),
         reward=_door_reward,
         extra=_joint_angle("doorjoint"),
+        goal_site=True,  # sawyer_door_v3.py:120, :127
     ),
     "sweep-into": TaskSpec(  # sawyer_sweep_into_goal_v3.py:28-61
         name="sweep-into",
@@ -784,6 +790,7 @@ TASKS: dict[str, TaskSpec] = {
         accept=_sweep_accept,
         extra=_pads_and_touching,
         contacts=True,
+        goal_site=True,  # :115
     ),
     "window-open": TaskSpec(  # sawyer_window_open_v3.py:38-70
         name="window-open",
@@ -799,6 +806,7 @@ TASKS: dict[str, TaskSpec] = {
         objects=_site_object("handleOpenStart"),
         reward=_window_reward,
         shown_consts=_site_position("handleOpenStart"),
+        goal_site=True,  # :122
     ),
     "door-unlock": TaskSpec(  # sawyer_door_unlock_v3.py:25-56
         name="door-unlock",
@@ -911,6 +919,67 @@ def hand_reset(task: str, model: mujoco.MjModel) -> HandReset:
     return HandReset(**fields, shown_qpos=shown)
 
 
+def scene_size(task: str) -> int:
+    """How many numbers :func:`frame_scene` gives per state of ``task`` (a key of :data:`TASKS`)."""
+    spec = TASKS[task]
+    return 3 + 3 * (spec.moved_body is not None) + 3 * spec.goal_site
+
+
+def frame_scene(spec: TaskSpec, state: State) -> jax.Array:
+    """What a drawing of ``state`` needs beyond its ``qpos``.
+
+    Meta-World's reset moves bodies and sites of the model itself (``model.body(...).pos``, ``model.site("goal").pos``),
+    and its hand follows a mocap body, so MuJoCo draws a state from its ``qpos``, the mocap's pose and the model as
+    the episode's reset left it. The mocap's orientation is Meta-World's fixed :data:`MOCAP_QUAT` (set at every step,
+    and by the hand's reset), so only its position is kept.
+
+    Args:
+      spec: the task.
+      state: the task's state (``pipeline_state`` and ``info``), with any leading batch axes.
+
+    Returns:
+      ``(..., scene_size)``: the mocap's position; then, where the reset moves a body (``TaskSpec.moved_body``), its
+      position (``info["body_pos"]``); then, where the reset writes the site ``goal`` (``TaskSpec.goal_site``), its
+      position (``info["target_pos"]``).
+    """
+    parts = [state.pipeline_state.mocap_pos[..., 0, :]]
+    if spec.moved_body is not None:
+        parts.append(state.info["body_pos"][..., :3])
+    if spec.goal_site:
+        parts.append(state.info["target_pos"])
+    return jnp.concatenate([p.astype(jnp.float32) for p in parts], axis=-1)
+
+
+def pose(task: str, model: mujoco.MjModel, data: mujoco.MjData, qpos: np.ndarray, scene: np.ndarray) -> None:
+    """Puts MuJoCo's ``model`` and ``data`` of ``task`` (:func:`mj_model`'s) in the state one frame shows, as Meta-World
+    has them there, and runs ``mj_forward`` (velocities zero: a drawing reads positions only).
+
+    Args:
+      task: a key of :data:`TASKS`.
+      model, data: MuJoCo's model and data (the model's moved body and goal site are written).
+      qpos: ``(nq,)`` the positions.
+      scene: ``(scene_size,)`` the state's :func:`frame_scene`.
+    """
+    spec = TASKS[task]
+    scene = np.asarray(scene, np.float64)
+    if scene.shape != (scene_size(task),) or np.shape(qpos) != (model.nq,):
+        raise ValueError(
+            f"{task}: a frame needs qpos ({model.nq},) and scene ({scene_size(task)},); got {np.shape(qpos)} and "
+            f"{scene.shape}"
+        )
+    data.qpos[:] = qpos
+    data.qvel[:] = 0.0
+    data.mocap_pos[0] = scene[:3]
+    data.mocap_quat[0] = MOCAP_QUAT
+    at = 3
+    if spec.moved_body is not None:
+        model.body_pos[_body(model, spec.moved_body)] = scene[at : at + 3]
+        at += 3
+    if spec.goal_site:
+        model.site_pos[_site(model, "goal")] = scene[at : at + 3]
+    mujoco.mj_forward(model, data)
+
+
 def _cpu_cholesky() -> contextlib.AbstractContextManager:
     """``_mjx.plain_cholesky`` on the CPU (MJX's factorizations in plain JAX operations, as
     :class:`~rebel_jax.envs.dmc.DMCEnv` runs them), nothing elsewhere."""
@@ -930,7 +999,8 @@ class MetaWorldEnv(Env):
         ``body_pos`` (the reset's draw), and with a time limit ``steps`` and ``truncation``.
 
     Its compiled MuJoCo model is ``mujoco_model`` (not ``mj_model``, which the training command's evaluation clip and
-    ``rebel_jax.run.video`` look for: drawing Meta-World's scenes is not done yet).
+    ``rebel_jax.run.video`` look for: they do not draw Meta-World's scenes yet). The labelling page's clips draw them
+    (:meth:`scene`, ``rebel_jax.run.human.clips.MetaWorldRenderer``).
 
     Args:
       task: a key of :data:`TASKS`.
@@ -1116,6 +1186,10 @@ class MetaWorldEnv(Env):
         if self.episode_length is not None:
             info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
         return self._observe(d, self.model(info["body_pos"]), previous, info, zero, action)
+
+    def scene(self, state: State) -> jax.Array:
+        """What a clip's frame of ``state`` needs beyond its ``qpos`` (:func:`frame_scene`; any leading batch axes)."""
+        return frame_scene(self.spec, state)
 
     def draw(self, rng: jax.Array) -> jax.Array:
         """A uniform draw of the task's reset space (``_get_state_rand_vec``, sawyer_xyz_env.py:697-719), drawn

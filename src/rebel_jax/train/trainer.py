@@ -184,7 +184,7 @@ class Trainer:
             height, width, _ = self.obs_shape
             size = (self.capacity, n, (height, width, 3), actions, self.episode_length, self.env.frames)
             return frame_replay.init(*size, learned_reward=self.preference)
-        return replay.init(self.capacity, n, self.obs_shape[0], actions, self._qpos_size())
+        return replay.init(self.capacity, n, self.obs_shape[0], actions, self._qpos_size(), self._scene_size())
 
     def _qpos_size(self) -> int:
         """Physics positions stored per transition: the task's qpos for the host teacher, else none."""
@@ -192,6 +192,13 @@ class Trainer:
             return 0
         state = jax.eval_shape(self.env.reset, jax.random.PRNGKey(0))
         return physics_positions(state.pipeline_state).shape[-1]
+
+    def _scene_size(self) -> int:
+        """Numbers of a frame's scene stored per transition (``env.scene``, a Meta-World task's) for the host teacher,
+        else none."""
+        if not self.host_teacher or not hasattr(self.env, "scene"):
+            return 0
+        return jax.eval_shape(lambda key: self.env.scene(self.env.reset(key)), jax.random.PRNGKey(0)).shape[-1]
 
     # -- one vector step ------------------------------------------------------------------
     def _act(self, ts: TrainState, t: jax.Array, key: jax.Array) -> jax.Array:
@@ -222,7 +229,8 @@ class Trainer:
             step = frame_replay.FrameStep(**fields, episode_step=(t % self.episode_length).astype(jnp.int32))
         else:
             qpos = physics_positions(ts.env.pipeline_state)[:n] if self.host_teacher else None
-            step = replay.Step(**fields, episode_step=ts.env.info["steps"][:n], qpos=qpos)
+            scene = self.env.scene(ts.env)[:n] if self.host_teacher and hasattr(self.env, "scene") else None
+            step = replay.Step(**fields, episode_step=ts.env.info["steps"][:n], qpos=qpos, scene=scene)
         episodes = ts.episodes.after_step(nxt.reward, nxt.done, n, nxt.info.get("success"))
         return self.ring.add(ts.buffer, step), episodes
 

@@ -6,6 +6,11 @@
   visual assets added back (skybox, checker floor, light), which the physics model leaves out.
   Only visual elements are added, so the positions mean the same. MuJoCo needs an OpenGL
   context: ``MUJOCO_GL=egl`` (a GPU, or Mesa's software EGL) or ``MUJOCO_GL=osmesa``.
+- Meta-World's tasks (``metaworld_*``): MuJoCo's renderer on Meta-World's own model (its scene, table and
+  lights) through its camera ``corner4`` (:data:`METAWORLD_CAMERA`), turned right side up. Meta-World's reset moves
+  bodies and the goal site of the model, and the hand follows a mocap body, so each frame is drawn from the step's
+  ``qpos`` and its *scene* (the mocap's position, the moved body's and the goal site's, which the buffer stores per
+  step for these tasks: ``rebel_jax.envs.metaworld.frame_scene``).
 - ``probe_point``: it has no MuJoCo model; a clip is a 2-D plot of the point (NumPy), its
   trail and the goal at the centre, shaded by the reward.
 
@@ -33,12 +38,26 @@ INSTRUCTIONS = {
     "cheetah_run": "Which cheetah runs forward (to the right) faster?",
     "quadruped_walk": "Which quadruped walks forward (the way its head points) better, while staying upright?",
     "quadruped_run": "Which quadruped runs forward (the way its head points) faster, while staying upright?",
+    "metaworld_drawer-open": "Which arm pulls the drawer further open (by its handle, towards the green dot)?",
+    "metaworld_sweep-into": "Which arm sweeps the small block closer to the hole (the blue dot), or into it?",
+    "metaworld_door-open": "Which arm swings the door further open (by its handle, towards the green dot)?",
+    "metaworld_button-press": "Which arm pushes the button further in?",
+    "metaworld_window-open": "Which arm slides the window further open (by its handle, towards the green dot)?",
+    "metaworld_door-unlock": "Which arm turns the door's lock further open?",
+    "metaworld_hammer": "Which arm drives the nail further into the box with the hammer?",
 }
 """The question the page asks for each task."""
 
 CAMERAS = {"quadruped_walk": "y", "quadruped_run": "y"}
 """The camera of each MJX task's clips where it is not ``side``: the quadruped's side view, ``y`` (camera 2,
 DrQ-v2's quadruped camera), which tracks the centre of mass from 4 m away."""
+
+
+METAWORLD_CAMERA = "corner4"
+"""The camera of Meta-World's clips: ``corner4`` of its scene (``metaworld_assets/objects/assets/xyz_base.xml``,
+one of the cameras Meta-World's documentation lists, metaworld@3.1.1:docs/rendering/rendering.md:29), close enough
+that the arm, the object and the goal of every task fill the picture (``corner`` shows the door's back, ``corner2``
+and ``corner3`` the whole table from further away)."""
 
 
 class ClipError(RuntimeError):
@@ -49,7 +68,8 @@ class Renderer(Protocol):
     fps: float
 
     def frames(self, positions: np.ndarray) -> np.ndarray:
-        """(H, nq) positions -> (H, S, S, 3) uint8 frames."""
+        """(H, nq) positions -> (H, S, S, 3) uint8 frames (a Meta-World task's renderer also takes the (H, k)
+        scenes, :meth:`MetaWorldRenderer.frames`)."""
         ...
 
 
@@ -133,15 +153,7 @@ class MujocoRenderer:
         self.size = size
         self.camera = CAMERAS.get(task, "side") if camera is None else camera
         self._mujoco = mujoco
-        try:
-            self.renderer = mujoco.Renderer(self.model, size, size)
-        except Exception as err:  # glfw without a display, EGL or OSMesa libraries missing, ...
-            backend = os.environ.get("MUJOCO_GL") or "unset (glfw, which needs a display)"
-            raise ClipError(
-                f"MuJoCo could not open an OpenGL context to render clips (MUJOCO_GL is {backend}): {err}. "
-                "Set MUJOCO_GL=egl (a GPU, or Mesa's EGL: apt-get install libegl1 libgl1-mesa-dri) or "
-                "MUJOCO_GL=osmesa (apt-get install libosmesa6) before starting."
-            ) from err
+        self.renderer = open_renderer(self.model, size)
 
     def frames(self, positions: np.ndarray) -> np.ndarray:
         mujoco = self._mujoco
@@ -158,10 +170,89 @@ class MujocoRenderer:
         self.renderer.close()
 
 
-def make_renderer(task: str, size: int = 256) -> ProbeRenderer | MujocoRenderer:
+def open_renderer(model, size: int):
+    """MuJoCo's renderer of ``model``, ``size`` pixels square; :class:`ClipError` naming the fix where MuJoCo finds
+    no OpenGL context."""
+    import mujoco
+
+    try:
+        return mujoco.Renderer(model, size, size)
+    except Exception as err:  # glfw without a display, EGL or OSMesa libraries missing, ...
+        backend = os.environ.get("MUJOCO_GL") or "unset (glfw, which needs a display)"
+        raise ClipError(
+            f"MuJoCo could not open an OpenGL context to render clips (MUJOCO_GL is {backend}): {err}. "
+            "Set MUJOCO_GL=egl (a GPU, or Mesa's EGL: apt-get install libegl1 libgl1-mesa-dri) or "
+            "MUJOCO_GL=osmesa (apt-get install libosmesa6) before starting."
+        ) from err
+
+
+class MetaWorldRenderer:
+    """A Meta-World task's clip: MuJoCo's renderer on Meta-World's model, posed per frame by
+    ``rebel_jax.envs.metaworld.pose`` (the step's ``qpos`` and scene), through :data:`METAWORLD_CAMERA`.
+
+    Meta-World's corner cameras look at the table upside down (their image ``y`` axis points down in the world; its
+    documentation shows them rotated, metaworld@3.1.1:docs/rendering/rendering.md:45): a frame whose camera is so
+    is turned by 180 degrees, the picture of the same camera rolled right side up (not a mirror image).
+
+    Args:
+      task: ``metaworld_<task>`` or ``<task>``, a key of ``rebel_jax.envs.metaworld.TASKS`` (the tasks whose step
+        is refused too: their clips draw recorded states).
+      size: width and height of a frame, in pixels.
+      camera: a camera of the model (name or id); None: :data:`METAWORLD_CAMERA`.
+    """
+
+    image_format = "JPEG"
+
+    def __init__(self, task: str, size: int = 256, camera: int | str | None = None):
+        import mujoco
+
+        from rebel_jax.envs import metaworld
+
+        name = task.removeprefix(metaworld.PREFIX)
+        if name not in metaworld.TASKS:
+            raise ClipError(f"unknown Meta-World task {task!r}; valid: {', '.join(metaworld.TASKS)}")
+        self.task, self._pose = name, metaworld.pose
+        self.model = metaworld.mj_model(name)
+        self.data = mujoco.MjData(self.model)
+        self.fps = 1.0 / (float(self.model.opt.timestep) * metaworld.FRAME_SKIP)
+        self.size = size
+        self.camera = METAWORLD_CAMERA if camera is None else camera
+        try:
+            self._camera_id = self.model.camera(self.camera).id
+        except (KeyError, IndexError) as err:
+            names = ", ".join(self.model.camera(i).name for i in range(self.model.ncam))
+            raise ClipError(f"metaworld_{name} has no camera {self.camera!r}; valid: {names}") from err
+        self.renderer = open_renderer(self.model, size)
+
+    def upside_down(self) -> bool:
+        """Whether the camera's image ``y`` axis points down in the world at the current pose."""
+        return bool(self.data.cam_xmat[self._camera_id, 7] < 0)  # row 2 (world z), column 1 (image y)
+
+    def frames(self, positions: np.ndarray, scenes: np.ndarray | None = None) -> np.ndarray:
+        """(H, nq) positions and their (H, k) scenes -> (H, S, S, 3) uint8 frames."""
+        if scenes is None:
+            raise ClipError(f"metaworld_{self.task}'s clips need the stored scenes beside the positions")
+        positions, scenes = np.asarray(positions, np.float64), np.asarray(scenes, np.float64)
+        out = np.empty((len(positions), self.size, self.size, 3), np.uint8)
+        for t, (qpos, scene) in enumerate(zip(positions, scenes, strict=True)):
+            self._pose(self.task, self.model, self.data, qpos, scene)
+            self.renderer.update_scene(self.data, camera=self._camera_id)
+            frame = self.renderer.render()
+            out[t] = frame[::-1, ::-1] if self.upside_down() else frame
+        return out
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def make_renderer(task: str, size: int = 256) -> ProbeRenderer | MujocoRenderer | MetaWorldRenderer:
     """The clip renderer of ``task`` (raises :class:`ClipError` where it cannot render)."""
     if size < 16:
         raise ClipError(f"clip size {size} is too small: allowed >= 16")
     if task == "probe_point":
         return ProbeRenderer(size)
+    from rebel_jax.envs.metaworld import PREFIX
+
+    if task.startswith(PREFIX):
+        return MetaWorldRenderer(task, size)
     return MujocoRenderer(task, size)

@@ -6,7 +6,8 @@ For a round that starts on the feedback schedule, :meth:`HostTeacher.before_roun
    the scripted round would, and the scripted teacher's ``teach`` on them (its answers are
    recorded beside the person's, for the agreement metric; the page never sees them);
 2. gets an answer per query: from ``labels.jsonl`` where the journal already has it (``--resume``,
-   ``--teacher replay``), else from the page, clips rendered from the buffer's stored positions;
+   ``--teacher replay``), else from the page, clips rendered from the buffer's stored positions (and, for a
+   Meta-World task, the stored scenes: the mocap, the moved body and the goal site);
 3. runs the jitted ``Trainer.session_learn`` with the labels as data.
 
 The trainer's round itself (built with ``host_teacher=True``) then runs without a session.
@@ -194,6 +195,7 @@ class HostTeacher:
 
     def _ask(self, state, round_index, records, remaining, asked, journal) -> SessionAnswers:
         positions = {"a": self._positions(state, asked.seg_a), "b": self._positions(state, asked.seg_b)}
+        scenes = {"a": self._scenes(state, asked.seg_a), "b": self._scenes(state, asked.seg_b)}
         queries = []
         for rec in records:
             left = "b" if random.Random(f"{self.seed}:{rec['query']}").random() < 0.5 else "a"
@@ -206,7 +208,7 @@ class HostTeacher:
         for query in queries:  # The page can start on the first query while the others render.
             sides = {"left": query.left, "right": "b" if query.left == "a" else "a"}
             sheets = {
-                side: (clips_lib.sheet(self.renderer.frames(positions[seg][query.index]), image_format), mime)
+                side: (clips_lib.sheet(self._frames(positions[seg], scenes[seg], query.index), image_format), mime)
                 for side, seg in sides.items()
             }
             self.labelling.add_clips(query, sheets)
@@ -214,12 +216,26 @@ class HostTeacher:
         print(f"human feedback: round {round_index}'s session closed ({reason})", flush=True)
         return session.answers
 
-    def _positions(self, state, seg) -> np.ndarray:
-        """(N, H, nq) stored positions of the central steps of column 0's segments."""
-        buffer = state.buffer
+    def _frames(self, positions: np.ndarray, scenes: np.ndarray | None, index: int) -> np.ndarray:
+        """The frames of segment ``index``: drawn from its positions, and its scenes where the buffer stores them."""
+        if scenes is None:
+            return self.renderer.frames(positions[index])
+        return self.renderer.frames(positions[index], scenes[index])
+
+    def _central(self, field, seg) -> np.ndarray:
+        """(N, H, ...) ``field``'s rows (column 0) at the central steps of column 0's segments."""
         row = np.asarray(seg.row[0, :, self.crop : self.crop + self.horizon])
         env = np.asarray(seg.env[0, :, self.crop : self.crop + self.horizon])
-        return np.asarray(buffer.qpos[0][row, env])
+        return np.asarray(field[0][row, env])
+
+    def _positions(self, state, seg) -> np.ndarray:
+        """(N, H, nq) stored positions of the central steps of column 0's segments."""
+        return self._central(state.buffer.qpos, seg)
+
+    def _scenes(self, state, seg) -> np.ndarray | None:
+        """(N, H, k) stored scenes (a Meta-World task's mocap, moved body and goal site) of the central steps of column
+        0's segments, or None where the buffer stores none."""
+        return None if state.buffer.scene is None else self._central(state.buffer.scene, seg)
 
     def _shown_url(self) -> str:
         """The page's first URL as the console shows it (a token given on the command line is not repeated)."""
