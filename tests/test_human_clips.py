@@ -516,3 +516,56 @@ def test_a_human_session_on_metaworld_serves_clips_of_the_stored_states():
     assert result["positions"] == [8, 10] and result["scenes"] == [8, 9]  # qpos; the mocap, drawer and goal
     assert result["drawers"] >= 2  # the clips show more than one episode's drawer
     assert result["labels"] > 0
+
+
+# A Meta-World episode's video (the eval.gif of the training command, python -m rebel_jax.run.video), in a new process.
+METAWORLD_VIDEO = textwrap.dedent(
+    """
+    import json, sys
+    import jax, jax.numpy as jnp
+    import numpy as np
+    sys.path.insert(0, sys.argv[1])
+    from test_human_clips import KinematicDrawer
+    from rebel_jax.run import video
+    from rebel_jax.run.human import clips
+
+    class Drawn(KinematicDrawer):
+        spec = property(lambda self: self.task.spec)
+        dt = property(lambda self: self.task.dt)
+
+    env, steps, size = Drawn(500), 8, 96
+    policy = lambda obs: jnp.array([1.0, -1.0, 0.0, 0.0])  # the hand 1 cm in +x and -y, the drawer 1 cm open a step
+    written = {}
+    video.write = lambda path, frames, fps: written.update(frames=np.asarray(frames), fps=fps)
+    try:
+        total = video.policy_video(env, policy, jax.random.PRNGKey(3), "unused.gif", steps, size)
+    except clips.ClipError as err:
+        print(json.dumps({"error": str(err)}))
+        sys.exit(0)
+    # The reference: the same episode stepped one step at a time, each state drawn by a renderer of its own.
+    state, positions, scenes, rewards = env.reset(jax.random.PRNGKey(3)), [], [], []
+    for t in range(steps + 1):
+        positions.append(np.asarray(state.pipeline_state.qpos))
+        scenes.append(np.asarray(env.scene(state)))
+        if t < steps:
+            state = env.step(state, policy(state.obs))
+            rewards.append(float(state.reward))
+    renderer = clips.make_renderer("metaworld_drawer-open", size)
+    expected = renderer.frames(np.asarray(positions), np.asarray(scenes)).astype(int)
+    renderer.close()
+    frames = written["frames"].astype(int)
+    print(json.dumps({
+        "shape": list(frames.shape), "fps": written["fps"], "total": total, "rewards": sum(rewards),
+        "largest_error": float(np.abs(frames - expected).max()), "moved": float(np.abs(frames[-1] - frames[0]).mean()),
+    }))
+    """
+)
+
+
+def test_a_metaworld_episodes_video_draws_each_state_of_the_episode():
+    """``video.policy_video`` on a Meta-World task (drawer-open stepped kinematically) draws the reset state and then
+    each step's state with its scene, at Meta-World's 80 frames a second, and returns the episode's return."""
+    result = _rendered(METAWORLD_VIDEO, str(ROOT / "tests"))
+    assert result["shape"] == [9, 96, 96, 3] and result["fps"] == pytest.approx(80.0)
+    assert result["largest_error"] == 0.0 and result["moved"] > 0.1  # the hand and the drawer moved
+    assert result["total"] == pytest.approx(result["rewards"], rel=1e-6)

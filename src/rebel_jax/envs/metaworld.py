@@ -998,9 +998,9 @@ class MetaWorldEnv(Env):
       info: ``success`` (1.0 where Meta-World's ``info["success"]`` is true), ``target_pos``, ``init_tcp`` and
         ``body_pos`` (the reset's draw), and with a time limit ``steps`` and ``truncation``.
 
-    Its compiled MuJoCo model is ``mujoco_model`` (not ``mj_model``, which the training command's evaluation clip and
-    ``rebel_jax.run.video`` look for: they do not draw Meta-World's scenes yet). The labelling page's clips draw them
-    (:meth:`scene`, ``rebel_jax.run.human.clips.MetaWorldRenderer``).
+    Its compiled MuJoCo model is ``mujoco_model``. The labelling page's clips, the training command's evaluation clip
+    and ``rebel_jax.run.video`` draw its states from their ``qpos`` and :meth:`scene`
+    (``rebel_jax.run.human.clips.MetaWorldRenderer``).
 
     Args:
       task: a key of :data:`TASKS`.

@@ -29,7 +29,7 @@ from jax.sharding import NamedSharding
 from rebel_jax import api
 from rebel_jax.config import ConfigError
 from rebel_jax.preference import teachers
-from rebel_jax.run import rundir
+from rebel_jax.run import rundir, video
 from rebel_jax.run.checkpoint import Checkpointer, CheckpointMismatch
 from rebel_jax.run.cli_args import Args, swept_knob
 from rebel_jax.run.cli_outputs import _eval_clip, _final_result, _learning_curve, method_metrics
@@ -336,7 +336,7 @@ class Run:
             if self.host is not None:
                 self.host.finish(result)  # The labelling page says the run has finished, and where its files are.
             files.append(_learning_curve(args, run_dir, self.random))
-        if args.video_steps > 0 and hasattr(self.trainer.env, "mj_model"):
+        if args.video_steps > 0 and video.drawable(self.trainer.env):
             policy = placement.to_host(policy)  # Every process: a collective with several.
             if self.primary:
                 files.append(_eval_clip(args, self.trainer, policy, run_dir))

@@ -7,9 +7,9 @@ persistent compilation cache of ``python -m rebel_jax.train`` (``--compile-cache
 :mod:`rebel_jax.run.compile_cache`). GIFs are written with
 imageio's Pillow plugin; MP4 needs imageio's ffmpeg plugin (``pip install imageio-ffmpeg``).
 ``rebel_jax.run.cli`` writes ``eval.gif`` at the end of each run of a MuJoCo task. The tasks the pure-JAX
-camera cannot draw (the quadruped: ellipsoids and cylinders) are drawn by MuJoCo's renderer from the
-episode's positions, as the labelling page's clips are (:class:`rebel_jax.run.human.clips.MujocoRenderer`;
-it needs ``MUJOCO_GL=egl`` or ``osmesa``).
+camera cannot draw (the quadruped: ellipsoids and cylinders; Meta-World's) are drawn by MuJoCo's renderer from the
+episode's positions (and a Meta-World task's scenes), as the labelling page's clips are
+(:mod:`rebel_jax.run.human.clips`; it needs ``MUJOCO_GL=egl`` or ``osmesa``).
 """
 
 from __future__ import annotations
@@ -68,22 +68,44 @@ def episode_frames(
 
 def episode_positions(
     env, policy: Callable[[jax.Array], jax.Array], key: jax.Array, steps: int
-) -> tuple[jax.Array, jax.Array]:
-    """Positions ``(steps + 1, nq)`` and the total reward of one episode of ``policy(obs) -> action``, for a
-    renderer outside JAX. Jittable (``env``, ``policy`` and ``steps`` static). The first row is the reset state."""
+) -> tuple[jax.Array, jax.Array | None, jax.Array]:
+    """Positions ``(steps + 1, nq)``, scenes ``(steps + 1, k)`` and the total reward of one episode of
+    ``policy(obs) -> action``, for a renderer outside JAX. The scenes are what a Meta-World frame needs beyond
+    ``qpos`` (``env.scene``), None for a task without them. Jittable (``env``, ``policy`` and ``steps`` static). The
+    first row is the reset state."""
+    scene = getattr(env, "scene", lambda state: None)
     state = env.reset(key)
 
     def body(state, _):
         state = env.step(state, policy(state.obs))
-        return state, (state.pipeline_state.qpos, state.reward)
+        return state, (state.pipeline_state.qpos, scene(state), state.reward)
 
-    _, (qpos, rewards) = jax.lax.scan(body, state, length=steps)
-    return jnp.concatenate([state.pipeline_state.qpos[None], qpos]), rewards.sum()
+    _, (qpos, scenes, rewards) = jax.lax.scan(body, state, length=steps)
+    first = scene(state)
+    scenes = None if first is None else jnp.concatenate([first[None], scenes])
+    return jnp.concatenate([state.pipeline_state.qpos[None], qpos]), scenes, rewards.sum()
+
+
+def is_metaworld(env) -> bool:
+    """Whether ``env`` is a Meta-World task, whose frames need its scene (``env.scene``) beside ``qpos``."""
+    return hasattr(env, "scene")
+
+
+def drawable(env) -> bool:
+    """Whether videos of ``env`` can be drawn: a MuJoCo task (``mj_model``) or a Meta-World task."""
+    return hasattr(env, "mj_model") or is_metaworld(env)
+
+
+def render_model(env):
+    """The MuJoCo model that ``env``'s frames are drawn from (its cameras are those of ``--camera``)."""
+    return env.mujoco_model if is_metaworld(env) else env.mj_model
 
 
 def drawn_by_mujoco(env) -> bool:
     """Whether ``env`` (a state task) has geoms that the pure-JAX camera does not draw, so that its videos are
-    drawn by MuJoCo's renderer."""
+    drawn by MuJoCo's renderer (every Meta-World task)."""
+    if is_metaworld(env):
+        return True
     spec = getattr(env, "spec", None)
     return spec is not None and not spec.has_pixels
 
@@ -100,17 +122,23 @@ def policy_video(
     """Renders one episode of ``policy`` on ``env`` (a MuJoCo task) to ``path``; returns its return.
 
     ``camera``: a camera id or name of the model; None: camera 0, or where MuJoCo's renderer draws the task, the
-    labelling page's camera (``rebel_jax.run.human.clips.CAMERAS``). Raises ``rebel_jax.run.human.ClipError`` where
-    MuJoCo's
-    renderer is needed and has no OpenGL context.
+    labelling page's camera (``rebel_jax.run.human.clips.CAMERAS``; Meta-World's ``corner4``). Raises
+    ``rebel_jax.run.human.ClipError`` where MuJoCo's renderer is needed and has no OpenGL context.
     """
     if drawn_by_mujoco(env):
-        from rebel_jax.run.human.clips import MujocoRenderer
+        from rebel_jax.envs.metaworld import PREFIX
+        from rebel_jax.run.human.clips import MetaWorldRenderer, MujocoRenderer
 
-        renderer = MujocoRenderer(env.spec.name, size, camera)
+        if is_metaworld(env):
+            renderer = MetaWorldRenderer(f"{PREFIX}{env.spec.name}", size, camera)
+        else:
+            renderer = MujocoRenderer(env.spec.name, size, camera)
         try:
-            positions, total = jax.jit(lambda k: episode_positions(env, policy, k, steps))(key)
-            frames = renderer.frames(np.asarray(positions))
+            positions, scenes, total = jax.jit(lambda k: episode_positions(env, policy, k, steps))(key)
+            if scenes is None:
+                frames = renderer.frames(np.asarray(positions))
+            else:
+                frames = renderer.frames(np.asarray(positions), np.asarray(scenes))
         finally:
             renderer.close()
     else:
@@ -215,7 +243,7 @@ def _camera(env, camera: str | None) -> int | str | None:
         return None
     import mujoco
 
-    model = env.mj_model
+    model = render_model(env)
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
     if camera.isdigit() and int(camera) < max(model.ncam, 1):
         return int(camera)
@@ -288,7 +316,7 @@ def _main(argv: list[str] | None) -> pathlib.Path:
     chosen = {}
 
     def check_model(trainer) -> None:  # before the checkpoint is read
-        if not hasattr(trainer.env, "mj_model"):
+        if not drawable(trainer.env):
             raise ConfigError(f"the run's task {trainer.cfg.env.task!r} has no MuJoCo model to render")
         chosen["camera"] = _camera(trainer.env, args.camera)
         chosen["steps"] = args.steps or trainer.env.episode_length
