@@ -5,6 +5,9 @@ Usage:
   python benchmarks/mjx_cost.py near [--task drawer-open]
   python benchmarks/mjx_cost.py time [--task drawer-open] [--parts step forward collision ...] [--repeats 20]
   python benchmarks/mjx_cost.py fidelity [--task drawer-open] [--every 16]
+  python benchmarks/mjx_cost.py agree [--task drawer-open] [--every 64] [--option xla_cpu_use_fusion_emitters=false]
+  python benchmarks/mjx_cost.py depth [--depths 4 5 6 7 8 9]
+  add --xla-flags=FLAGS to any of them for this process's XLA_FLAGS (recorded in each row)
 
 ``census``: the model's sizes that set MJX's cost: geoms by type, meshes (vertices, faces, the convex hull MuJoCo
 builds and the one MJX collides: vertices, faces, edges), the geom pairs MJX's collision driver builds after the
@@ -24,10 +27,23 @@ contacts, for each part: ``step`` (one ``mjx.step``, a physics substep; a contro
 ``step_nomesh`` (no pair with a mesh geom), ``step_far_dropped`` (without the pairs that can never come within their
 margin: :func:`droppable_pairs`), ``forward_far_dropped``, ``collision_far_dropped``; a ``_hull64`` suffix caps the
 meshes' convex hulls at 64 vertices (``maxhullvert``). On the CPU the factorizations run in plain JAX operations, as
-the tasks run them.
+the tasks run them. Each part is lowered and compiled once ahead of time and the compiled program is called
+directly, so nothing is traced or compiled again while timing; the model is a constant of the program (closed over,
+as the tasks' step has it), the data an argument already on the device. A row also gives the warm-up call's
+milliseconds (``first_call_ms``), a jitted call returning its data argument unchanged (``identity_call_ms``: the
+harness's own cost per call) and the optimized program's instruction count (``hlo_instructions``).
+
+``depth``: the same timing of ``mjx.kinematics`` on a chain of ``n`` bodies, one hinge each (``--depths``), and
+on dm_control's walker, cheetah and quadruped (:func:`rebel_jax.envs.dmc.mj_model`). On the CPU, XLA's fusion
+emitters (``--xla_cpu_use_fusion_emitters``, on by default in jaxlib 0.10.2) make ``mjx.kinematics`` cost time that
+grows exponentially with the depth of the kinematic tree (drawer-open's is 13 bodies deep): compare the rows with
+``--xla-flags=--xla_cpu_use_fusion_emitters=false``.
 
 ``fidelity``: one control step (the task's ``step``) of the full model and of the one without the droppable pairs,
 from every ``--every``-th recorded state, against Meta-World's next state, and against each other.
+
+``agree``: one control step from every ``--every``-th recorded state, compiled with XLA's default options and with
+``--option`` (XLA debug options, ``name=value``), against each other: whether a compiler option changes the step.
 
 Rows go to ``benchmarks/results/mjx_cost.json``.
 """
@@ -50,7 +66,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver
-from timing import merge_rows, provenance
+from timing import add_xla_flags_argument, merge_rows, provenance, use_xla_flags
 
 from rebel_jax.envs import metaworld
 from rebel_jax.envs._mjx import plain_cholesky
@@ -58,7 +74,7 @@ from rebel_jax.envs._mjx import plain_cholesky
 ROOT = pathlib.Path(__file__).parents[1]
 DATA = ROOT / "tests" / "data" / "metaworld"
 RESULTS = ROOT / "benchmarks" / "results" / "mjx_cost.json"
-FIELDS = ("device", "commit", "task", "part")
+FIELDS = ("device", "commit", "xla_flags", "task", "part")
 CLEARANCE = 0.0005
 """A pair is droppable when the lower bound of its distance exceeds its margin by this much (metres)."""
 SLIDE_LOW_SLACK, SLIDE_HIGH_SLACK = 0.3, 0.05
@@ -417,12 +433,10 @@ def time_part(task: str, part: str, repeats: int) -> dict:
         start = time.perf_counter()
         compiled = jax.jit(lambda dd: fn(mx, dd)).lower(d).compile()
         compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(d))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(d))
-        times.append(time.perf_counter() - t0)
+    first_ms = _call_ms(compiled, d)
+    times = [_call_ms(compiled, d) for _ in range(repeats)]
+    identity = jax.jit(lambda dd: dd).lower(d).compile()
+    _call_ms(identity, d)
     return {
         "part": part,
         "row": row,
@@ -430,9 +444,64 @@ def time_part(task: str, part: str, repeats: int) -> dict:
         "contacts": int(d._impl.contact.dist.shape[0]),
         "nefc": int(d._impl.nefc),
         "compile_s": round(compile_s, 1),
-        "median_ms": round(1e3 * statistics.median(times), 3),
+        "hlo_instructions": _instructions(compiled.as_text()),
+        "first_call_ms": round(first_ms, 3),
+        "median_ms": round(statistics.median(times), 3),
+        "identity_call_ms": round(statistics.median(_call_ms(identity, d) for _ in range(repeats)), 3),
         "repeats": repeats,
     }
+
+
+def chain(n: int) -> mujoco.MjModel:
+    """A chain of ``n`` bodies, each 10 cm above and turned from its parent, on one hinge, with one sphere that
+    collides with nothing."""
+    body = "".join(
+        '<body pos="0 0 0.1" quat="0.98 0.1 0.1 0.1"><joint type="hinge" axis="0 1 0"/>'
+        '<geom type="sphere" size="0.01" contype="0" conaffinity="0"/>'
+        for _ in range(n)
+    )
+    return mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{body}{'</body>' * n}</worldbody></mujoco>")
+
+
+def tree_depth(m: mujoco.MjModel) -> int:
+    """The most bodies on a path from the world to a body."""
+    depth = np.zeros(m.nbody, int)
+    for b in range(1, m.nbody):  # parents come first
+        depth[b] = depth[m.body_parentid[b]] + 1
+    return int(depth.max())
+
+
+def time_kinematics(m: mujoco.MjModel, repeats: int) -> dict:
+    """:func:`time_part`'s timing of ``mjx.kinematics`` at ``m``'s default data."""
+    mx = mjx.put_model(m)
+    d = jax.device_put(mjx.make_data(m))
+    start = time.perf_counter()
+    compiled = jax.jit(lambda dd: mjx.kinematics(mx, dd)).lower(d).compile()
+    compile_s = time.perf_counter() - start
+    first_ms = _call_ms(compiled, d)
+    times = [_call_ms(compiled, d) for _ in range(repeats)]
+    return {
+        "nbody": m.nbody,
+        "njnt": m.njnt,
+        "depth": tree_depth(m),
+        "compile_s": round(compile_s, 1),
+        "hlo_instructions": _instructions(compiled.as_text()),
+        "first_call_ms": round(first_ms, 3),
+        "median_ms": round(statistics.median(times), 3),
+        "repeats": repeats,
+    }
+
+
+def _call_ms(compiled, *args) -> float:
+    """Milliseconds of one call of ``compiled`` until its results are ready."""
+    start = time.perf_counter()
+    jax.block_until_ready(compiled(*args))
+    return 1e3 * (time.perf_counter() - start)
+
+
+def _instructions(hlo: str) -> int:
+    """Instructions of an optimized HLO module's text (its lines that assign one)."""
+    return sum(1 for line in hlo.splitlines() if line.startswith("  ") and " = " in line)
 
 
 def fidelity(task: str, every: int) -> dict:
@@ -474,14 +543,76 @@ def fidelity(task: str, every: int) -> dict:
     return out
 
 
+def _option(text: str) -> tuple[str, bool | int | float | str]:
+    """``name=value`` as an XLA debug option (booleans and numbers parsed)."""
+    name, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"expected name=value; got {text!r}")
+    low = value.lower()
+    if low in ("true", "false"):
+        return name, low == "true"
+    for kind in (int, float):
+        with contextlib.suppress(ValueError):
+            return name, kind(value)
+    return name, value
+
+
+def agree(task: str, every: int, options: dict) -> dict:
+    """One control step of the task from recorded states, compiled with XLA's defaults and with ``options``."""
+    sys.path.insert(0, str(pathlib.Path(__file__).parent))
+    import metaworld_fidelity as mf  # noqa: PLC0415
+
+    ref = recorded(task)
+    rows = np.where((ref["t"] > 0) & (ref["t"] < metaworld.EPISODE_LENGTH))[0][::every]
+    env = metaworld.MetaWorldEnv(task)
+    states = mf.states_at(env, ref, rows, mf.episodes(env, ref))
+    actions = jax.device_put(mf._f32(ref["action"][rows + 1]))
+    lowered = jax.jit(jax.vmap(env.step)).lower(states, actions)
+    out: dict = {"n": len(rows), "options": {k: str(v) for k, v in options.items()}}
+    stepped = {}
+    for name, opts in (("default", {}), ("options", options)):
+        start = time.perf_counter()
+        compiled = lowered.compile(compiler_options=opts)
+        compile_s = time.perf_counter() - start
+        start = time.perf_counter()
+        stepped[name] = jax.device_get(jax.block_until_ready(compiled(states, actions)))
+        out[f"{name}_compile_s"] = round(compile_s, 1)
+        out[f"{name}_run_s"] = round(time.perf_counter() - start, 2)
+    a, b = stepped["default"], stepped["options"]
+    for field, x, y in (
+        ("qpos", a.pipeline_state.qpos, b.pipeline_state.qpos),
+        ("qvel", a.pipeline_state.qvel, b.pipeline_state.qvel),
+        ("obs", a.obs, b.obs),
+        ("reward", a.reward, b.reward),
+    ):
+        x, y = np.asarray(x), np.asarray(y)
+        out[field] = {
+            "max_abs_diff": float(np.abs(x - y).max()),
+            "max_rel_diff": float((np.abs(x - y) / np.maximum(np.abs(x), 1e-30)).max()),
+            "identical_fraction": float((x == y).mean()),
+        }
+    out["success_mismatches"] = int((np.asarray(a.info["success"]) != np.asarray(b.info["success"])).sum())
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=("census", "near", "time", "fidelity"))
+    parser.add_argument("what", choices=("census", "near", "time", "fidelity", "agree", "depth"))
     parser.add_argument("--task", default="drawer-open", choices=list(metaworld.TASKS))
     parser.add_argument("--parts", nargs="*", default=["step", "forward", "collision", "step_nocontact"])
     parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--every", type=int, default=16)
+    parser.add_argument("--every", type=int, default=None, help="every n-th recorded state (fidelity 16, agree 64)")
+    parser.add_argument(
+        "--option",
+        type=_option,
+        action="append",
+        default=None,
+        help="agree: an XLA debug option name=value (default: xla_cpu_use_fusion_emitters=false)",
+    )
+    parser.add_argument("--depths", type=int, nargs="*", default=[4, 5, 6, 7, 8, 9])
+    add_xla_flags_argument(parser)
     args = parser.parse_args(argv)
+    use_xla_flags(args.xla_flags)
     base = dict(provenance(), task=args.task, mujoco=mujoco.__version__)
     if args.what == "time":
         for part in args.parts:
@@ -489,8 +620,26 @@ def main(argv: list[str] | None = None) -> None:
             print(json.dumps(row), flush=True)
             merge_rows(RESULTS, [row], FIELDS)
         return
-    result = {"census": census, "near": near}.get(args.what)
-    out = result(args.task) if result else fidelity(args.task, args.every)
+    if args.what == "depth":
+        from rebel_jax.envs import dmc  # noqa: PLC0415
+
+        models = {f"chain{n}": chain(n) for n in args.depths}
+        models.update(
+            {task: dmc.mj_model(task, simulated=True) for task in ("walker_walk", "cheetah_run", "quadruped_walk")}
+        )
+        models[args.task] = metaworld.mj_model(args.task)
+        for name, m in models.items():
+            row = dict(base, task=name, part="kinematics", **time_kinematics(m, args.repeats))
+            print(json.dumps(row), flush=True)
+            merge_rows(RESULTS, [row], FIELDS)
+        return
+    if args.what == "agree":
+        options = dict(args.option or [("xla_cpu_use_fusion_emitters", False)])
+        out = agree(args.task, args.every or 64, options)
+    elif args.what == "fidelity":
+        out = fidelity(args.task, args.every or 16)
+    else:
+        out = {"census": census, "near": near}[args.what](args.task)
     row = dict(base, part=args.what, **out)
     print(json.dumps(row, indent=1), flush=True)
     merge_rows(RESULTS, [row], FIELDS)
