@@ -1,7 +1,8 @@
 """How close the Meta-World tasks come to Meta-World 3.1.1 itself, on a CPU.
 
 Usage:
-  python benchmarks/metaworld_fidelity.py [--tasks drawer-open] [--every 16] [--no-step] [--warp door-open ...]
+  python benchmarks/metaworld_fidelity.py [--tasks drawer-open] [--every 16] [--no-step] [--refused-step]
+      [--warp door-open ...]
 
 Against the data recorded from Meta-World (tests/data/metaworld/<task>.npz, made by
 tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as ``metaworld_<task>``):
@@ -11,7 +12,8 @@ tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as 
 - ``hand_reset_mujoco_3_17``: Meta-World's hand reset (50 control steps to ``hand_init_pos``) run by this MuJoCo
   (3.17) instead of Meta-World's (3.3): largest differences of qpos and qvel;
 - ``step``: one control step of MJX's JAX step in float32 from every ``--every``-th recorded state, against the
-  state Meta-World reached with the same action (median and largest errors per state) and the compile time.
+  state Meta-World reached with the same action (median and largest errors per state) and the compile time; a task
+  whose step the tasks refuse (``metaworld.STEP_REFUSED``) only with ``--refused-step``, where MJX builds its model.
 
 ``--warp`` runs the same one-step comparison with MuJoCo Warp's step (MJX ``impl='warp'``, warp-lang installed) on
 the listed tasks' models, which MJX's JAX step cannot collide (cylinder-box); only the physics is compared there.
@@ -97,9 +99,11 @@ def hand_reset_in_this_mujoco(task: str) -> tuple[np.ndarray, np.ndarray]:
     return data.qpos.copy(), data.qvel.copy()
 
 
-def measure(task: str, every: int, step: bool = True) -> dict:
+def measure(task: str, every: int, step: bool = True, refused_step: bool = False) -> dict:
     ref = dict(np.load(DATA / f"{task}.npz"))
     env = metaworld.MetaWorldEnv(task)
+    if refused_step:  # the step is measured here, not offered: the tasks keep refusing it
+        env.step_refused = None
     out: dict = {"versions": [str(v) for v in ref["versions"]]}
     rows = np.where(ref["t"] > 0)[0]
     r = episodes(env, ref)
@@ -212,13 +216,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--every", type=int, default=16)
     parser.add_argument("--warp", nargs="*", default=[])
     parser.add_argument("--no-step", action="store_true", help="leave out the one-step comparison")
+    parser.add_argument(
+        "--refused-step", action="store_true", help="compare the step of a task that refuses it (MJX builds its model)"
+    )
     args = parser.parse_args(argv)
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     for task in args.tasks:
         results[task] = dict(
-            measure(task, args.every, step=not args.no_step),
+            measure(task, args.every, step=not args.no_step, refused_step=args.refused_step),
             date=datetime.date.today().isoformat(),
             JAX_DISABLE_MOST_OPTIMIZATIONS=os.environ.get("JAX_DISABLE_MOST_OPTIMIZATIONS", ""),
+            XLA_FLAGS=os.environ.get("XLA_FLAGS", ""),
         )
         print(task, json.dumps(results[task]), flush=True)
     for task in args.warp:
