@@ -593,7 +593,7 @@ class _DirectCalls(Trainer):
         self.method = _DirectQueries()
         self.feedback._reset_critic = self._direct_reset_critic
 
-    def _updates(self, ts, buffer, key, t, intrinsic=False):
+    def _updates(self, ts, buffer, key, t, pretraining=False):
         cfg, agent_step = self.cfg.drqv2, t * self.num_train
 
         def one(state, key):
@@ -602,7 +602,7 @@ class _DirectCalls(Trainer):
             return self.agent.update(state, batch, key_update, agent_step)
 
         agent, metrics = jax.lax.scan(one, ts.agent, jax.random.split(key, self.updates_per_step))
-        return (agent, None), jax.tree.map(jnp.mean, metrics)
+        return (agent, ts.entropy_stats), jax.tree.map(jnp.mean, metrics)
 
     def _direct_reset_critic(self, ts, key, agent_step):
         cfg = self.cfg.drqv2

@@ -426,11 +426,13 @@ class Trainer:
                 return ts, metrics
 
             def no_session(ts):  # the session's metrics NaN (the method's own too), labels_used as it is
-                shapes = traced or jax.eval_shape(session_fn, ts)[1]  # switch traces its branches in order
+                shapes = traced or jax.eval_shape(session_fn, ts)[1]  # cond traces its true branch first
                 return ts, {**nan_like(shapes), **summary(self.feedback.session_metrics, ts, {})}
 
-            # Branch 0 is the session (traced first), branch 1 the round without one.
-            ts, session = jax.lax.switch(1 - due.astype(jnp.int32), (session_fn, no_session), ts)
+            # The session is traced once (cond's true branch, traced first) and is the conditional's second branch:
+            # with it first (lax.switch) XLA kept a stacked copy of a looped pixel session's columns beside the donated
+            # state (tests/test_pixel_preference.py, test_looped_session_writes_the_columns_in_place...).
+            ts, session = jax.lax.cond(due, session_fn, no_session, ts)
         before = ts.episodes
         t0 = round_index * self.steps_per_round
         ts, metrics = jax.lax.scan(self.vector_step, ts, t0 + jnp.arange(self.steps_per_round))
