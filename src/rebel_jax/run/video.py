@@ -126,13 +126,9 @@ def policy_video(
     ``rebel_jax.run.human.ClipError`` where MuJoCo's renderer is needed and has no OpenGL context.
     """
     if drawn_by_mujoco(env):
-        from rebel_jax.envs.metaworld import PREFIX
         from rebel_jax.run.human.clips import MetaWorldRenderer, MujocoRenderer
 
-        if is_metaworld(env):
-            renderer = MetaWorldRenderer(f"{PREFIX}{env.spec.name}", size, camera)
-        else:
-            renderer = MujocoRenderer(env.spec.name, size, camera)
+        renderer = (MetaWorldRenderer if is_metaworld(env) else MujocoRenderer)(env.spec.name, size, camera)
         try:
             positions, scenes, total = jax.jit(lambda k: episode_positions(env, policy, k, steps))(key)
             if scenes is None:

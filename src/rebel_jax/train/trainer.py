@@ -229,7 +229,7 @@ class Trainer:
             step = frame_replay.FrameStep(**fields, episode_step=(t % self.episode_length).astype(jnp.int32))
         else:
             qpos = physics_positions(ts.env.pipeline_state)[:n] if self.host_teacher else None
-            scene = self.env.scene(ts.env)[:n] if self.host_teacher and hasattr(self.env, "scene") else None
+            scene = self.env.scene(ts.env)[:n] if ts.buffer.scene is not None else None  # as _init_buffer chose
             step = replay.Step(**fields, episode_step=ts.env.info["steps"][:n], qpos=qpos, scene=scene)
         episodes = ts.episodes.after_step(nxt.reward, nxt.done, n, nxt.info.get("success"))
         return self.ring.add(ts.buffer, step), episodes
