@@ -1,8 +1,8 @@
-"""How close the Meta-World tasks come to Meta-World 3.1.1 itself, on a CPU.
+"""How close the Meta-World tasks come to Meta-World 3.1.1 itself.
 
 Usage:
   python benchmarks/metaworld_fidelity.py [--tasks drawer-open] [--every 16] [--no-step] [--refused-step]
-      [--warp door-open ...]
+      [--impl warp]
 
 Against the data recorded from Meta-World (tests/data/metaworld/<task>.npz, made by
 tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as ``metaworld_<task>``):
@@ -11,20 +11,20 @@ tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as 
 - ``reset``: the reset at the draws Meta-World made (largest errors of observation, goal, fingertip centre, qpos);
 - ``hand_reset_mujoco_3_17``: Meta-World's hand reset (50 control steps to ``hand_init_pos``) run by this MuJoCo
   (3.17) instead of Meta-World's (3.3): largest differences of qpos and qvel;
-- ``step``: one control step of MJX's JAX step in float32 from every ``--every``-th recorded state, against the
-  state Meta-World reached with the same action (median and largest errors per state) and the compile time; a task
-  whose step the tasks refuse (``metaworld.STEP_REFUSED``) only with ``--refused-step``, where MJX builds its model.
+- ``step`` (``step_warp`` with ``--impl warp``): one control step of the task's physics step in float32 from every
+  ``--every``-th recorded state, against the state Meta-World reached with the same action (median and largest
+  errors per state: qpos, qvel, observation, reward, success) and the compile time, beside the same step of this
+  MuJoCo in float64 on the CPU (``mujoco_3_17_float64``: what the engines' versions alone change). A task whose
+  step the engine refuses (``metaworld.STEP_REFUSED``) only with ``--refused-step``, where MJX builds its model.
 
-``--warp`` runs the same one-step comparison with MuJoCo Warp's step (MJX ``impl='warp'``, warp-lang installed) on
-the listed tasks' models, which MJX's JAX step cannot collide (cylinder-box); only the physics is compared there.
-Writes ``benchmarks/results/metaworld_fidelity.json``.
+With ``--impl warp`` (warp-lang installed) only the step is measured and the other entries are kept. Writes
+``benchmarks/results/metaworld_fidelity.json``; runs on whatever device JAX picks.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
-import functools
 import json
 import os
 import pathlib
@@ -32,7 +32,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -41,19 +40,6 @@ from rebel_jax.envs import metaworld
 ROOT = pathlib.Path(__file__).parents[1]
 DATA = ROOT / "tests" / "data" / "metaworld"
 RESULTS = ROOT / "benchmarks" / "results" / "metaworld_fidelity.json"
-XML = {
-    "drawer-open": "sawyer_drawer.xml",
-    "door-open": "sawyer_door_pull.xml",
-    "button-press": "sawyer_button_press.xml",
-}
-HAND = {"drawer-open": ((-0.5, 0.40, 0.05), (0.5, 1.0, 0.5))}  # the mocap bounds of each task's hand
-for _t in ("door-open", "button-press"):  # metaworld@3.1.1: sawyer_door_v3.py:29-30, sawyer_button_press_v3.py:26-27
-    HAND[_t] = ((-0.5, 0.40, 0.05), (0.5, 1.0, 0.5))
-
-
-# MuJoCo Warp's buffers per world: its defaults (48 contacts, 64 constraint rows for these models) overflow on
-# contact-rich states and drop contacts.
-CONTACTS, CONSTRAINTS = 256, 1024
 
 
 def _f32(x) -> np.ndarray:
@@ -99,15 +85,50 @@ def hand_reset_in_this_mujoco(task: str) -> tuple[np.ndarray, np.ndarray]:
     return data.qpos.copy(), data.qvel.copy()
 
 
-def measure(task: str, every: int, step: bool = True, refused_step: bool = False) -> dict:
+def mujoco_step(task: str, ref: dict, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One control step of this MuJoCo (3.17, float64, the CPU) from the recorded states ``rows``, as Meta-World
+    steps (sawyer_xyz_env.py:580-640): qpos and qvel after it. Against the recording (Meta-World's MuJoCo) it
+    separates the engines' versions from the ports' differences."""
+    spec = metaworld.TASKS[task]
+    model = metaworld.mj_model(task)
+    data = mujoco.MjData(model)
+    qpos, qvel = [], []
+    for i in rows:
+        model.body_pos[:] = ref["episode_body_pos"][ref["episode"][i]]
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = ref["qpos"][i], ref["qvel"][i]
+        data.qacc_warmstart[:] = ref["qacc_warmstart"][i]
+        action = ref["action"][i + 1]
+        move = np.clip(action[:3], -1.0, 1.0) * metaworld.ACTION_SCALE
+        data.mocap_pos[0] = np.clip(ref["mocap_pos"][i][0] + move, spec.hand_low, spec.hand_high)
+        data.mocap_quat[0] = metaworld.MOCAP_QUAT
+        data.ctrl[:] = (action[3], -action[3])
+        mujoco.mj_step(model, data, nstep=metaworld.FRAME_SKIP)
+        qpos.append(data.qpos.copy())
+        qvel.append(data.qvel.copy())
+    return np.asarray(qpos), np.asarray(qvel)
+
+
+def measure(task: str, every: int, step: bool = True, refused_step: bool = False, impl: str = "jax") -> dict:
     ref = dict(np.load(DATA / f"{task}.npz"))
-    env = metaworld.MetaWorldEnv(task)
+    rows = np.where(ref["t"] > 0)[0]
+    stepped_rows = rows[ref["t"][rows] < metaworld.EPISODE_LENGTH][::every]
+    env = metaworld.MetaWorldEnv(task, impl=impl, worlds=len(stepped_rows))
     if refused_step:  # the step is measured here, not offered: the tasks keep refusing it
         env.step_refused = None
     out: dict = {"versions": [str(v) for v in ref["versions"]]}
-    rows = np.where(ref["t"] > 0)[0]
     r = episodes(env, ref)
+    if impl == "jax":  # the states, reset and hand reset do not depend on the engine: measured with the JAX one
+        out.update(_at_states(env, task, ref, rows, r))
+    if not step or env.step_refused:
+        return out
+    out["step" if impl == "jax" else f"step_{impl}"] = _step(env, task, ref, stepped_rows, r, impl)
+    return out
+
+
+def _at_states(env: metaworld.MetaWorldEnv, task: str, ref: dict, rows: np.ndarray, r) -> dict:
     s = states_at(env, ref, rows, r)
+    out: dict = {}
     out["states"] = {
         "n": len(rows),
         "successes": int(ref["success"][rows].sum()),
@@ -138,75 +159,33 @@ def measure(task: str, every: int, step: bool = True, refused_step: bool = False
         "qpos_max_diff": float(np.abs(qpos - ref["qpos"][first[0]]).max()),
         "qvel_max_diff": float(np.abs(qvel - ref["qvel"][first[0]]).max()),
     }
-    if env.step_refused or not step:
-        return out
-    rows = rows[ref["t"][rows] < metaworld.EPISODE_LENGTH][::every]
-    start = time.perf_counter()
-    stepped = jax.jit(jax.vmap(env.step))(states_at(env, ref, rows, r), _f32(ref["action"][rows + 1]))
-    jax.block_until_ready(stepped)
-    nxt = rows + 1
-    out["step"] = {
-        "impl": "jax",
-        "n": len(rows),
-        "compile_and_run_s": round(time.perf_counter() - start, 1),
-        "qpos_err": _stats(np.abs(np.asarray(stepped.pipeline_state.qpos) - ref["qpos"][nxt])),
-        "qvel_err": _stats(np.abs(np.asarray(stepped.pipeline_state.qvel) - ref["qvel"][nxt])),
-        "obs_err": _stats(np.abs(np.asarray(stepped.obs) - ref["obs"][nxt])),
-        "reward_err": _stats(np.abs(np.asarray(stepped.reward) - ref["reward"][nxt])),
-        "success_mismatches": int((np.asarray(stepped.info["success"]) != ref["success"][nxt]).sum()),
-    }
     return out
 
 
-def measure_warp(task: str, every: int) -> dict:
-    """One control step of MuJoCo Warp's step (float32) from recorded states: the mocap moved as Meta-World moves
-    it, the gripper set, 5 physics steps; the model's bodies where the recorded reset put them."""
-    from mujoco import mjx  # noqa: PLC0415
-
-    ref = dict(np.load(DATA / f"{task}.npz"))
-    model = mujoco.MjModel.from_xml_path(str(metaworld.ASSETS / "sawyer_xyz" / XML[task]))
-    for i in range(model.neq):
-        model.eq_data[i, : len(metaworld.WELD_DATA)] = metaworld.WELD_DATA
-    low, high = (jnp.asarray(b) for b in HAND[task])
-
-    def one(m, qpos, qvel, mocap_pos, qacc_warmstart, action):
-        d = mjx.make_data(model, impl="warp", naconmax=CONTACTS, njmax=CONSTRAINTS)
-        mocap = jnp.clip(mocap_pos[0] + jnp.clip(action[:3], -1, 1) * metaworld.ACTION_SCALE, low, high)
-        d = d.replace(
-            qpos=qpos,
-            qvel=qvel,
-            qacc_warmstart=qacc_warmstart,
-            mocap_pos=mocap[None],
-            mocap_quat=jnp.asarray([metaworld.MOCAP_QUAT]),
-            ctrl=jnp.stack([action[3], -action[3]]),
-        )
-        for _ in range(metaworld.FRAME_SKIP):
-            d = mjx.step(m, d)
-        return d.qpos, d.qvel
-
-    rows = np.where((ref["t"] > 0) & (ref["t"] < metaworld.EPISODE_LENGTH))[0][::every]
-    qpos_err, qvel_err = [], []
+def _step(env: metaworld.MetaWorldEnv, task: str, ref: dict, rows: np.ndarray, r, impl: str) -> dict:
+    nxt = rows + 1
     start = time.perf_counter()
-    for e in np.unique(ref["episode"][rows]):
-        model.body_pos[:] = ref["episode_body_pos"][e]
-        step = jax.jit(functools.partial(one, mjx.put_model(model, impl="warp")))
-        for i in rows[ref["episode"][rows] == e]:
-            q, v = step(
-                _f32(ref["qpos"][i]),
-                _f32(ref["qvel"][i]),
-                _f32(ref["mocap_pos"][i]),
-                _f32(ref["qacc_warmstart"][i]),
-                _f32(ref["action"][i + 1]),
-            )
-            qpos_err.append(np.abs(np.asarray(q) - ref["qpos"][i + 1]).max())
-            qvel_err.append(np.abs(np.asarray(v) - ref["qvel"][i + 1]).max())
+    stepped = jax.jit(jax.vmap(env.step))(states_at(env, ref, rows, r), _f32(ref["action"][nxt]))
+    jax.block_until_ready(stepped)
+    seconds = round(time.perf_counter() - start, 1)
+    qpos, qvel = mujoco_step(task, ref, rows)
+    ours = np.asarray(stepped.pipeline_state.qpos), np.asarray(stepped.pipeline_state.qvel)
     return {
-        "impl": "warp",
-        "device": "cpu",
+        "impl": impl,
+        "device": jax.devices()[0].device_kind,
         "n": len(rows),
-        "seconds": round(time.perf_counter() - start, 1),
-        "qpos_err": _stats(np.asarray(qpos_err)),
-        "qvel_err": _stats(np.asarray(qvel_err)),
+        "compile_and_run_s": seconds,
+        "qpos_err": _stats(np.abs(ours[0] - ref["qpos"][nxt])),
+        "qvel_err": _stats(np.abs(ours[1] - ref["qvel"][nxt])),
+        "obs_err": _stats(np.abs(np.asarray(stepped.obs) - ref["obs"][nxt])),
+        "reward_err": _stats(np.abs(np.asarray(stepped.reward) - ref["reward"][nxt])),
+        "success_mismatches": int((np.asarray(stepped.info["success"]) != ref["success"][nxt]).sum()),
+        "mujoco_3_17_float64": {
+            "qpos_err": _stats(np.abs(qpos - ref["qpos"][nxt])),
+            "qvel_err": _stats(np.abs(qvel - ref["qvel"][nxt])),
+            "ours_qpos_diff": _stats(np.abs(ours[0] - qpos)),
+            "ours_qvel_diff": _stats(np.abs(ours[1] - qvel)),
+        },
     }
 
 
@@ -214,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="*", default=list(metaworld.TASKS))
     parser.add_argument("--every", type=int, default=16)
-    parser.add_argument("--warp", nargs="*", default=[])
+    parser.add_argument("--impl", choices=metaworld.IMPLS, default="jax", help="the physics step compared")
     parser.add_argument("--no-step", action="store_true", help="leave out the one-step comparison")
     parser.add_argument(
         "--refused-step", action="store_true", help="compare the step of a task that refuses it (MJX builds its model)"
@@ -222,16 +201,17 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     for task in args.tasks:
+        measured = measure(task, args.every, step=not args.no_step, refused_step=args.refused_step, impl=args.impl)
+        if args.impl != "jax":  # only the step depends on the engine: keep the JAX run's other entries
+            measured = {k: v for k, v in measured.items() if k.startswith("step")}
         results[task] = dict(
-            measure(task, args.every, step=not args.no_step, refused_step=args.refused_step),
+            results.get(task, {}),
+            **measured,
             date=datetime.date.today().isoformat(),
             JAX_DISABLE_MOST_OPTIMIZATIONS=os.environ.get("JAX_DISABLE_MOST_OPTIMIZATIONS", ""),
             XLA_FLAGS=os.environ.get("XLA_FLAGS", ""),
         )
-        print(task, json.dumps(results[task]), flush=True)
-    for task in args.warp:
-        results.setdefault(task, {})["step_warp"] = measure_warp(task, args.every)
-        print(task, json.dumps(results[task]["step_warp"]), flush=True)
+        print(task, json.dumps(measured), flush=True)
     RESULTS.write_text(json.dumps(results, indent=1) + "\n")
 
 

@@ -159,7 +159,13 @@ def rows(args):
                 print(f"{task} {impl}: skipped: {why}", flush=True)
                 yield {**common, "batch": None, "refused": why}
                 continue
-            lowered = [lower(env, batch, args.steps) for batch in args.batches]
+            # MuJoCo Warp's contact buffer holds every world of a vmapped step: an environment per batch size.
+            sized = {
+                b: env if impl == "jax" else make_env(task, episode_length=args.episode_length, impl=impl, worlds=b)
+                for b in args.batches
+            }
+            env.build_warp_kernels()
+            lowered = [lower(sized[batch], batch, args.steps) for batch in args.batches]
             workers = min(args.compile_workers, len(lowered))
             start = time.perf_counter()
             compiled = compile_all([low["lowered"] for low in lowered], workers)

@@ -22,7 +22,7 @@ from rebel_jax.envs import METAWORLD_TASKS, make_env, metaworld
 
 DATA = pathlib.Path(__file__).parent / "data" / "metaworld"
 TASKS = ["drawer-open", "button-press", "door-open", "sweep-into", "window-open", "door-unlock", "hammer"]
-STEPPED = ["drawer-open", "sweep-into"]  # the tasks whose physics step runs (metaworld.STEP_REFUSED)
+STEPPED = ["drawer-open", "sweep-into"]  # the tasks whose JAX physics step runs (metaworld.STEP_REFUSED)
 INFO_KEYS = ("near_object", "grasp_success", "grasp_reward", "in_place_reward", "obj_to_target")
 # Info flags read from contact forces (sweep-into's grasp_success: both pads push on the object). MJX collides the
 # pads' boxes with the object's box with its own algorithm, so where a pad barely touches, its contact force can be
@@ -196,25 +196,26 @@ def test_task_names_pixels_and_impl_refused_in_one_line():
     with pytest.raises(ValueError, match="no pixel version") as pixels:
         make_env("metaworld_drawer-open_pixels")
     assert "\n" not in str(pixels.value)
-    with pytest.raises(ValueError, match="impl='jax' only"):
-        make_env("metaworld_drawer-open", impl="warp")
-    with pytest.raises(ValueError, match="metaworld_button-press cannot run: MJX's JAX step") as refused:
+    with pytest.raises(ValueError, match="unknown physics impl"):
+        make_env("metaworld_drawer-open", impl="wrap")
+    why = r"metaworld_button-press cannot step with impl='jax': MJX's JAX step .* run it with impl='warp'"
+    with pytest.raises(ValueError, match=why) as refused:
         make_env("metaworld_button-press")
     assert "\n" not in str(refused.value)
-    with pytest.raises(ConfigError, match="cannot run"):
+    with pytest.raises(ConfigError, match="cannot step with impl='jax'"):
         EnvConfig(task="metaworld_button-press").validate()
     with pytest.raises(ConfigError, match="metaworld_drawer-open"):
         EnvConfig(task="metaworld_drawer-opne").validate()
     EnvConfig(task="metaworld_drawer-open", episode_length=500).validate()
 
 
-@pytest.mark.parametrize("task", [t for t, why in metaworld.STEP_REFUSED.items() if "with boxes" in why])
+@pytest.mark.parametrize("task", [t for t, why in metaworld.STEP_REFUSED["jax"].items() if "with boxes" in why])
 def test_step_refused_where_mjx_lacks_the_models_collisions(envs, task):
     """The tasks whose step is refused for MJX's missing cylinder-box collision: MJX's JAX step cannot build their
     model, and their step stops in one line."""
     with pytest.raises(NotImplementedError, match=r"mjGEOM_CYLINDER, \S*mjGEOM_BOX\) collisions not implemented"):
         mjx.put_model(metaworld.mj_model(task))
-    with pytest.raises(ValueError, match=f"metaworld_{task} cannot step: MJX's JAX step") as refused:
+    with pytest.raises(ValueError, match=f"metaworld_{task} cannot step with impl='jax': MJX's JAX step") as refused:
         envs[task].step(None, jnp.zeros(4))
     assert "\n" not in str(refused.value)
 

@@ -85,8 +85,8 @@ class EnvConfig:
 
         if no_pixel_version(self.task):
             raise ConfigError(f"env.task={self.task!r} is invalid: {no_pixel_version(self.task)}")
-        if not_runnable(self.task):
-            raise ConfigError(f"env.task={self.task!r} is invalid: {not_runnable(self.task)}")
+        if not_runnable(self.task, self.impl):
+            raise ConfigError(f"env.task={self.task!r} is invalid: {not_runnable(self.task, self.impl)}")
         names = [*sorted(TASKS), *PIXEL_TASKS, *METAWORLD_TASKS, *PROBES]
         if self.task not in names:
             close = difflib.get_close_matches(self.task, names, n=1, cutoff=0.6)
@@ -97,8 +97,6 @@ class EnvConfig:
                 f"env.episode_length={self.episode_length} is invalid for {self.task}: Meta-World ends its episodes "
                 f"at {EPISODE_LENGTH} steps (--preset paper_metaworld sets it)"
             )
-        if self.task in METAWORLD_TASKS and self.impl != "jax":
-            raise ConfigError(f"env.impl={self.impl!r} is invalid for {self.task}: it runs with impl='jax' only")
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.impl in IMPLS, "env.impl", self.impl, f"one of {list(IMPLS)}")
         if self.impl == "warp":

@@ -24,16 +24,15 @@ PIXEL_TASKS = tuple(f"{t}{pixels.SUFFIX}" for t, spec in TASKS.items() if spec.h
 ``walker_walk_pixels``, ... The camera (:mod:`rebel_jax.envs.render`) draws planes, spheres and capsules only, so
 the quadruped (ellipsoid and cylinder geoms) has no pixel version."""
 
-METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED)
-"""Meta-World's manipulation tasks (:mod:`rebel_jax.envs.metaworld`): ``metaworld_drawer-open``. State only; their
-physics runs MJX's JAX step (``impl='jax'``). Tasks of :data:`rebel_jax.envs.metaworld.STEP_REFUSED` are left out
-(:func:`not_runnable` says why)."""
+METAWORLD_TASKS = tuple(f"{metaworld.PREFIX}{t}" for t in metaworld.TASKS)
+"""Meta-World's manipulation tasks (:mod:`rebel_jax.envs.metaworld`): ``metaworld_drawer-open``. State only. Their
+physics runs MJX's JAX step (``impl='jax'``) or MuJoCo Warp's (``impl='warp'``); a task whose step one engine does
+not run faithfully (:data:`rebel_jax.envs.metaworld.STEP_REFUSED`) is refused with it (:func:`not_runnable`)."""
 
 
-def not_runnable(name: str) -> str | None:
-    """Why the Meta-World task ``name`` cannot run here: a one-line reason, or None."""
-    why = metaworld.STEP_REFUSED.get(name.removeprefix(metaworld.PREFIX))
-    return f"{name} cannot run: {why}" if name.startswith(metaworld.PREFIX) and why else None
+def not_runnable(name: str, impl: str = "jax") -> str | None:
+    """Why the Meta-World task ``name`` cannot run with the physics step ``impl``: a one-line reason, or None."""
+    return metaworld.refusal(name.removeprefix(metaworld.PREFIX), impl) if name.startswith(metaworld.PREFIX) else None
 
 
 def no_pixel_version(name: str) -> str | None:
@@ -79,25 +78,27 @@ def make_env(
         del unroll_substeps, all_contacts, worlds  # Unused.
         return PROBES[name](episode_length)
     reason = no_pixel_version(name)
-    if reason or not_runnable(name):
-        raise ValueError(reason or not_runnable(name))
     if name in METAWORLD_TASKS:
-        return _metaworld_env(name, solver, episode_length, impl)
+        return _metaworld_env(name, solver, episode_length, impl, worlds)
+    if reason:
+        raise ValueError(reason)
     if name not in TASKS:
         valid = ", ".join(sorted([*TASKS, *PIXEL_TASKS, *METAWORLD_TASKS]))
         raise ValueError(f"unknown task {name!r}; valid tasks: {valid}, probes: {', '.join(PROBES)}")
     return dmc.make_env(name, solver, episode_length, unroll_substeps, all_contacts, impl, worlds)
 
 
-def _metaworld_env(name: str, solver: str | Solver, episode_length: int | None, impl: str) -> metaworld.MetaWorldEnv:
-    """A Meta-World task: it runs its model's own solver settings (Newton, 50 iterations, as Meta-World) and MJX's
-    JAX step, so ``solver`` is checked but unused and ``impl='warp'`` is refused."""
+def _metaworld_env(
+    name: str, solver: str | Solver, episode_length: int | None, impl: str, worlds: int
+) -> metaworld.MetaWorldEnv:
+    """A Meta-World task: it runs its model's own solver settings (Newton, 50 iterations, as Meta-World), so
+    ``solver`` is checked but unused; a pairing of task and ``impl`` that :data:`metaworld.STEP_REFUSED` lists is
+    refused in one line."""
     parse_solver(solver)
-    if impl not in IMPLS:
-        dmc.check_impl(impl)
-    if impl != "jax":
-        raise ValueError(f"{name} runs with impl='jax' only: MuJoCo Warp's step is not tested against Meta-World")
-    return metaworld.make_env(name, episode_length)
+    dmc.check_impl(impl)
+    if reason := not_runnable(name, impl):
+        raise ValueError(reason)
+    return metaworld.make_env(name, episode_length, impl=impl, worlds=worlds)
 
 
 __all__ = [

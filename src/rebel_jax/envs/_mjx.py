@@ -20,6 +20,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 logger = logging.getLogger(__name__)
 
@@ -208,3 +209,31 @@ def mujoco_contact_frames() -> Iterator[None]:
         yield
     finally:
         collision_driver._COLLISION_FUNC[key] = original
+
+
+def uncommitted(leaf):
+    """A JAX array as an uncommitted copy (placed wherever the program using it runs); other leaves unchanged."""
+    return jnp.asarray(jax.device_get(leaf)) if isinstance(leaf, jax.Array) else leaf
+
+
+def traced_constant(leaf):
+    """A host array as a JAX array (a constant of the program being traced); other leaves unchanged."""
+    return jnp.asarray(leaf) if isinstance(leaf, np.ndarray) else leaf
+
+
+def build_warp_kernels(mj_model, warn_overflow=None) -> None:
+    """Builds and loads MuJoCo Warp's kernels for ``mj_model``: one step of one world in Warp itself on this
+    process's first device, outside any JAX program (``warn_overflow``: the step's overflow warnings, Warp's
+    default if None). Warp keeps them in its kernel cache (``~/.cache/warp``, or ``WARP_CACHE_PATH``)."""
+    import warp  # noqa: PLC0415 - only with impl='warp' (warp-lang is optional)
+    from mujoco.mjx.third_party import mujoco_warp  # noqa: PLC0415
+
+    local = jax.local_devices()[0]
+    device = warp.get_device(f"cuda:{local.local_hardware_id}" if local.platform == "gpu" else "cpu")
+    with warp.ScopedDevice(device):
+        model = mujoco_warp.put_model(mj_model)
+        if warn_overflow is not None:
+            model.opt.warn_overflow = warn_overflow
+        data = mujoco_warp.make_data(mj_model, nworld=1)
+        mujoco_warp.step(model, data)
+        warp.synchronize_device(device)

@@ -27,7 +27,14 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from rebel_jax.envs import models, quadruped
-from rebel_jax.envs._mjx import mujoco_contact_frames, newton_trips, plain_cholesky
+from rebel_jax.envs._mjx import (
+    build_warp_kernels,
+    mujoco_contact_frames,
+    newton_trips,
+    plain_cholesky,
+    traced_constant,
+    uncommitted,
+)
 from rebel_jax.envs.rewards import tolerance
 
 
@@ -116,16 +123,6 @@ class TaskSpec:
     has_pixels: bool = True
     mujoco_frames: bool = False
     never_near: tuple[tuple[str, str], ...] = ()
-
-
-def _uncommitted(leaf):
-    """A JAX array as an uncommitted copy (placed wherever the program using it runs); other leaves unchanged."""
-    return jnp.asarray(jax.device_get(leaf)) if isinstance(leaf, jax.Array) else leaf
-
-
-def _traced_constant(leaf):
-    """A host array as a JAX array (a constant of the program being traced); other leaves unchanged."""
-    return jnp.asarray(leaf) if isinstance(leaf, np.ndarray) else leaf
 
 
 def _observed(d: mjx.Data, m: mjx.Model, sensors: bool = False) -> mjx.Data:
@@ -311,7 +308,7 @@ class DMCEnv(Env):
         # built on this process's first device: with several processes (``--distributed``) the first device
         # of ``jax.devices()`` belongs to process 0, and another process cannot read it back.
         local = jax.local_devices()[0]
-        self.sys = jax.tree.map(_uncommitted, mjx.put_model(self.mj_model, device=local))
+        self.sys = jax.tree.map(uncommitted, mjx.put_model(self.mj_model, device=local))
         self._data0 = jax.device_get(mjx.make_data(self.sys, device=local))
         if impl == "warp":  # the physics steps' engine; observations and rewards keep the JAX one (_warp_steps)
             model = mjx.put_model(self.mj_model, device=local, impl="warp")
@@ -320,7 +317,7 @@ class DMCEnv(Env):
             flags = _warp_overflow()
             quiet = model.opt._impl.warn_overflow & ~(flags.ITERATIONS | flags.LS_ITERATIONS)
             model = model.replace(opt=model.opt.replace(_impl=model.opt._impl.replace(warn_overflow=quiet)))
-            self._warp_sys = jax.tree.map(_uncommitted, model)
+            self._warp_sys = jax.tree.map(uncommitted, model)
             # MuJoCo Warp keeps the contacts of every world of a vmapped step in one buffer of ``naconmax`` rows
             # (mujoco 3.17 mjx/_src/io.py:907); MJX sizes it for one world. Contacts past it are dropped, and
             # the physics goes wrong, so it holds ``worlds`` times one world's default.
@@ -402,7 +399,7 @@ class DMCEnv(Env):
         ``mjx.Data``: what a step carries over (:data:`STEP_STATE`) goes to a Warp data and comes back with the
         step's accelerations and sensor values; the position-dependent fields are recomputed by :meth:`_observe`,
         as after every step."""
-        w = jax.tree.map(_traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in STEP_STATE})
+        w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in STEP_STATE})
         w = jax.lax.fori_loop(0, n, lambda _, x: mjx.step(self._warp_sys, x), w, unroll=unroll)
         return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, *STEP_RESULTS)})
 
@@ -416,19 +413,8 @@ class DMCEnv(Env):
         that steps this environment runs: inside a program Warp's step is captured as a CUDA graph, and CUDA may
         refuse a capture while another thread loads kernels.
         """
-        if self.impl != "warp":
-            return
-        import warp  # noqa: PLC0415 - only with impl='warp' (warp-lang is optional)
-        from mujoco.mjx.third_party import mujoco_warp  # noqa: PLC0415
-
-        local = jax.local_devices()[0]
-        device = warp.get_device(f"cuda:{local.local_hardware_id}" if local.platform == "gpu" else "cpu")
-        with warp.ScopedDevice(device):
-            model = mujoco_warp.put_model(self.mj_model)
-            model.opt.warn_overflow = self._warp_sys.opt._impl.warn_overflow  # the step's, as _warp_steps runs it
-            data = mujoco_warp.make_data(self.mj_model, nworld=1)
-            mujoco_warp.step(model, data)
-            warp.synchronize_device(device)
+        if self.impl == "warp":  # with the step's overflow warnings, as _warp_steps runs it
+            build_warp_kernels(self.mj_model, self._warp_sys.opt._impl.warn_overflow)
 
     def _observe(self, d: mjx.Data, done: jax.Array, info: dict) -> State:
         d = _observed(d, self.sys, self.spec.sensors)
@@ -446,7 +432,7 @@ class DMCEnv(Env):
         else:
             u = jax.random.uniform(rng, self._reset_low.shape)
             qpos = self._reset_low + u * (self._reset_high - self._reset_low)
-        d = jax.tree.map(_traced_constant, self._data0).replace(qpos=qpos)
+        d = jax.tree.map(traced_constant, self._data0).replace(qpos=qpos)
         if self.spec.settle_steps:
             d = self._physics_steps(d, self.spec.settle_steps).replace(time=jnp.zeros(()))
         if self.spec.sensors:  # dm_control's closing mj_forward (actuation off; at rest it exerts nothing anyway)

@@ -30,7 +30,7 @@ import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
-from rebel_jax.envs._mjx import plain_cholesky
+from rebel_jax.envs._mjx import build_warp_kernels, plain_cholesky, traced_constant, uncommitted
 
 ASSETS = pathlib.Path(__file__).parent / "metaworld_assets"
 """Meta-World 3.1.1's ``metaworld/assets`` files that these tasks' models read (its LICENSE beside them)."""
@@ -846,19 +846,40 @@ TASKS: dict[str, TaskSpec] = {
 }
 """The tasks by Meta-World's name (without ``-v3``)."""
 
-STEP_REFUSED = {
-    "button-press": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
-    "not wired into the Meta-World tasks yet",
-    "door-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders (the door's handle) with boxes, and MuJoCo "
-    "Warp's step is not wired into the Meta-World tasks yet",
-    "window-open": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders with boxes, and MuJoCo Warp's step is "
-    "not wired into the Meta-World tasks yet",
-    "door-unlock": "one step of MJX's JAX step from Meta-World's recorded states moves the lock's joint up to 0.13 rad "
-    "away from Meta-World's (44 of 125 states off by more than 1e-3; docs/tasks.md)",
-    "hammer": "MJX's JAX step (mujoco 3.17) cannot collide its cylinders (the hammer's head, the nail) with boxes, and "
-    "MuJoCo Warp's step is not wired into the Meta-World tasks yet",
+_NO_CYLINDER_BOX = "MJX's JAX step (mujoco 3.17) cannot collide cylinders with boxes; run it with impl='warp'"
+
+IMPLS = ("jax", "warp")
+"""The physics steps a task may run: MJX's JAX step or MuJoCo Warp's (MJX ``impl='warp'``). Observations,
+rewards and resets are computed in JAX either way."""
+
+STEP_REFUSED: dict[str, dict[str, str]] = {
+    "jax": {
+        "button-press": _NO_CYLINDER_BOX,
+        "door-open": _NO_CYLINDER_BOX + " (the door's handle)",
+        "window-open": _NO_CYLINDER_BOX,
+        "door-unlock": "one step of MJX's JAX step from Meta-World's recorded states moves the lock's joint up to "
+        "0.13 rad away from Meta-World's (44 of 125 states off by more than 1e-3; docs/tasks.md); run it with "
+        "impl='warp'",
+        "hammer": _NO_CYLINDER_BOX + " (the hammer's head, the nail)",
+    },
+    "warp": {},
 }
-"""Tasks whose observation, reward and reset are implemented (and tested) but whose physics step is refused: why."""
+"""Per physics step (:data:`IMPLS`), the tasks whose observation, reward and reset are implemented (and tested) but
+whose step that engine does not run faithfully: why."""
+
+STEP_STATE = ("qpos", "qvel", "act", "ctrl", "time", "qacc_warmstart", "mocap_pos", "mocap_quat")
+"""The ``mjx.Data`` fields one physics step reads from the last: MuJoCo's state, the control, the solver's warm
+start and the mocap body that drives the hand."""
+
+WARP_CONTACTS, WARP_CONSTRAINTS = 256, 1024
+"""MuJoCo Warp's buffers per world (``naconmax`` per world, ``njmax``): its defaults (48 contacts, 64 constraint rows
+for these models) overflow on contact-rich states and drop contacts."""
+
+
+def refusal(task: str, impl: str) -> str | None:
+    """Why ``task``'s physics step does not run with ``impl``: a one-line reason, or None."""
+    why = STEP_REFUSED.get(impl, {}).get(task)
+    return f"metaworld_{task} cannot step with impl={impl!r}: {why}" if why else None
 
 
 def mj_model(task: str) -> mujoco.MjModel:
@@ -1013,20 +1034,41 @@ class MetaWorldEnv(Env):
     reports_success = True
     """Its steps report ``success`` in ``info``: the trainer logs the episodes' success rates."""
 
-    def __init__(self, task: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True):
+    def __init__(
+        self,
+        task: str,
+        episode_length: int | None = EPISODE_LENGTH,
+        goal_observable: bool = True,
+        impl: str = "jax",
+        worlds: int = 1,
+    ):
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; valid: {', '.join(TASKS)}")
         if episode_length is not None and episode_length < 1:
             raise ValueError(f"episode_length must be >= 1 or None; got {episode_length}")
+        if impl not in IMPLS:
+            raise ValueError(f"unknown physics impl {impl!r}; one of {', '.join(IMPLS)}")
+        if worlds < 1:
+            raise ValueError(f"worlds must be >= 1; got {worlds}")
         self.spec = TASKS[task]
         self.episode_length = episode_length
         self.goal_observable = goal_observable
+        self.impl = impl
         self.mujoco_model = mj_model(task)
         m = self.mujoco_model
-        self.step_refused = STEP_REFUSED.get(task)
+        self.step_refused = STEP_REFUSED[impl].get(task)
+        self._warp_sys = self._warp_data0 = None
+        if impl == "warp":  # the physics steps' engine; observations, rewards and resets keep the JAX one
+            self._warp_sys = jax.tree.map(uncommitted, mjx.put_model(m, impl="warp"))
+            # One buffer holds the contacts of every world of a vmapped step (mujoco 3.17 mjx/_src/io.py:907).
+            self._warp_data0 = jax.device_get(
+                mjx.make_data(m, impl="warp", naconmax=worlds * WARP_CONTACTS, njmax=WARP_CONSTRAINTS)
+            )
+        self._jax_collides = True
         try:
             self.sys, kinematic = mjx.put_model(m), m
-        except NotImplementedError:  # collisions MJX lacks (its step is refused): its kinematics only, no contacts
+        except NotImplementedError:  # collisions MJX lacks: its kinematics only, no contacts
+            self._jax_collides = False
             kinematic = mujoco.MjModel.from_xml_path(str(ASSETS / "sawyer_xyz" / self.spec.xml))
             kinematic.geom_contype[:] = kinematic.geom_conaffinity[:] = 0
             self.sys = mjx.put_model(kinematic)
@@ -1137,7 +1179,7 @@ class MetaWorldEnv(Env):
         current: bool = False,
     ) -> State:
         # After a step Meta-World runs mj_forward; the kinematics suffice unless the reward's info reads contacts.
-        contacts = self.spec.contacts and previous is not None and not self.step_refused
+        contacts = self.spec.contacts and previous is not None and self._jax_collides
         if contacts:
             with _cpu_cholesky():
                 d = mjx.forward(m, d)
@@ -1246,13 +1288,33 @@ class MetaWorldEnv(Env):
                 info["consts"] = jnp.concatenate([consts, self.spec.shown_consts(self.mujoco_model)(shown)])
         return self._observe(d, m, None, info, zero, jnp.zeros(4), shown=shown, current=True)
 
+    def _physics_steps(self, m: mjx.Model, d: mjx.Data, body_pos: jax.Array) -> mjx.Data:
+        """The control step's :data:`FRAME_SKIP` physics steps from ``d`` under ``m`` (the JAX step), or under the
+        Warp model with the reset's moved body at ``body_pos`` (``impl='warp'``): what a step carries over
+        (:data:`STEP_STATE`) goes to a Warp data and comes back with the step's accelerations."""
+        if self.impl == "jax":
+            with _cpu_cholesky():
+                return jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
+        w_m = self._warp_sys
+        if self._moved_body is not None:
+            w_m = w_m.replace(body_pos=w_m.body_pos.at[self._moved_body].set(body_pos))
+        w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in STEP_STATE})
+        w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
+        return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, "qacc")})
+
+    def build_warp_kernels(self) -> None:
+        """Builds and loads MuJoCo Warp's kernels for this model before a program steps it (``impl='warp'``;
+        nothing for ``jax``), as :meth:`rebel_jax.envs.dmc.DMCEnv.build_warp_kernels` does."""
+        if self.impl == "warp":
+            build_warp_kernels(self.mujoco_model)
+
     def step(self, state: State, action: jax.Array) -> State:
         """Moves the mocap by ``action[:3]`` cm (clipped to [-1, 1] and to the hand's bounds), sets the gripper to
         ``action[3]`` and runs 5 physics steps (sawyer_xyz_env.py:580-640). On the CPU, MJX's Cholesky
         factorizations run in plain JAX operations (``_mjx.plain_cholesky``), as :class:`~rebel_jax.envs.dmc.DMCEnv`
         runs them."""
         if self.step_refused:
-            raise ValueError(f"metaworld_{self.spec.name} cannot step: {self.step_refused}")
+            raise ValueError(refusal(self.spec.name, self.impl))
         if action.shape != (4,):
             raise ValueError(f"{self.spec.name}: action must have shape (4,), got {action.shape}")
         d = state.pipeline_state
@@ -1264,8 +1326,7 @@ class MetaWorldEnv(Env):
             mocap_quat=jnp.array([MOCAP_QUAT], d.mocap_quat.dtype),
             ctrl=jnp.stack([action[3], -action[3]]).astype(d.ctrl.dtype),
         )
-        with _cpu_cholesky():
-            d = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
+        d = self._physics_steps(m, d, state.info["body_pos"])
         info = dict(state.info)
         done = jnp.zeros_like(state.done)
         if self.episode_length is not None:
@@ -1275,6 +1336,12 @@ class MetaWorldEnv(Env):
         return self._observe(d, m, state.obs[:18], info, done, action)
 
 
-def make_env(name: str, episode_length: int | None = EPISODE_LENGTH, goal_observable: bool = True) -> MetaWorldEnv:
+def make_env(
+    name: str,
+    episode_length: int | None = EPISODE_LENGTH,
+    goal_observable: bool = True,
+    impl: str = "jax",
+    worlds: int = 1,
+) -> MetaWorldEnv:
     """Builds ``metaworld_<task>`` (see :class:`MetaWorldEnv`)."""
-    return MetaWorldEnv(name.removeprefix(PREFIX), episode_length, goal_observable)
+    return MetaWorldEnv(name.removeprefix(PREFIX), episode_length, goal_observable, impl, worlds)

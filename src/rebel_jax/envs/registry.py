@@ -9,7 +9,9 @@ brax's convention: it has no time limit of its own (``episode_length=None``: ``d
 brax's ``EpisodeWrapper``, which keeps the step count and sets ``done`` and ``truncation`` at
 the limit, as our own time limit does (tested in ``tests/test_brax.py``). Keyword arguments of
 ``get_environment`` / ``create`` reach the task: ``solver`` and ``unroll_substeps`` (see
-:func:`rebel_jax.envs.dmc.make_env`).
+:func:`rebel_jax.envs.dmc.make_env`). Meta-World's tasks register as ``rebel_metaworld_<task>`` and take
+``goal_observable``, ``impl`` (``jax`` by default; a task whose JAX step is refused runs with ``impl="warp"``)
+and ``worlds``.
 
 Each episode starts from the task's reset distribution only if the caller resets it: brax's
 ``AutoResetWrapper`` (which ``create`` adds unless ``auto_reset=False``) restarts every episode
@@ -44,8 +46,10 @@ def _task_factory(task: str) -> Callable[..., dmc.DMCEnv]:
 
 
 def _metaworld_factory(task: str) -> Callable[..., metaworld.MetaWorldEnv]:
-    def make(goal_observable: bool = True) -> metaworld.MetaWorldEnv:
-        return metaworld.MetaWorldEnv(task, None, goal_observable)
+    def make(goal_observable: bool = True, impl: str = "jax", worlds: int = 1) -> metaworld.MetaWorldEnv:
+        if reason := metaworld.refusal(task, impl):
+            raise ValueError(reason)
+        return metaworld.MetaWorldEnv(task, None, goal_observable, impl, worlds)
 
     make.__name__ = make.__qualname__ = f"{PREFIX}{metaworld.PREFIX}{task}"
     make.__doc__ = f"Meta-World's {task} without a time limit, for brax's registry (see {__name__})."
@@ -61,7 +65,7 @@ def brax_names() -> dict[str, Callable[..., object]]:
     """The names this module registers with brax, and their constructors."""
     names: dict[str, Callable[..., object]] = {f"{PREFIX}{task}": _task_factory(task) for task in dmc.TASKS}
     names[f"{PREFIX}probe_point"] = _probe
-    for task in (t for t in metaworld.TASKS if t not in metaworld.STEP_REFUSED):
+    for task in metaworld.TASKS:
         names[f"{PREFIX}{metaworld.PREFIX}{task}"] = _metaworld_factory(task)
     return names
 
