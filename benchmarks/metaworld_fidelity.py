@@ -2,7 +2,7 @@
 
 Usage:
   python benchmarks/metaworld_fidelity.py [--tasks drawer-open] [--every 16] [--no-step] [--refused-step]
-      [--impl warp]
+      [--impl warp] [--episodes]
 
 Against the data recorded from Meta-World (tests/data/metaworld/<task>.npz, made by
 tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as ``metaworld_<task>``):
@@ -16,6 +16,10 @@ tests/data/metaworld/make_reference.py), for each task of ``--tasks`` (built as 
   errors per state: qpos, qvel, observation, reward, success) and the compile time, beside the same step of this
   MuJoCo in float64 on the CPU (``mujoco_3_17_float64``: what the engines' versions alone change). A task whose
   step the engine refuses (``metaworld.STEP_REFUSED``) only with ``--refused-step``, where MJX builds its model.
+
+- ``episodes`` (``episodes_warp``), with ``--episodes``: every recorded episode (random actions, and Meta-World's
+  scripted policy) replayed open-loop from its reset: returns, steps flagged successful and observation errors
+  against Meta-World's own episode.
 
 With ``--impl warp`` (warp-lang installed) only the step is measured and the other entries are kept. Writes
 ``benchmarks/results/metaworld_fidelity.json``; runs on whatever device JAX picks.
@@ -48,7 +52,11 @@ def _f32(x) -> np.ndarray:
 
 def _stats(err: np.ndarray) -> dict:
     per_state = err.reshape(len(err), -1).max(1)
-    return {"median": float(np.median(per_state)), "max": float(per_state.max())}
+    return {
+        "median": float(np.median(per_state)),
+        "max": float(per_state.max()),
+        "states_over_1e-3": int((per_state > 1e-3).sum()),
+    }
 
 
 def episodes(env: metaworld.MetaWorldEnv, ref: dict):
@@ -72,6 +80,76 @@ def states_at(env: metaworld.MetaWorldEnv, ref: dict, rows: np.ndarray, resets):
     )
 
 
+def replay(env: metaworld.MetaWorldEnv, ref: dict) -> dict[str, np.ndarray]:
+    """Every recorded episode's actions played open-loop from its reset (at Meta-World's draws), all episodes in one
+    vmapped scan: per episode and step, the reward, the success flag and the largest observation error."""
+    resets = episodes(env, ref)
+    n = len(ref["episode_draws"])
+    steps = [ref["action"][(ref["episode"] == e) & (ref["t"] > 0)] for e in range(n)]
+    actions = _f32(np.stack(steps, 1))  # (steps, episodes, 4)
+
+    def body(state, action):
+        state = jax.vmap(env.step)(state, action)
+        return state, (state.obs, state.reward, state.info["success"], state.pipeline_state.qpos)
+
+    obs, reward, success, qpos = jax.jit(lambda s, a: jax.lax.scan(body, s, a)[1])(resets, actions)
+    theirs = np.stack([ref["obs"][(ref["episode"] == e) & (ref["t"] > 0)] for e in range(n)], 1)
+    return {
+        "reward": np.asarray(reward),
+        "success": np.asarray(success),
+        "obs_err": np.abs(np.asarray(obs) - theirs).max(-1),
+        "qpos": np.asarray(qpos),
+    }
+
+
+def mujoco_replay(task: str, ref: dict) -> np.ndarray:
+    """The recorded episodes' actions played open-loop by this MuJoCo (3.17, float64) from their recorded resets:
+    qpos per step and episode, (steps, episodes, nq)."""
+    model = metaworld.mj_model(task)
+    data = mujoco.MjData(model)
+    out = []
+    for e in range(len(ref["episode_draws"])):
+        rows = np.where(ref["episode"] == e)[0]
+        model.body_pos[:] = ref["episode_body_pos"][e]
+        mujoco.mj_resetData(model, data)
+        for field in ("qpos", "qvel", "qacc_warmstart", "mocap_pos", "mocap_quat"):
+            getattr(data, field)[:] = ref[field][rows[0]]
+        qpos = []
+        for i in rows[1:]:
+            metaworld.mujoco_step(model, data, task, data.mocap_pos[0].copy(), ref["action"][i])
+            qpos.append(data.qpos.copy())
+        out.append(qpos)
+    return np.asarray(out).transpose(1, 0, 2)
+
+
+def _at_steps(err: np.ndarray) -> list[list[float]]:
+    """Per episode, ``err`` (steps, episodes) after 10, 100 and 500 steps."""
+    return [[float(e[t - 1]) for t in (10, 100, 500)] for e in err.T]
+
+
+def _replayed(env: metaworld.MetaWorldEnv, ref: dict) -> dict:
+    """:func:`replay` against Meta-World's own episodes: returns, successful steps and observation errors."""
+    start = time.perf_counter()
+    ours = replay(env, ref)
+    rows = [(ref["episode"] == e) & (ref["t"] > 0) for e in range(len(ref["episode_draws"]))]
+    theirs = mujoco_replay(env.spec.name, ref)
+    recorded = np.stack([ref["qpos"][r] for r in rows], 1)
+    return {
+        "episodes": len(rows),
+        "scripted": [bool(x) for x in ref["episode_scripted"]],
+        "return": [round(float(x), 2) for x in ours["reward"].sum(0)],
+        "metaworld_return": [round(float(ref["reward"][r].sum()), 2) for r in rows],
+        "success_steps": [int(x) for x in ours["success"].sum(0)],
+        "metaworld_success_steps": [int(np.nansum(ref["success"][r])) for r in rows],
+        "obs_err_at_step_10_100_500": _at_steps(ours["obs_err"]),
+        # Open-loop replays drift apart where the fingers push objects: MuJoCo 3.17's own replay against the
+        # recording (MuJoCo 3.3) measures how much the engine's version alone moves them; ours against MuJoCo 3.17's.
+        "mujoco_3_17_qpos_err_at_step_10_100_500": _at_steps(np.abs(theirs - recorded).max(-1)),
+        "ours_vs_mujoco_3_17_qpos_at_step_10_100_500": _at_steps(np.abs(ours["qpos"] - theirs).max(-1)),
+        "compile_and_run_s": round(time.perf_counter() - start, 1),
+    }
+
+
 def hand_reset_in_this_mujoco(task: str) -> tuple[np.ndarray, np.ndarray]:
     """Meta-World's ``_reset_hand`` (sawyer_xyz_env.py:684-695) run by this MuJoCo: qpos and qvel after it."""
     model = metaworld.mj_model(task)
@@ -86,10 +164,9 @@ def hand_reset_in_this_mujoco(task: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def mujoco_step(task: str, ref: dict, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One control step of this MuJoCo (3.17, float64, the CPU) from the recorded states ``rows``, as Meta-World
-    steps (sawyer_xyz_env.py:580-640): qpos and qvel after it. Against the recording (Meta-World's MuJoCo) it
-    separates the engines' versions from the ports' differences."""
-    spec = metaworld.TASKS[task]
+    """One control step of this MuJoCo (3.17, float64, the CPU; ``metaworld.mujoco_step``) from the recorded states
+    ``rows``: qpos and qvel after it. Against the recording (Meta-World's MuJoCo 3.3) it separates the engines'
+    versions from the ports' differences."""
     model = metaworld.mj_model(task)
     data = mujoco.MjData(model)
     qpos, qvel = [], []
@@ -98,18 +175,15 @@ def mujoco_step(task: str, ref: dict, rows: np.ndarray) -> tuple[np.ndarray, np.
         mujoco.mj_resetData(model, data)
         data.qpos[:], data.qvel[:] = ref["qpos"][i], ref["qvel"][i]
         data.qacc_warmstart[:] = ref["qacc_warmstart"][i]
-        action = ref["action"][i + 1]
-        move = np.clip(action[:3], -1.0, 1.0) * metaworld.ACTION_SCALE
-        data.mocap_pos[0] = np.clip(ref["mocap_pos"][i][0] + move, spec.hand_low, spec.hand_high)
-        data.mocap_quat[0] = metaworld.MOCAP_QUAT
-        data.ctrl[:] = (action[3], -action[3])
-        mujoco.mj_step(model, data, nstep=metaworld.FRAME_SKIP)
+        metaworld.mujoco_step(model, data, task, ref["mocap_pos"][i][0], ref["action"][i + 1])
         qpos.append(data.qpos.copy())
         qvel.append(data.qvel.copy())
     return np.asarray(qpos), np.asarray(qvel)
 
 
-def measure(task: str, every: int, step: bool = True, refused_step: bool = False, impl: str = "jax") -> dict:
+def measure(
+    task: str, every: int, step: bool = True, refused_step: bool = False, impl: str = "jax", replay_episodes=False
+) -> dict:
     ref = dict(np.load(DATA / f"{task}.npz"))
     rows = np.where(ref["t"] > 0)[0]
     stepped_rows = rows[ref["t"][rows] < metaworld.EPISODE_LENGTH][::every]
@@ -122,7 +196,11 @@ def measure(task: str, every: int, step: bool = True, refused_step: bool = False
         out.update(_at_states(env, task, ref, rows, r))
     if not step or env.step_refused:
         return out
-    out["step" if impl == "jax" else f"step_{impl}"] = _step(env, task, ref, stepped_rows, r, impl)
+    suffix = "" if impl == "jax" else f"_{impl}"
+    out[f"step{suffix}"] = _step(env, task, ref, stepped_rows, r, impl)
+    if replay_episodes:  # Warp's contact buffer sized for the episodes, not the stepped states
+        worlds = len(ref["episode_draws"])
+        out[f"episodes{suffix}"] = _replayed(metaworld.MetaWorldEnv(task, impl=impl, worlds=worlds), ref)
     return out
 
 
@@ -196,14 +274,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--impl", choices=metaworld.IMPLS, default="jax", help="the physics step compared")
     parser.add_argument("--no-step", action="store_true", help="leave out the one-step comparison")
     parser.add_argument(
+        "--episodes", action="store_true", help="replay every recorded episode's actions open-loop (with the step)"
+    )
+    parser.add_argument(
         "--refused-step", action="store_true", help="compare the step of a task that refuses it (MJX builds its model)"
     )
     args = parser.parse_args(argv)
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     for task in args.tasks:
-        measured = measure(task, args.every, step=not args.no_step, refused_step=args.refused_step, impl=args.impl)
+        measured = measure(
+            task, args.every, not args.no_step, args.refused_step, args.impl, replay_episodes=args.episodes
+        )
         if args.impl != "jax":  # only the step depends on the engine: keep the JAX run's other entries
-            measured = {k: v for k, v in measured.items() if k.startswith("step")}
+            measured = {k: v for k, v in measured.items() if k.startswith(("step", "episodes"))}
         results[task] = dict(
             results.get(task, {}),
             **measured,

@@ -871,6 +871,12 @@ STEP_STATE = ("qpos", "qvel", "act", "ctrl", "time", "qacc_warmstart", "mocap_po
 """The ``mjx.Data`` fields one physics step reads from the last: MuJoCo's state, the control, the solver's warm
 start and the mocap body that drives the hand."""
 
+STATIC_POSES = ("geom_xpos", "geom_xmat")
+"""MuJoCo Warp computes the world poses of geoms fixed to the world once, in ``make_data``, and its steps keep them
+(mujoco 3.17, mjx/third_party/mujoco_warp/_src/smooth.py:199-200). A reset that moves such a body (drawer-open's
+casing) puts its geoms where the JAX kinematics of the moved model put them; without it Warp collides the drawer
+with its casing at the XML's place and pushes it out (6 mm in 5 steps)."""
+
 WARP_CONTACTS, WARP_CONSTRAINTS = 256, 1024
 """MuJoCo Warp's buffers per world (``naconmax`` per world, ``njmax``): its defaults (48 contacts, 64 constraint rows
 for these models) overflow on contact-rich states and drop contacts."""
@@ -897,6 +903,21 @@ def mj_model(task: str) -> mujoco.MjModel:
             # Meta-World's 11 numbers (MuJoCo 3.3 has 11 weld fields); MuJoCo 3.17's twelfth keeps its compiled value.
             model.eq_data[i, : len(WELD_DATA)] = WELD_DATA
     return model
+
+
+def mujoco_step(
+    model: mujoco.MjModel, data: mujoco.MjData, task: str, mocap_pos: np.ndarray, action: np.ndarray
+) -> None:
+    """One control step of MuJoCo itself (float64, the CPU) in place, as Meta-World's ``step`` runs it
+    (sawyer_xyz_env.py:580-640): the mocap moved by ``action[:3]`` cm from ``mocap_pos`` within the hand's bounds,
+    the gripper set to ``action[3]``, :data:`FRAME_SKIP` physics steps. The reference the tests hold MJX's and
+    Warp's steps to (``model``: :func:`mj_model` with the episode's ``body_pos``; ``data``: the state)."""
+    spec = TASKS[task]
+    move = np.clip(action[:3], -1.0, 1.0) * ACTION_SCALE
+    data.mocap_pos[0] = np.clip(mocap_pos + move, spec.hand_low, spec.hand_high)
+    data.mocap_quat[0] = MOCAP_QUAT
+    data.ctrl[:] = (action[3], -action[3])
+    mujoco.mj_step(model, data, nstep=FRAME_SKIP)
 
 
 HAND_RESET = ASSETS / "hand_reset.npz"
@@ -1298,7 +1319,8 @@ class MetaWorldEnv(Env):
         w_m = self._warp_sys
         if self._moved_body is not None:
             w_m = w_m.replace(body_pos=w_m.body_pos.at[self._moved_body].set(body_pos))
-        w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in STEP_STATE})
+        carried = (*STEP_STATE, *STATIC_POSES) if self._moved_body is not None else STEP_STATE
+        w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
         w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
         return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, "qacc")})
 
