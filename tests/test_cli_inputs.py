@@ -412,3 +412,12 @@ def test_the_quadruped_preset_is_paper_with_b_prefs_quadruped_schedule(algo):
     assert dataclasses.replace(quadruped.train, total_steps=paper.train.total_steps) == paper.train
     assert quadruped.env.task == "quadruped_walk" and quadruped.sac.actor_lr < paper.sac.actor_lr
     dataclasses.replace(quadruped, algo=algo).validate()
+
+
+def test_a_meta_world_task_on_a_gpu_with_the_jax_step_gets_a_note_naming_warp():
+    """The note names --impl warp where a Meta-World task runs MJX's JAX step on a GPU, and only there."""
+    task = ["--task", "metaworld_drawer-open"]
+    note = cli.engine_note(cli.parse([*TINY, *task]), "gpu")
+    assert note is not None and "--impl warp" in note and "\n" not in note
+    assert cli.engine_note(cli.parse([*TINY, *task]), "cpu") is None
+    assert cli.engine_note(cli.parse(TINY), "gpu") is None  # not a Meta-World task

@@ -48,6 +48,7 @@ from rebel_jax.run.cli_args import (  # noqa: F401 - re-exported: the command li
     check_devices,
     collector_paused,
     default_preset,
+    engine_note,
     feedback_sessions,
     observed_task,
     parse,
@@ -195,6 +196,8 @@ def _checked_main(argv: list[str], args) -> dict:
             if placement.is_primary():
                 try:
                     check_devices(args, jax.device_count())
+                    if note := engine_note(args, jax.default_backend()):
+                        print(note, file=sys.stderr)
                     if args.host_teacher == "human":  # the labelling page's address, before anything is written
                         rundir.check_listen_address(args.human.host, args.human.port)
                     run_dir = prepare_run_dir(args, lock)

@@ -237,6 +237,18 @@ def check_devices(args: Args, devices: int) -> None:
         )
 
 
+def engine_note(args: Args, backend: str) -> str | None:
+    """A note where a Meta-World task runs MJX's JAX step on a GPU (``backend``: ``jax.default_backend()``): Warp's
+    step is the fast one there (BENCHMARKS.md, "How fast is a Meta-World step?"); None otherwise."""
+    env = args.config.env
+    if not env.task.startswith("metaworld_") or env.impl != "jax" or backend != "gpu":
+        return None
+    return (
+        f"note: {env.task} runs MJX's JAX step (--impl jax), 7.7 env steps/s at batch 1 on an H200; --impl warp "
+        "(pip install -e '.[warp]') ran 308 at batch 1 and 159,575 at 1,024 there (BENCHMARKS.md)"
+    )
+
+
 class _FirstFlags(argparse.ArgumentParser):
     """The flags read before the preset's: a bad one raises ConfigError (one line, exit status 2), as a bad
     config value does, instead of argparse's usage text."""
