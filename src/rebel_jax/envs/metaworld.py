@@ -1155,9 +1155,14 @@ class MetaWorldEnv(Env):
     def model(self, body_pos: jax.Array) -> mjx.Model:
         """The MJX model with the reset's moved body at ``body_pos`` (Meta-World moves it in the model); the model
         itself for a task whose reset moves no body (``TaskSpec.moved_body`` None)."""
+        return self._moved(self.sys, body_pos)
+
+    def _moved(self, sys: mjx.Model, body_pos: jax.Array) -> mjx.Model:
+        """``sys`` (the JAX or the Warp model) with the reset's moved body at ``body_pos``; ``sys`` itself where the
+        reset moves no body."""
         if self._moved_body is None:
-            return self.sys
-        return self.sys.replace(body_pos=self.sys.body_pos.at[self._moved_body].set(body_pos))
+            return sys
+        return sys.replace(body_pos=sys.body_pos.at[self._moved_body].set(body_pos))
 
     def current(self, d: mjx.Data) -> jax.Array:
         """The observation's first 18 numbers at ``d`` (kinematics current): Meta-World's
@@ -1316,9 +1321,7 @@ class MetaWorldEnv(Env):
         if self.impl == "jax":
             with _cpu_cholesky():
                 return jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
-        w_m = self._warp_sys
-        if self._moved_body is not None:
-            w_m = w_m.replace(body_pos=w_m.body_pos.at[self._moved_body].set(body_pos))
+        w_m = self._moved(self._warp_sys, body_pos)
         carried = (*STEP_STATE, *STATIC_POSES) if self._moved_body is not None else STEP_STATE
         w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
         w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)

@@ -244,8 +244,8 @@ def engine_note(args: Args, backend: str) -> str | None:
     if not env.task.startswith("metaworld_") or env.impl != "jax" or backend != "gpu":
         return None
     return (
-        f"note: {env.task} runs MJX's JAX step (--impl jax), 7.7 env steps/s at batch 1 on an H200; --impl warp "
-        "(pip install -e '.[warp]') ran 308 at batch 1 and 159,575 at 1,024 there (BENCHMARKS.md)"
+        f"note: {env.task} runs MJX's JAX step (--impl jax), far slower on a GPU than MuJoCo Warp's: add --impl warp "
+        "(pip install -e '.[warp]'; BENCHMARKS.md, \"How fast is a Meta-World step?\")"
     )
 
 
