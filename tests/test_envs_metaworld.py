@@ -332,3 +332,30 @@ def test_warp_replays_metaworlds_drawer_open_episodes(reference):
     steps = actions.shape[0]
     for e in np.where(ref["episode_scripted"])[0]:
         assert abs(np.asarray(success)[:, e].sum() - np.nansum(ref["success"][rows[e]])) <= 0.05 * steps
+
+
+@pytest.mark.heavy
+@needs_warp
+def test_warp_step_under_nested_vmap_equals_the_flat_batch(reference, resets):
+    """Warp's step of states vmapped twice, the inner axis over actions with the state unbatched there (as the
+    final evaluation runs the policy's and random actions from one reset), equals the step of the same worlds in
+    one flat batch. MJX broadcasts a Warp data's unbatched fields but not its model's, and Warp reads a batched
+    model field of world ``w`` at ``w % batch``: before the env tied the moved body's position to the data's batch,
+    every world past the first seed's stepped with another reset's drawer (5 seeds' final evaluation: success 0.22
+    where the rounds' evaluation read 1.0)."""
+    task = "drawer-open"
+    env, ref = metaworld.MetaWorldEnv(task, impl="warp", worlds=8), reference[task]
+    # The scripted episodes' steps where the fingers hold the handle (reward above 4): contact with the drawer.
+    rows = np.where((ref["t"] > 0) & (ref["t"] < metaworld.EPISODE_LENGTH) & (ref["reward"] > 4.0))[0]
+    first, second = (rows[ref["episode"][rows] == e] for e in np.unique(ref["episode"][rows])[:2])
+    rows = np.array([first[0], second[0], first[20], second[20]])  # neighbouring worlds from different resets
+    assert not np.allclose(*ref["episode_body_pos"][ref["episode"][rows[:2]]])  # two drawer positions
+    state = _states_at(env, ref, rows, resets[task])
+    actions = _f32(np.stack([ref["action"][rows + 1], -ref["action"][rows + 1]], 1))  # (4 states, 2 actions, 4)
+    nested = jax.jit(jax.vmap(jax.vmap(env.step, in_axes=(None, 0))))(state, actions)
+    flat_state = jax.tree.map(lambda x: jnp.repeat(x, 2, axis=0), state)
+    flat = jax.jit(jax.vmap(env.step))(flat_state, actions.reshape(8, 4))
+    np.testing.assert_allclose(
+        np.asarray(nested.pipeline_state.qpos).reshape(8, -1), np.asarray(flat.pipeline_state.qpos), atol=1e-5
+    )
+    np.testing.assert_allclose(np.asarray(nested.obs).reshape(8, -1), np.asarray(flat.obs), atol=1e-5)

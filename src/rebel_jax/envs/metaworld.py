@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import pathlib
 from collections.abc import Callable
 
@@ -1321,8 +1322,13 @@ class MetaWorldEnv(Env):
         if self.impl == "jax":
             with _cpu_cholesky():
                 return jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
-        w_m = self._moved(self._warp_sys, body_pos)
         carried = (*STEP_STATE, *STATIC_POSES) if self._moved_body is not None else STEP_STATE
+        # MJX broadcasts a Warp data's unbatched fields to the vmapped batch but not its model's, and Warp reads world
+        # w's batched model field at w % its batch (mujoco 3.17 mjx/warp/ffi.py:346-362, 415-440): a reset's body
+        # position unbatched on an axis where the step's data is batched (one reset stepped under several actions)
+        # would put another reset's body in most worlds. Both branches are the position: only the batch follows.
+        tie = functools.reduce(jnp.logical_or, [jnp.ravel(getattr(d, f))[:1] > 0 for f in carried if getattr(d, f).size])
+        w_m = self._moved(self._warp_sys, jnp.where(tie, body_pos, body_pos))
         w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
         w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
         return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, "qacc")})
