@@ -545,14 +545,19 @@ def summary(run_dir: str | os.PathLike, *, last: int = 10, **extra) -> dict:
 
 # -- plots -------------------------------------------------------------------------------
 def curve_figure(
-    curves: Mapping[str, Curve], path: pathlib.Path, title: str, xlabel: str | None = None, seeds: bool = False
+    curves: Mapping[str, Curve],
+    path: pathlib.Path,
+    title: str,
+    xlabel: str | None = None,
+    seeds: bool = False,
+    ylabel: str = "evaluation return (true reward)",
 ) -> None:
     """Writes ``path``: each label's mean +- std curve over seeds (``plot_curves``, with each seed's curve
-    if ``seeds``), titled, on one axes."""
+    if ``seeds``) of what ``ylabel`` names, titled, on one axes."""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_curves(ax, curves, seeds=seeds)
+    plot_curves(ax, curves, seeds=seeds, ylabel=ylabel)
     ax.legend(fontsize=8)
     if xlabel is not None:
         ax.set_xlabel(xlabel)

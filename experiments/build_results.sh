@@ -32,6 +32,9 @@ run experiments/rebel.py
 # results/quadruped_walk.png.
 run experiments/quadruped.py
 
+# SAC on Meta-World's true reward, success rates: results/metaworld.json and results/metaworld_sac.png.
+run experiments/metaworld.py
+
 # QPA and RUNE beside the five above: results/qpa_rune.json and results/qpa_rune_<task>.png.
 run experiments/qpa_rune.py
 
