@@ -211,3 +211,13 @@ def test_a_mistyped_task_gets_the_task_it_misspells(task, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert end.value.code == 2 and len(err) == 1, err
     assert f"env.task={typed!r} is invalid (did you mean {task}?)" in err[0], err
+
+
+def test_the_task_flag_s_help_names_every_registered_task_family(capsys, monkeypatch):
+    """``--task``'s help names each dm_control task and each Meta-World task the registry builds."""
+    from rebel_jax import envs  # noqa: PLC0415
+
+    text = " ".join(_help(["sac", "--help"], capsys, monkeypatch).replace("│", " ").split())
+    for task in (*envs.TASKS, *envs.METAWORLD_TASKS):
+        assert task.removeprefix("metaworld_") in text, task
+    assert "metaworld_<name>" in text

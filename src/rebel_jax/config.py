@@ -45,7 +45,8 @@ class EnvConfig:
     """Task name: walker_stand, walker_walk, walker_run, cheetah_run, quadruped_walk or quadruped_run (or
     ``probe_point``, a pure-JAX point mass that compiles in seconds, for tests of the training loop);
     ``<task>_pixels`` (and ``probe_point_pixels``; not the quadruped's) observe frame stacks, for ``--algo drqv2``,
-    ``pebble``, ``surf`` and ``rebel``."""
+    ``pebble``, ``surf`` and ``rebel``; ``metaworld_<name>`` for Meta-World's button-press, sweep-into, hammer,
+    drawer-open, door-open, door-unlock and window-open (states only; ``--impl warp`` on a GPU)."""
     solver: str = "default"
     """MJX solver preset: ``default`` (fast, see BENCHMARKS.md) or ``dm_control`` (100/50 iterations)."""
     num_envs: int = 10

@@ -1327,7 +1327,8 @@ class MetaWorldEnv(Env):
         # w's batched model field at w % its batch (mujoco 3.17 mjx/warp/ffi.py:346-362, 415-440): a reset's body
         # position unbatched on an axis where the step's data is batched (one reset stepped under several actions)
         # would put another reset's body in most worlds. Both branches are the position: only the batch follows.
-        tie = functools.reduce(jnp.logical_or, [jnp.ravel(getattr(d, f))[:1] > 0 for f in carried if getattr(d, f).size])
+        fields = [getattr(d, f) for f in carried if getattr(d, f).size]
+        tie = functools.reduce(jnp.logical_or, [jnp.ravel(x)[:1] > 0 for x in fields])
         w_m = self._moved(self._warp_sys, jnp.where(tie, body_pos, body_pos))
         w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
         w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
