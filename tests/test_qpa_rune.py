@@ -251,6 +251,28 @@ def test_qpa_session_runs_one_step_at_a_time_until_the_running_accuracy_reaches_
     np.testing.assert_allclose(float(metrics["train_accuracy"]), accuracy / max(steps, 1), rtol=1e-5)
 
 
+def test_qpa_s_meta_world_session_is_pebble_s_epochs_over_whole_segments():
+    """``reward_session='epochs'`` (QPA's Meta-World branch, train_QPA.py:136-141: ``train_reward``, no crops) trains
+    as the base method's session does, with the crop settings ignored."""
+    rcfg = RewardConfig(ensemble_size=1, hidden=16, depth=2, batch_size=8, lr=1e-2, max_epochs=6, stop_accuracy=0.9)
+    qpa = QPAConfig(reward_session="epochs", data_aug_ratio=4, crop=1)
+    cfg = dataclasses.replace(_qpa_config(), qpa=qpa)
+    stored = _labelled_state(rcfg, 12, 8)
+    trainer = types.SimpleNamespace(cfg=cfg, reward_cfg=rcfg, reward_optimizer=None)
+    keys = {"terms": jax.random.key(8), "train": jax.random.key(9)}
+
+    def session(method):
+        return jax.jit(lambda s: method.train_reward(trainer, _State(None), s, keys, jnp.int32(12), None, True))
+
+    ours, _, metrics = session(REGISTRY["qpa"])(stored)
+    pebble, _, expected = session(Method())(stored)
+    chex.assert_trees_all_close(ours.params, pebble.params)
+    assert int(metrics["epochs"]) == int(expected["epochs"]) >= 1
+    assert [type(t) for t in REGISTRY["qpa"].reward_terms(trainer, _State(None), keys["terms"], None)] == [
+        type(t) for t in Method().reward_terms(trainer, _State(None), keys["terms"], None)
+    ]
+
+
 def test_rune_adds_the_members_spread_weighted_by_a_decaying_beta():
     rcfg, rune = RewardConfig(ensemble_size=3, hidden=16, depth=2), RUNEConfig(beta_0=0.3, rho=1e-3)
     cfg = dataclasses.replace(_qpa_config(), algo="rune", rune=rune)
@@ -339,6 +361,39 @@ def test_the_qpa_preset_is_qpa_s_walker_walk_command():
     assert (cfg.query.segment_length, cfg.pretrain.k, cfg.pretrain.reset_updates) == (50, 5, 100)
     assert (cfg.sac.actor_lr, cfg.sac.critic_lr, cfg.sac.batch_size, cfg.sac.utd) == (5e-4, 5e-4, 1024, 1.0)
     assert cfg.qpa == QPAConfig(recent_episodes=10, her_ratio=0.5, data_aug_ratio=20, reward_update=2000)
+
+
+def test_the_qpa_metaworld_preset_is_qpa_s_drawer_open_command():
+    # huxiao09/QPA@7e9e49e, run_QPA.sh:35 (drawer-open), config/train_QPA.yaml, config/agent/sac.yaml.
+    cfg = cli.parse(["--preset", "qpa_metaworld"]).config.validate()
+    assert (cfg.algo, cfg.env.task, cfg.env.episode_length, cfg.train.total_steps, cfg.pretrain.steps) == (
+        "qpa",
+        "metaworld_drawer-open",
+        500,
+        1_000_000,
+        9_000,
+    )
+    assert (cfg.feedback.labels, cfg.feedback.queries, cfg.feedback.interval, cfg.feedback.budget) == (
+        3_000,
+        30,
+        5_000,
+        "asked",
+    )
+    assert (cfg.reward.ensemble_size, cfg.reward.max_epochs, cfg.reward.stop_accuracy, cfg.reward.batch_size) == (
+        1,
+        200,
+        0.97,
+        128,
+    )
+    assert (cfg.query.segment_length, cfg.query.sampling, cfg.train.eval_episodes) == (50, "uniform", 100)
+    assert (cfg.sac.actor_lr, cfg.sac.critic_lr, cfg.sac.hidden, cfg.sac.depth, cfg.sac.batch_size) == (
+        1e-4,
+        1e-4,
+        1024,
+        2,
+        1024,
+    )
+    assert (cfg.qpa.recent_episodes, cfg.qpa.her_ratio, cfg.qpa.reward_session) == (30, 0.5, "epochs")
 
 
 # Rounds of 20 vector steps on the probe task: 20 seed steps, 60 of pre-training, sessions at env steps 80, 120 and

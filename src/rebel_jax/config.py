@@ -24,6 +24,7 @@ from rebel_jax.agents.sac import MAX_UTD, Precision, SACConfig  # noqa: F401 - r
 from rebel_jax.core.errors import ConfigError  # noqa: F401 - re-exported: callers catch config.ConfigError
 from rebel_jax.core.errors import check as _check
 from rebel_jax.core.ranges import ANY_INTEGER, check_ranges
+from rebel_jax.methods.qpa import QPAConfig
 from rebel_jax.methods.rebel import AgentPreferenceConfig
 from rebel_jax.methods.surf import SURFConfig
 from rebel_jax.preference.budget import FeedbackConfig  # noqa: F401 - re-exported
@@ -96,7 +97,7 @@ class EnvConfig:
         if self.task in METAWORLD_TASKS and self.episode_length > EPISODE_LENGTH:
             raise ConfigError(
                 f"env.episode_length={self.episode_length} is invalid for {self.task}: Meta-World ends its episodes "
-                f"at {EPISODE_LENGTH} steps (--preset paper_metaworld sets it)"
+                f"at {EPISODE_LENGTH} steps (--preset paper_metaworld or qpa_metaworld sets it)"
             )
         _check(self.solver in SOLVERS, "env.solver", self.solver, f"one of {sorted(SOLVERS)}")
         _check(self.impl in IMPLS, "env.impl", self.impl, f"one of {list(IMPLS)}")
@@ -544,6 +545,32 @@ _QPA = dataclasses.replace(
 (``ensemble_size=1``) and uniform queries (``explore=false``; ``--algo qpa`` draws them uniformly anyway); its
 other settings are the ``qpa`` section's defaults. cheetah_run: ``--task cheetah_run --total-steps 1000000``."""
 
+
+def _qpa_metaworld() -> Config:
+    """QPA's Meta-World protocol (huxiao09/QPA@7e9e49e:run_QPA.sh:35, drawer-open): the ``qpa`` preset with
+    Meta-World's 500-step episodes, SAC's learning rates 1e-4, 1M steps, 3,000 labels, 30 per session every 5,000
+    steps (``num_interact``), queries from the last 30 episodes (``max_reward_buffer_size``), 100 evaluation episodes
+    (``num_eval_episodes``), and QPA's Meta-World reward sessions (``qpa.reward_session='epochs'``: up to 200 epochs,
+    ``reward_update``, stopped above 0.97 accuracy; train_QPA.py:136-141).
+
+    - door-open (run_QPA.sh:40): ``--task metaworld_door-open --qpa.recent-episodes 60``.
+    - door-unlock (run_QPA.sh:45): ``--task metaworld_door-unlock --feedback.labels 2000 --feedback.per-session 100
+      --feedback.interval 20000``.
+    - The networks: the scripts set none, so QPA's SAC defaults ran, 2 layers of 1024 and batch 1024
+      (config/agent/sac.yaml:22,31-32,39-40), which this preset keeps; that file's comment "512 for Meta-world" is
+      ``--sac.batch-size 512``.
+    """
+    return dataclasses.replace(
+        _QPA,
+        env=EnvConfig(task="metaworld_drawer-open", episode_length=500),
+        sac=SACConfig(actor_lr=1e-4, critic_lr=1e-4),
+        train=TrainConfig(total_steps=1_000_000, steps_per_round=5_000, eval_episodes=100),
+        feedback=dataclasses.replace(_QPA.feedback, labels=3_000, per_session=30, interval=5_000),
+        reward=dataclasses.replace(_QPA.reward, max_epochs=200),
+        qpa=QPAConfig(recent_episodes=30, reward_session="epochs"),
+    )
+
+
 _RIME = dataclasses.replace(
     _PAPER,
     algo="rime",
@@ -562,6 +589,7 @@ PRESETS: dict[str, Config] = {
     "paper_quadruped": _paper_quadruped(),
     "paper_metaworld": _paper_metaworld(),
     "qpa": _QPA,
+    "qpa_metaworld": _qpa_metaworld(),
     "rime": _RIME,
     "tiny": _tiny(),
     "demo": _demo(),
@@ -573,6 +601,7 @@ sampling (``feed_type=1`` in B-Pref's and SURF's walker commands) and its runnin
 reward (``pretrain.running_std='bpref'``, BPref ``utils.py:211-247``; notes/bpref_audit.md).
 ``paper_quadruped``: B-Pref's quadruped_walk settings (``_paper_quadruped``), the default on a quadruped task.
 ``paper_metaworld``: B-Pref's Meta-World settings (``_paper_metaworld``), the default on a Meta-World task.
-``qpa``: QPA's protocol (``_QPA``). ``rime``: RIME's walker_walk protocol (``_RIME``). ``tiny``: CPU tests of the
-CLI. ``demo``: ``make train``, a small preference-learning run that learns on a CPU (``_demo``).
+``qpa``: QPA's protocol (``_QPA``); ``qpa_metaworld``: its Meta-World protocol (``_qpa_metaworld``). ``rime``:
+RIME's walker_walk protocol (``_RIME``). ``tiny``: CPU tests of the CLI. ``demo``: ``make train``, a small
+preference-learning run that learns on a CPU (``_demo``).
 ``surf_pixels_walker`` and ``surf_pixels_cheetah``: SURF's pixel runs (``_surf_pixels``)."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +48,12 @@ class QPAConfig:
     """A session runs at most ``ceil(reward_update * labels / reward.batch_size)`` reward steps..."""
     stop_accuracy: float = 0.98
     """...and stops once the mean accuracy of its steps so far reaches this (above 1: never early)."""
+    reward_session: Literal["steps", "epochs"] = "steps"
+    """How a session trains the reward. ``steps``: QPA's on DeepMind Control (its ``train_reward_iter``, the three
+    settings above; train_QPA.py:142-145). ``epochs``: QPA's on Meta-World (train_QPA.py:136-141): PEBBLE's session,
+    up to ``reward.max_epochs`` epochs over the whole segments (its ``train_reward``, reward_model.py:618, crops none),
+    stopped once an epoch's accuracy is above ``reward.stop_accuracy``; ``data_aug_ratio``, ``crop``,
+    ``reward_update`` and ``stop_accuracy`` are then unused."""
 
     def validate(self, segment_length: int) -> None:
         """Checks the ranges; ``segment_length`` is H (``query.segment_length``)."""
@@ -56,6 +63,7 @@ class QPAConfig:
         check(0 <= 3 * self.crop < segment_length, "qpa.crop", self.crop, f">= 0, 3 crop < {segment_length} steps")
         check(self.reward_update >= 1, "qpa.reward_update", self.reward_update, ">= 1")
         check(self.stop_accuracy > 0, "qpa.stop_accuracy", self.stop_accuracy, "> 0")
+        check(self.reward_session in ("steps", "epochs"), "qpa.reward_session", self.reward_session, "steps, epochs")
 
 
 class QPA(Method):
@@ -91,11 +99,12 @@ class QPA(Method):
     def reward_terms(self, trainer, ts, key, agent_step):
         """The BT loss over ``data_aug_ratio`` random crops of every labelled pair (QPA's ``train_reward_iter``,
         reward_model.py:723-744: its labels repeated that many times), each crop ``H - 3 crop`` to ``H - crop``
-        steps of the stored H; the whole segments with ``data_aug_ratio`` 0. On pixels one crop per pair and
-        step, the accuracy counted on it: the members' convolutions bound the crops and steps."""
+        steps of the stored H; the whole segments with ``data_aug_ratio`` 0 or ``reward_session='epochs'``. On
+        pixels one crop per pair and step, the accuracy counted on it: the members' convolutions bound the crops and
+        steps."""
         del ts, key, agent_step  # Unused.
         rcfg, qpa = trainer.reward_cfg, trainer.cfg.qpa
-        if not qpa.data_aug_ratio:
+        if not qpa.data_aug_ratio or qpa.reward_session == "epochs":
             return [reward_model.bt_loss(rcfg)]
         if trainer.cfg.pixels:
             return [reward_model.bt_loss(rcfg, qpa.crop, crop_accuracy=True)]
@@ -103,9 +112,9 @@ class QPA(Method):
 
     def train_reward(self, trainer, ts, stored, keys, kept, agent_step, first):
         """One reward step at a time (:func:`reward_train.train_iterations`) while the steps' mean accuracy on
-        whole segments (QPA's: on the crops) is below ``stop_accuracy``, at most ``reward_update`` per label. On
-        pixels PEBBLE's session (``pixel_reward.max_epochs``, stopped early)."""
-        if trainer.cfg.pixels:
+        whole segments (QPA's: on the crops) is below ``stop_accuracy``, at most ``reward_update`` per label. With
+        ``reward_session='epochs'``, and on pixels, PEBBLE's session (``max_epochs`` epochs, stopped early)."""
+        if trainer.cfg.pixels or trainer.cfg.qpa.reward_session == "epochs":
             return super().train_reward(trainer, ts, stored, keys, kept, agent_step, first)
         rcfg, qpa = trainer.reward_cfg, trainer.cfg.qpa
         terms = self.reward_terms(trainer, ts.replace(reward=stored), keys["terms"], agent_step)
