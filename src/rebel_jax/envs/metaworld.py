@@ -886,7 +886,7 @@ for these models) overflow on contact-rich states and drop contacts."""
 def refusal(task: str, impl: str) -> str | None:
     """Why ``task``'s physics step does not run with ``impl``: a one-line reason, or None."""
     why = STEP_REFUSED.get(impl, {}).get(task)
-    return f"metaworld_{task} cannot step with impl={impl!r}: {why}" if why else None
+    return f"{PREFIX}{task} cannot step with impl={impl!r}: {why}" if why else None
 
 
 def mj_model(task: str) -> mujoco.MjModel:

@@ -31,6 +31,7 @@ import tyro
 from rebel_jax import methods
 from rebel_jax.config import AGENTS, PRESETS, Config, ConfigError
 from rebel_jax.core.ranges import check_ranges
+from rebel_jax.envs.metaworld import PREFIX as METAWORLD_PREFIX
 from rebel_jax.envs.pixels import SUFFIX as PIXEL_SUFFIX
 from rebel_jax.preference import teachers
 from rebel_jax.preference.budget import session_due
@@ -241,7 +242,7 @@ def engine_note(args: Args, backend: str) -> str | None:
     """A note where a Meta-World task runs MJX's JAX step on a GPU (``backend``: ``jax.default_backend()``): Warp's
     step is the fast one there (BENCHMARKS.md, "How fast is a Meta-World step?"); None otherwise."""
     env = args.config.env
-    if not env.task.startswith("metaworld_") or env.impl != "jax" or backend != "gpu":
+    if not env.task.startswith(METAWORLD_PREFIX) or env.impl != "jax" or backend != "gpu":
         return None
     return (
         f"note: {env.task} runs MJX's JAX step (--impl jax), far slower on a GPU than MuJoCo Warp's: add --impl warp "
