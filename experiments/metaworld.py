@@ -1,17 +1,19 @@
-"""``results/metaworld.json`` and ``results/metaworld_sac.png``: SAC on Meta-World's true reward, success rates.
+"""``results/metaworld.json``, ``results/metaworld_sac.png`` and ``results/metaworld_pbrl.png``: SAC on Meta-World's
+true reward, and PEBBLE and QPA on an oracle teacher's labels, success rates.
 
 Usage:
   python experiments/metaworld.py
 
-The runs of ``RUNS`` (``--preset paper_metaworld --impl warp``). Per task, read from each run's logs: the settings
-(``config.json``), the device, date, JAX version, commit and commands (``meta.json``, with every ``--resume``), and
-from ``metrics.jsonl`` the rounds' evaluations (10 episodes per seed every 10k steps, each episode's policy frozen at
-its start; an episode succeeds if any of its steps does, as B-Pref's ``evaluate`` counts, rll-research/BPref@f3ece2e:
-train_SAC.py:78): per seed the success rate at the last evaluation and the mean of the last 10 evaluations, their
-mean and sample std over seeds, the return at the last evaluation, and the first step at which every seed's success
-rate is 0.9 or more. ``final.json``'s separate end-of-run evaluation is reported where ``FINAL_NOT_USED`` does not
-say why it cannot be.
-The figure: each task's success rate, mean +- std over seeds with each seed's curve.
+The runs of ``RUNS`` (``--preset paper_metaworld`` or ``qpa_metaworld``, ``--impl warp``). Per run, read from its
+logs: the settings (``config.json``), the device, date, JAX version, commit and commands (``meta.json``, with every
+``--resume``), and from ``metrics.jsonl`` the rounds' evaluations (``train.eval_episodes`` episodes per seed every
+10k steps, each episode's policy frozen at its start; an episode succeeds if any of its steps does, as B-Pref's
+``evaluate`` counts, rll-research/BPref@f3ece2e:train_SAC.py:78) and the labels used: per seed the success rate at
+the last evaluation and the mean of the last 10 evaluations, their mean and sample std over seeds, the return at the
+last evaluation, and the first step at which every seed's success rate is 0.9 or more. ``final.json``'s separate
+end-of-run evaluation is reported where ``FINAL_NOT_USED`` does not say why it cannot be.
+The figures: each run's success rate, mean +- std over seeds with each seed's curve; SAC's in one, the preference
+methods' in the other.
 """
 
 from __future__ import annotations
@@ -22,11 +24,14 @@ import numpy as np
 from analysis import curve_figure, load_runs, sample_std
 from rebel import RESULTS
 
-RUNS = {
-    "button-press": "metaworld/sac_button-press_stopped770k",
-    "drawer-open": "metaworld/sac_drawer-open_1m",
-}
-"""Each task's run directory under results/runs."""
+RUNS = (
+    ("SAC", "button-press", "metaworld/sac_button-press_stopped770k"),
+    ("SAC", "drawer-open", "metaworld/sac_drawer-open_1m"),
+    ("PEBBLE", "button-press", "metaworld/pebble_button-press_stopped800k"),
+    ("PEBBLE", "sweep-into", "metaworld/pebble_sweep-into_stopped105k"),
+    ("QPA", "drawer-open", "metaworld/qpa_drawer-open_stopped585k"),
+)
+"""Each run: (method, task, its directory under results/runs)."""
 FINAL_NOT_USED = {
     "metaworld/sac_drawer-open_1m": (
         "its final evaluation ran the policy's and the random actions' episodes from one reset per episode, under "
@@ -43,6 +48,19 @@ LAST = 10
 def settings(cfg: dict, meta: dict) -> dict:
     """What a reader needs to know of a run's configuration, read from its ``config.json`` and ``meta.json``."""
     sac, train, env = cfg["sac"], cfg["train"], cfg["env"]
+    labels = {}
+    if cfg["algo"] != "sac":
+        feedback, reward = cfg["feedback"], cfg["reward"]
+        labels = {
+            "labels": feedback["labels"],
+            "labels_per_session": feedback["per_session"],
+            "session_interval": feedback["interval"],
+            "reward_max_epochs": reward["max_epochs"],
+            "reward_ensemble": reward["ensemble_size"],
+        }
+        if cfg["algo"] == "qpa":
+            labels["qpa_reward_session"] = cfg["qpa"]["reward_session"]
+            labels["qpa_recent_episodes"] = cfg["qpa"]["recent_episodes"]
     return {
         "algo": cfg["algo"],
         "task": env["task"],
@@ -59,6 +77,7 @@ def settings(cfg: dict, meta: dict) -> dict:
         "critic_lr": sac["critic_lr"],
         "utd": sac["utd"],
         "precision": sac["precision"],
+        **labels,
     }
 
 
@@ -82,8 +101,8 @@ def first_step_all_at(steps: np.ndarray, success: np.ndarray, level: float = 0.9
     return int(steps[hit[0]]) if hit.size else None
 
 
-def row(task: str, log: str) -> tuple[dict, tuple]:
-    """One task's table row, and its success curve for the figure."""
+def row(method: str, task: str, log: str) -> tuple[dict, tuple]:
+    """One run's table row, and its success curve for the figures."""
     run_dir = RESULTS / "runs" / log
     cfg = json.loads((run_dir / "config.json").read_text())
     meta = json.loads((run_dir / "meta.json").read_text())
@@ -91,6 +110,7 @@ def row(task: str, log: str) -> tuple[dict, tuple]:
     _, returns = load_runs(run_dir, "eval_return")
     last, last10 = success[-1], success[-LAST:].mean(axis=0)
     entry = {
+        "method": method,
         "task": task,
         "run": f"results/runs/{log}",
         **settings(cfg, meta),
@@ -99,6 +119,7 @@ def row(task: str, log: str) -> tuple[dict, tuple]:
         "success_last": {"per_seed": last.tolist(), "mean": float(last.mean()), "std": sample_std(last)},
         "success_last10": {"per_seed": last10.tolist(), "mean": float(last10.mean()), "std": sample_std(last10)},
         "return_last": {"mean": float(returns[-1].mean()), "std": sample_std(returns[-1])},
+        "labels_used": labels_used(run_dir, cfg),
         "all_seeds_at_0.9_from": first_step_all_at(steps, success),
         **provenance(meta),
     }
@@ -109,28 +130,45 @@ def row(task: str, log: str) -> tuple[dict, tuple]:
         values = json.loads(final.read_text())
         entry["final_json"] = {"used": True, "success": values["final_eval_success"], "return": values["mean"]}
     stop = "" if entry["finished"] else f", stopped at {entry['env_steps'] // 1000}k"
-    return entry, (f"{task}{stop}", (steps, success))
+    return entry, (f"{method} {task}{stop}", (steps, success))
+
+
+def labels_used(run_dir, cfg: dict) -> dict | None:
+    """The labels the teacher had given at the run's last round, mean over seeds, and the budget; None for SAC."""
+    if cfg["algo"] == "sac":
+        return None
+    *_, last = (json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip())
+    return {"used": float(np.mean(last["labels_used"])), "budget": cfg["feedback"]["labels"]}
 
 
 def main() -> None:
-    rows, curves = zip(*(row(task, log) for task, log in RUNS.items()), strict=True)
+    rows, curves = zip(*(row(*run) for run in RUNS), strict=True)
     (RESULTS / "metaworld.json").write_text(json.dumps({"rows": list(rows)}, indent=1) + "\n")
-    curve_figure(
-        dict(curves),
-        RESULTS / "metaworld_sac.png",
-        "SAC on Meta-World's reward (paper_metaworld, MuJoCo Warp): success rate",
-        seeds=True,
-        ylabel="success rate (10 evaluation episodes per seed)",
+    for name, title, mine in (
+        ("metaworld_sac.png", "SAC on Meta-World's reward (paper_metaworld, MuJoCo Warp)", lambda m: m == "SAC"),
+        ("metaworld_pbrl.png", "PEBBLE and QPA on an oracle's labels (MuJoCo Warp)", lambda m: m != "SAC"),
+    ):
+        curve_figure(
+            {label: c for (label, c), r in zip(curves, rows, strict=True) if mine(r["method"])},
+            RESULTS / name,
+            f"{title}: success rate",
+            seeds=True,
+            ylabel="success rate (evaluation episodes per seed)",
+        )
+    print(
+        "| method | task | seeds | steps | labels used | success at the last evaluation | last 10 evaluations "
+        "| return | all seeds >= 0.9 |"
     )
-    print("| task | seeds | steps | success at the last evaluation | last 10 evaluations | return | all seeds >= 0.9 |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        s, s10, ret = r["success_last"], r["success_last10"], r["return_last"]
+        s, s10, ret, used = r["success_last"], r["success_last10"], r["return_last"], r["labels_used"]
         first = r["all_seeds_at_0.9_from"]
+        asked = "-" if used is None else f"{used['used']:,.0f} of {used['budget']:,}"
         print(
-            f"| {r['task']} | {r['seeds']} | {r['env_steps']:,} | {s['mean']:.2f} +- {s['std']:.2f} | "
-            f"{s10['mean']:.2f} +- {s10['std']:.2f} | {ret['mean']:.0f} +- {ret['std']:.0f} | "
-            f"{'-' if first is None else f'{first:,}'} |"
+            f"| {r['method']} | {r['task']} | {r['seeds']} | {r['env_steps']:,} | "
+            f"{asked} | "
+            f"{s['mean']:.2f} +- {s['std']:.2f} | {s10['mean']:.2f} +- {s10['std']:.2f} | "
+            f"{ret['mean']:.0f} +- {ret['std']:.0f} | {'-' if first is None else f'{first:,}'} |"
         )
 
 

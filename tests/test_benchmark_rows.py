@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 FIELDS = ("device", "commit", "batch")
 
 
@@ -44,3 +46,24 @@ def test_the_knn_reward_benchmark_times_each_way_after_checking_they_agree(tmp_p
         (300, 128, "top_k"),
     ]
     assert all(r["ms"] > 0 and r["device"] and r["jax"] for r in rows)
+
+
+def test_the_meta_world_speed_table_divides_each_gpu_rate_by_the_host_cpus_rates(benchmark_script):
+    speed = benchmark_script("metaworld_speed_table")
+    row = lambda commit, batch, rate: {  # noqa: E731
+        "commit": commit,
+        "task": "metaworld_drawer-open",
+        "impl": "warp",
+        "batch": batch,
+        "env_steps_per_s": rate,
+        "ms_per_vector_step": batch / rate * 1e3,
+    }
+    gpu = {"rows": [row("old", 1024, 1.0), row("new", 1024, 300_000.0), {"commit": "new", "refused": "why"}]}
+    cpu = {"results": {"drawer-open": {"1": {"steps_per_s": 4000.0}, "60": {"steps_per_s": 120_000.0}}}}
+    rows = speed.rows_at(gpu, None)
+    assert [r["env_steps_per_s"] for r in rows] == [300_000.0]  # the last row's code, the refused row left out
+    line = speed.table(rows, cpu).splitlines()[2]
+    assert line.split("|")[6:8] == [" 75.0 ", " 2.5 "], line  # 300,000 / 4,000 and / 120,000
+    assert speed.rows_at(gpu, "old")[0]["env_steps_per_s"] == 1.0
+    with pytest.raises(SystemExit, match="no measured row"):
+        speed.rows_at(gpu, "missing")
