@@ -304,6 +304,20 @@ def test_warp_step_lands_where_mujoco_does(warp_envs, reference, resets, task):
 
 @pytest.mark.heavy
 @needs_warp
+def test_warp_reads_sweep_intos_contact_forces_as_metaworld_does(reference, resets):
+    """Under ``impl='warp'`` sweep-into's info reads its contact forces from MuJoCo Warp's own ``forward``
+    (``metaworld._warp_touching``), not MJX's JAX one: at every 4th recorded state (500), the observation, reward
+    and success equal Meta-World's, and the contact flag (``grasp_success``) differs on at most 1% of the states,
+    as the JAX step's does (``CONTACT_FLAGS``)."""
+    task = "sweep-into"
+    ref = reference[task]
+    rows = np.where(ref["t"] > 0)[0][::4]
+    assert ref["grasp_success"][rows].sum() > 10  # states where both pads push the object are among them
+    _compare_at_states(metaworld.MetaWorldEnv(task, impl="warp", worlds=len(rows)), ref, rows, resets[task])
+
+
+@pytest.mark.heavy
+@needs_warp
 def test_warp_replays_metaworlds_drawer_open_episodes(reference):
     """drawer-open's recorded episodes (random actions, and Meta-World's scripted policy's) played open-loop from
     their resets with Warp's step: each episode's return within 2% of Meta-World's, and the scripted episodes

@@ -173,7 +173,8 @@ class TaskSpec:
       accept: ``rand_vec -> bool``: the reset draws again until it holds (Meta-World's rejection loops); None: once.
       extra: ``model ids -> (mjx.Data -> (k,))``: what else of the state the reward reads (``Context.extra``).
       contacts: the reward's info reads contact forces, so observing a stepped state runs ``mjx.forward`` (contacts
-        and constraint forces) instead of only the kinematics.
+        and constraint forces) instead of only the kinematics; under ``impl='warp'`` Warp's own ``forward`` after
+        the step, read by :func:`_warp_touching` into ``extra``'s last number.
       shown_consts: ``model ids -> (mjx.Data -> (k,))``: episode constants that Meta-World's ``reset_model`` reads
         from MuJoCo's stale kinematics (those its reset observation shows; tasks without ``reset_forward``),
         appended to ``consts``.
@@ -431,6 +432,46 @@ def _pads_and_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]
         return jnp.concatenate([d.xpos[left], d.xpos[right], touching.astype(d.xpos.dtype)[None]])
 
     return extra
+
+
+_CONTACT_ROWS = tuple(
+    int(t)
+    for t in (
+        mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS,
+        mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL,
+        mujoco.mjtConstraint.mjCNSTR_CONTACT_ELLIPTIC,
+    )
+)
+"""The constraint rows' types of contacts (``efc_type``)."""
+
+
+def _warp_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+    """sweep-into's ``touching_main_object`` (the last number of :func:`_pads_and_touching`) from a MuJoCo Warp data
+    after its ``forward``: whether both pads' summed normal contact force with ``objGeom`` is positive.
+
+    Warp keeps the contacts of every world of a batch in one buffer (unbatched under ``vmap``) and each world's
+    constraint rows in its own (mujoco 3.17 mjx/warp/types.py ``_BATCH_DIM``); a world's contact row ``r`` names its
+    contact (``efc.id``), whose first row (``contact.efc_address[:, 0]``, the normal of an elliptic cone) is ``r``
+    (mjx/third_party/mujoco_warp/_src/constraint.py, the contact rows' kernels), so a world reads its own contacts
+    through its rows."""
+    geom = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
+    obj, pads = geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
+
+    def touching(w: mjx.Data) -> jax.Array:
+        impl = w._impl
+        rows = jnp.arange(impl.efc__force.shape[-1])
+        contact = jnp.isin(impl.efc__type, jnp.array(_CONTACT_ROWS)) & (rows < impl.nefc)
+        con = jnp.where(contact, impl.efc__id, 0)
+        normal = contact & (impl.contact__efc_address[con, 0] == rows)
+        pair = impl.contact__geom[con]
+
+        def pushes(pad: int) -> jax.Array:
+            mine = ((pair[:, 0] == pad) & (pair[:, 1] == obj)) | ((pair[:, 0] == obj) & (pair[:, 1] == pad))
+            return jnp.where(normal & mine, impl.efc__force, 0.0).sum() > 0
+
+        return pushes(pads[0]) & pushes(pads[1])
+
+    return touching
 
 
 def _sweep_reward(obs: jax.Array, c: Context) -> tuple[jax.Array, dict]:
@@ -1110,6 +1151,7 @@ class MetaWorldEnv(Env):
         self._objects = self.spec.objects(m)
         self._goal = self.spec.goal(m)
         self._extra = self.spec.extra(m) if self.spec.extra else (lambda d: jnp.zeros(0))
+        self._warp_touching = _warp_touching(m) if impl == "warp" and self.spec.contacts else None
         name = lambda kind, n: mujoco.mj_name2id(m, kind, n)  # noqa: E731
         self._hand = name(mujoco.mjtObj.mjOBJ_BODY, "hand")
         self._claws = (name(mujoco.mjtObj.mjOBJ_BODY, "rightclaw"), name(mujoco.mjtObj.mjOBJ_BODY, "leftclaw"))
@@ -1204,9 +1246,11 @@ class MetaWorldEnv(Env):
         action: jax.Array,
         shown=None,
         current: bool = False,
+        touching: jax.Array | None = None,
     ) -> State:
-        # After a step Meta-World runs mj_forward; the kinematics suffice unless the reward's info reads contacts.
-        contacts = self.spec.contacts and previous is not None and self._jax_collides
+        # After a step Meta-World runs mj_forward; the kinematics suffice unless the reward's info reads contacts
+        # (``touching``: Warp's forward has read them).
+        contacts = self.spec.contacts and previous is not None and self._jax_collides and touching is None
         if contacts:
             with _cpu_cholesky():
                 d = mjx.forward(m, d)
@@ -1216,9 +1260,10 @@ class MetaWorldEnv(Env):
         clip = previous is not None
         obs = self.observation(current, current if previous is None else previous, info["target_pos"], clip)
         # The reward reads the goal itself, not the observation's (zeros when the goal is hidden).
-        context = Context(
-            self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"], action, self._extra(d)
-        )
+        extra = self._extra(d)
+        if touching is not None:
+            extra = extra.at[-1].set(touching.astype(extra.dtype))
+        context = Context(self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"], action, extra)
         reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), context)
         if previous is None:  # Meta-World's reset returns no reward
             reward = jnp.zeros(())
@@ -1254,7 +1299,10 @@ class MetaWorldEnv(Env):
         zero = jnp.zeros(())
         if self.episode_length is not None:
             info.update(steps=jnp.ones((), jnp.int32), truncation=zero)
-        return self._observe(d, self.model(info["body_pos"]), previous, info, zero, action)
+        touching = None
+        if self._warp_touching is not None:  # as ``step`` reads the contacts under Warp
+            touching = self._warp_touching(mjx.forward(*self._to_warp(d, info["body_pos"])))
+        return self._observe(d, self.model(info["body_pos"]), previous, info, zero, action, touching=touching)
 
     def scene(self, state: State) -> jax.Array:
         """What a clip's frame of ``state`` needs beyond its ``qpos`` (:func:`frame_scene`; any leading batch axes)."""
@@ -1315,13 +1363,23 @@ class MetaWorldEnv(Env):
                 info["consts"] = jnp.concatenate([consts, self.spec.shown_consts(self.mujoco_model)(shown)])
         return self._observe(d, m, None, info, zero, jnp.zeros(4), shown=shown, current=True)
 
-    def _physics_steps(self, m: mjx.Model, d: mjx.Data, body_pos: jax.Array) -> mjx.Data:
+    def _physics_steps(self, m: mjx.Model, d: mjx.Data, body_pos: jax.Array) -> tuple[mjx.Data, jax.Array | None]:
         """The control step's :data:`FRAME_SKIP` physics steps from ``d`` under ``m`` (the JAX step), or under the
         Warp model with the reset's moved body at ``body_pos`` (``impl='warp'``): what a step carries over
-        (:data:`STEP_STATE`) goes to a Warp data and comes back with the step's accelerations."""
+        (:data:`STEP_STATE`) goes to a Warp data and comes back with the step's accelerations. Also, where the
+        reward reads contact forces under Warp, ``touching`` from Warp's ``forward`` of the stepped state (else
+        None)."""
         if self.impl == "jax":
             with _cpu_cholesky():
-                return jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d)
+                return jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(m, x), d), None
+        w_m, w = self._to_warp(d, body_pos)
+        w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
+        touching = None if self._warp_touching is None else self._warp_touching(mjx.forward(w_m, w))
+        return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, "qacc")}), touching
+
+    def _to_warp(self, d: mjx.Data, body_pos: jax.Array) -> tuple[mjx.Model, mjx.Data]:
+        """The Warp model with the reset's moved body at ``body_pos``, and a Warp data holding what a step carries
+        over from ``d`` (:data:`STEP_STATE`, and the moved body's geoms' poses)."""
         carried = (*STEP_STATE, *STATIC_POSES) if self._moved_body is not None else STEP_STATE
         # MJX broadcasts a Warp data's unbatched fields to the vmapped batch but not its model's, and Warp reads world
         # w's batched model field at w % its batch (mujoco 3.17 mjx/warp/ffi.py:346-362, 415-440): a reset's body
@@ -1330,9 +1388,7 @@ class MetaWorldEnv(Env):
         fields = [getattr(d, f) for f in carried if getattr(d, f).size]
         tie = functools.reduce(jnp.logical_or, [jnp.ravel(x)[:1] > 0 for x in fields])
         w_m = self._moved(self._warp_sys, jnp.where(tie, body_pos, body_pos))
-        w = jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
-        w = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, x: mjx.step(w_m, x), w)
-        return d.replace(**{f: getattr(w, f) for f in (*STEP_STATE, "qacc")})
+        return w_m, jax.tree.map(traced_constant, self._warp_data0).replace(**{f: getattr(d, f) for f in carried})
 
     def build_warp_kernels(self) -> None:
         """Builds and loads MuJoCo Warp's kernels for this model before a program steps it (``impl='warp'``;
@@ -1358,14 +1414,14 @@ class MetaWorldEnv(Env):
             mocap_quat=jnp.array([MOCAP_QUAT], d.mocap_quat.dtype),
             ctrl=jnp.stack([action[3], -action[3]]).astype(d.ctrl.dtype),
         )
-        d = self._physics_steps(m, d, state.info["body_pos"])
+        d, touching = self._physics_steps(m, d, state.info["body_pos"])
         info = dict(state.info)
         done = jnp.zeros_like(state.done)
         if self.episode_length is not None:
             info["steps"] = state.info["steps"] + 1
             done = (info["steps"] >= self.episode_length).astype(jnp.float32)
             info["truncation"] = done
-        return self._observe(d, m, state.obs[:18], info, done, action)
+        return self._observe(d, m, state.obs[:18], info, done, action, touching=touching)
 
 
 def make_env(
