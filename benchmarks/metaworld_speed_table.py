@@ -7,7 +7,7 @@ Reads the rows of ``benchmarks/results/metaworld_gpu_speed.json`` (``metaworld_g
 ``--commit`` (default: the last row's) and the ``metaworld`` package's rates on the GPU host's CPUs
 (``benchmarks/results/metaworld_cpu_speed_host.json``, ``metaworld_cpu_speed.py``), and prints one markdown row per
 task and batch: env steps per second, milliseconds a vector step, and the ratios to one CPU process and to the most
-processes measured on the host.
+processes measured on the host; then one row per task with the CPU's rates at each process count.
 """
 
 from __future__ import annotations
@@ -50,9 +50,11 @@ def table(rows: list[dict], cpu: dict) -> str:
             f"| {task} | {r['impl']} | {r['batch']:,} | {r['env_steps_per_s']:,.0f} | {r['ms_per_vector_step']:.2f} | "
             f"{ratio(r, rates, 1)} | {ratio(r, rates, most)} |"
         )
-    for task, rates in cpu["results"].items():
-        for n, rate in sorted(rates.items(), key=lambda kv: int(kv[0])):
-            out.append(f"| {task} | `metaworld` on the CPU, {n} process(es) | {n} | {rate['steps_per_s']:,.0f} | | | |")
+    for task, rates in cpu["results"].items():  # one row per task: its processes and rates, in order
+        ordered = sorted(rates.items(), key=lambda kv: int(kv[0]))
+        processes = " / ".join(n for n, _ in ordered)
+        steps = " / ".join(f"{rate['steps_per_s']:,.0f}" for _, rate in ordered)
+        out.append(f"| {task} | `metaworld` on the CPU, processes | {processes} | {steps} | | | |")
     return "\n".join(out)
 
 

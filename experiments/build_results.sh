@@ -32,7 +32,8 @@ run experiments/rebel.py
 # results/quadruped_walk.png.
 run experiments/quadruped.py
 
-# SAC on Meta-World's true reward, success rates: results/metaworld.json and results/metaworld_sac.png.
+# Meta-World: SAC on the true reward, PEBBLE and QPA on the oracle's labels, success rates: results/metaworld.json,
+# results/metaworld_sac.png and results/metaworld_pbrl.png.
 run experiments/metaworld.py
 
 # QPA and RUNE beside the five above: results/qpa_rune.json and results/qpa_rune_<task>.png.

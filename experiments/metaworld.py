@@ -137,8 +137,8 @@ def labels_used(run_dir, cfg: dict) -> dict | None:
     """The labels the teacher had given at the run's last round, mean over seeds, and the budget; None for SAC."""
     if cfg["algo"] == "sac":
         return None
-    *_, last = (json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip())
-    return {"used": float(np.mean(last["labels_used"])), "budget": cfg["feedback"]["labels"]}
+    _, used = load_runs(run_dir, "labels_used")
+    return {"used": float(used[-1].mean()), "budget": cfg["feedback"]["labels"]}
 
 
 def main() -> None:

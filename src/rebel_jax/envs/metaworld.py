@@ -174,7 +174,7 @@ class TaskSpec:
       extra: ``model ids -> (mjx.Data -> (k,))``: what else of the state the reward reads (``Context.extra``).
       contacts: the reward's info reads contact forces, so observing a stepped state runs ``mjx.forward`` (contacts
         and constraint forces) instead of only the kinematics; under ``impl='warp'`` Warp's own ``forward`` after
-        the step, read by :func:`_warp_touching` into ``extra``'s last number.
+        the step, read by :func:`_warp_touching` and passed to ``extra`` as ``touching``.
       shown_consts: ``model ids -> (mjx.Data -> (k,))``: episode constants that Meta-World's ``reset_model`` reads
         from MuJoCo's stale kinematics (those its reset observation shows; tasks without ``reset_forward``),
         appended to ``consts``.
@@ -410,28 +410,38 @@ def _sweep_objects(model: mujoco.MjModel) -> Callable[[mjx.Data], tuple[jax.Arra
     return objects
 
 
-def _pads_and_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
+def _pushes(pair: jax.Array, force: jax.Array, pad: int, obj: int) -> jax.Array:
+    """Whether the summed normal force of the contacts between geoms ``pad`` and ``obj`` is positive: ``pair``
+    (n, 2) each contact's geoms, ``force`` (n,) its normal force (0 where a row is no contact's normal)."""
+    mine = ((pair[:, 0] == pad) & (pair[:, 1] == obj)) | ((pair[:, 0] == obj) & (pair[:, 1] == pad))
+    return jnp.where(mine, force, 0.0).sum() > 0
+
+
+def _pads_and_touching(model: mujoco.MjModel) -> Callable[..., jax.Array]:
     """``extra`` of sweep-into: the pads' body positions (6; ``get_body_com``) and whether both pads push on the
     object (1; ``touching_main_object``, metaworld@3.1.1:metaworld/sawyer_xyz_env.py:393-440: each pad's summed
     normal contact force with ``objGeom`` is positive). Reads the contacts and constraint forces of the last
-    ``mjx.forward`` (zeros in a state that has not run one, such as the reset's)."""
+    ``mjx.forward`` (zeros in a state that has not run one, such as the reset's), unless ``touching`` is given
+    (MuJoCo Warp's, :func:`_warp_touching`)."""
     left, right = _body(model, "leftpad"), _body(model, "rightpad")
-    geom = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
-    obj, pads = geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
+    obj, pads = _sweep_geoms(model)
     # MJX's contacts are a fixed set of candidates whose constraint rows are fixed (the first: an elliptic contact's
     # normal); the collision fills in their geoms.
     address = np.asarray(mjx.make_data(model)._impl.contact.efc_address)
 
-    def pushes(d: mjx.Data, pad: int) -> jax.Array:
-        pair = d._impl.contact.geom
-        mine = ((pair[:, 0] == pad) & (pair[:, 1] == obj)) | ((pair[:, 0] == obj) & (pair[:, 1] == pad))
-        return jnp.where(mine, d._impl.efc_force[address], 0.0).sum() > 0
-
-    def extra(d: mjx.Data) -> jax.Array:
-        touching = pushes(d, pads[0]) & pushes(d, pads[1])
+    def extra(d: mjx.Data, touching: jax.Array | None = None) -> jax.Array:
+        if touching is None:
+            pair, force = d._impl.contact.geom, d._impl.efc_force[address]
+            touching = _pushes(pair, force, pads[0], obj) & _pushes(pair, force, pads[1], obj)
         return jnp.concatenate([d.xpos[left], d.xpos[right], touching.astype(d.xpos.dtype)[None]])
 
     return extra
+
+
+def _sweep_geoms(model: mujoco.MjModel) -> tuple[int, tuple[int, int]]:
+    """sweep-into's object geom and its two pads' geoms."""
+    geom = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
+    return geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
 
 
 _CONTACT_ROWS = tuple(
@@ -446,16 +456,15 @@ _CONTACT_ROWS = tuple(
 
 
 def _warp_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
-    """sweep-into's ``touching_main_object`` (the last number of :func:`_pads_and_touching`) from a MuJoCo Warp data
-    after its ``forward``: whether both pads' summed normal contact force with ``objGeom`` is positive.
+    """sweep-into's ``touching_main_object`` (see :func:`_pads_and_touching`) from a MuJoCo Warp data after its
+    ``forward``.
 
     Warp keeps the contacts of every world of a batch in one buffer (unbatched under ``vmap``) and each world's
     constraint rows in its own (mujoco 3.17 mjx/warp/types.py ``_BATCH_DIM``); a world's contact row ``r`` names its
     contact (``efc.id``), whose first row (``contact.efc_address[:, 0]``, the normal of an elliptic cone) is ``r``
     (mjx/third_party/mujoco_warp/_src/constraint.py, the contact rows' kernels), so a world reads its own contacts
     through its rows."""
-    geom = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
-    obj, pads = geom("objGeom"), (geom("leftpad_geom"), geom("rightpad_geom"))
+    obj, pads = _sweep_geoms(model)
 
     def touching(w: mjx.Data) -> jax.Array:
         impl = w._impl
@@ -463,13 +472,8 @@ def _warp_touching(model: mujoco.MjModel) -> Callable[[mjx.Data], jax.Array]:
         contact = jnp.isin(impl.efc__type, jnp.array(_CONTACT_ROWS)) & (rows < impl.nefc)
         con = jnp.where(contact, impl.efc__id, 0)
         normal = contact & (impl.contact__efc_address[con, 0] == rows)
-        pair = impl.contact__geom[con]
-
-        def pushes(pad: int) -> jax.Array:
-            mine = ((pair[:, 0] == pad) & (pair[:, 1] == obj)) | ((pair[:, 0] == obj) & (pair[:, 1] == pad))
-            return jnp.where(normal & mine, impl.efc__force, 0.0).sum() > 0
-
-        return pushes(pads[0]) & pushes(pads[1])
+        pair, force = impl.contact__geom[con], jnp.where(normal, impl.efc__force, 0.0)
+        return _pushes(pair, force, pads[0], obj) & _pushes(pair, force, pads[1], obj)
 
     return touching
 
@@ -1260,9 +1264,7 @@ class MetaWorldEnv(Env):
         clip = previous is not None
         obs = self.observation(current, current if previous is None else previous, info["target_pos"], clip)
         # The reward reads the goal itself, not the observation's (zeros when the goal is hidden).
-        extra = self._extra(d)
-        if touching is not None:
-            extra = extra.at[-1].set(touching.astype(extra.dtype))
+        extra = self._extra(d) if touching is None else self._extra(d, touching)
         context = Context(self.tcp_center(d), info["target_pos"], info["init_tcp"], info["consts"], action, extra)
         reward, metrics = self.spec.reward(obs.at[36:].set(info["target_pos"]), context)
         if previous is None:  # Meta-World's reset returns no reward
