@@ -27,8 +27,9 @@ from rebel import RESULTS
 RUNS = (
     ("SAC", "button-press", "metaworld/sac_button-press_stopped770k"),
     ("SAC", "drawer-open", "metaworld/sac_drawer-open_1m"),
+    ("SAC", "sweep-into", "metaworld/sac_sweep-into_stopped745k"),
     ("PEBBLE", "button-press", "metaworld/pebble_button-press_stopped800k"),
-    ("PEBBLE", "sweep-into", "metaworld/pebble_sweep-into_stopped105k"),
+    ("PEBBLE", "sweep-into", "metaworld/pebble_sweep-into_1m"),
     ("QPA", "drawer-open", "metaworld/qpa_drawer-open_stopped585k"),
 )
 """Each run: (method, task, its directory under results/runs)."""
