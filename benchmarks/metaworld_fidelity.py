@@ -204,8 +204,10 @@ def measure(
     return out
 
 
-def _at_states(env: metaworld.MetaWorldEnv, task: str, ref: dict, rows: np.ndarray, r) -> dict:
-    s = states_at(env, ref, rows, r)
+def _at_states(env: metaworld.MetaWorldEnv, task: str, ref: dict, rows: np.ndarray, r, chunk: int = 256) -> dict:
+    # about ``chunk`` states at a time: sweep-into's 2,000 at once (MJX's collision and solver each) ask for 25 GB
+    parts = [states_at(env, ref, part, r) for part in np.array_split(rows, -(-len(rows) // chunk))]
+    s = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
     out: dict = {}
     out["states"] = {
         "n": len(rows),
